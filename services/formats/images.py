@@ -1,0 +1,58 @@
+"""Reading and writing camera frames (8- or 16-bit PNG, BMP, TIFF) with errors that name the file."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from services.errors import InputError
+
+FRAME_SUFFIXES = (".png", ".bmp", ".tif", ".tiff")
+
+
+def read_frame(path: str | Path) -> np.ndarray:
+    """Read one frame as a 2-D grey array, keeping its bit depth (uint8 or uint16).
+
+    Colour frames are converted to grey with OpenCV's luma weights.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(f"{path}: frame file is missing")
+    image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if image is None:
+        raise InputError(f"{path}: cannot read the frame (not a PNG, BMP or TIFF image, or corrupt)")
+    if image.ndim == 3:
+        code = cv2.COLOR_BGRA2GRAY if image.shape[2] == 4 else cv2.COLOR_BGR2GRAY
+        image = cv2.cvtColor(image, code)
+    if image.dtype not in (np.uint8, np.uint16):
+        raise InputError(f"{path}: frames must be 8- or 16-bit integers; this one is {image.dtype}")
+    return image
+
+
+def read_frame_stack(paths: list[Path]) -> np.ndarray:
+    """Read frames into one (F, H, W) array; all must share size and bit depth."""
+    if not paths:
+        raise InputError("no frames to read")
+    first = read_frame(paths[0])
+    stack = np.empty((len(paths),) + first.shape, dtype=first.dtype)
+    stack[0] = first
+    for index, path in enumerate(paths[1:], start=1):
+        frame = read_frame(path)
+        if frame.shape != first.shape:
+            raise InputError(
+                f"{path}: frame is {frame.shape[1]}x{frame.shape[0]} but {paths[0].name} is "
+                f"{first.shape[1]}x{first.shape[0]}; all frames of a capture must have one size"
+            )
+        if frame.dtype != first.dtype:
+            raise InputError(f"{path}: frame is {frame.dtype} but {paths[0].name} is {first.dtype}")
+        stack[index] = frame
+    return stack
+
+
+def write_png(path: str | Path, image: np.ndarray) -> None:
+    """Write an 8- or 16-bit grey or BGR image as PNG."""
+    path = Path(path)
+    if not cv2.imwrite(str(path), image):
+        raise OSError(f"{path}: could not write the PNG")

@@ -1,0 +1,174 @@
+"""The rig file: named, calibrated devices sharing one world frame (a public format).
+
+```json
+{"units": "mm",
+ "devices": {"<name>": {"kind": "camera" | "projector" | "thermal",
+                        "width": 1280, "height": 800,
+                        "K": [[fx, s, cx], [0, fy, cy], [0, 0, 1]],
+                        "dist": [k1, k2, p1, p2, k3, ...],
+                        "R": [[...], [...], [...]], "t": [tx, ty, tz]}}}
+```
+
+(R, t) maps world to device coordinates, x_dev = R x_world + t, in millimetres
+with OpenCV axes (x right, y down, z forward). ``dist`` has 0, 4, 5, 8, 12 or 14
+coefficients in OpenCV order. Unknown fields are refused so that a typo is not
+silently ignored. See docs/formats.md.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Annotated, Literal
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
+
+from services.errors import InputError
+from services.geometry.camera import VALID_DISTORTION_LENGTHS
+
+DeviceKind = Literal["camera", "projector", "thermal"]
+_ROTATION_TOLERANCE = 1e-6
+Matrix3 = Annotated[list[Annotated[list[float], Field(min_length=3, max_length=3)]], Field(min_length=3, max_length=3)]
+
+
+class Device(BaseModel):
+    """One calibrated device: intrinsics, distortion and pose."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    kind: DeviceKind
+    width: int = Field(gt=0)
+    height: int = Field(gt=0)
+    K: Matrix3
+    dist: list[float] = Field(default_factory=list)
+    R: Matrix3 = Field(default_factory=lambda: np.eye(3).tolist())
+    t: Annotated[list[float], Field(min_length=3, max_length=3)] = Field(default_factory=lambda: [0.0, 0.0, 0.0])
+
+    @field_validator("K")
+    @classmethod
+    def _intrinsics_are_physical(cls, K: list[list[float]]) -> list[list[float]]:
+        k = np.asarray(K, dtype=float)
+        if not np.all(np.isfinite(k)):
+            raise ValueError("K contains a non-finite value")
+        if k[0, 0] <= 0 or k[1, 1] <= 0:
+            raise ValueError(f"focal lengths must be positive; got fx={k[0, 0]}, fy={k[1, 1]}")
+        if not np.allclose(k[2], [0, 0, 1]) or k[1, 0] != 0:
+            raise ValueError("K must be upper triangular with last row [0, 0, 1]")
+        return K
+
+    @field_validator("dist")
+    @classmethod
+    def _distortion_length_is_opencv(cls, dist: list[float]) -> list[float]:
+        if len(dist) not in VALID_DISTORTION_LENGTHS:
+            raise ValueError(f"must have one of {VALID_DISTORTION_LENGTHS} coefficients; got {len(dist)}")
+        if not np.all(np.isfinite(dist)):
+            raise ValueError("contains a non-finite value")
+        return dist
+
+    @field_validator("R")
+    @classmethod
+    def _is_rotation(cls, R: list[list[float]]) -> list[list[float]]:
+        r = np.asarray(R, dtype=float)
+        orthogonality = np.abs(r @ r.T - np.eye(3)).max()
+        if not np.isfinite(orthogonality) or orthogonality > _ROTATION_TOLERANCE or np.linalg.det(r) < 0:
+            raise ValueError(
+                f"R is not a rotation matrix (max |R R^T - I| = {orthogonality:.2g}, det = {np.linalg.det(r):.4g})"
+            )
+        return R
+
+    @field_validator("t")
+    @classmethod
+    def _translation_is_finite(cls, t: list[float]) -> list[float]:
+        if not np.all(np.isfinite(t)):
+            raise ValueError("contains a non-finite value")
+        return t
+
+    @property
+    def K_array(self) -> np.ndarray:
+        return np.asarray(self.K, dtype=np.float64)
+
+    @property
+    def dist_array(self) -> np.ndarray:
+        return np.asarray(self.dist, dtype=np.float64)
+
+    @property
+    def R_array(self) -> np.ndarray:
+        return np.asarray(self.R, dtype=np.float64)
+
+    @property
+    def t_array(self) -> np.ndarray:
+        return np.asarray(self.t, dtype=np.float64)
+
+    @property
+    def size(self) -> tuple[int, int]:
+        """(width, height) in pixels."""
+        return self.width, self.height
+
+
+class Rig(BaseModel):
+    """Named devices in one world frame, lengths in millimetres."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    units: Literal["mm"] = "mm"
+    devices: dict[str, Device]
+
+    def device(self, name: str | None, kind: DeviceKind) -> tuple[str, Device]:
+        """The device called ``name``, or the only device of ``kind`` when ``name`` is None.
+
+        Raises
+        ------
+        InputError
+            When the device is missing, of another kind, or ambiguous.
+        """
+        if name is not None:
+            if name not in self.devices:
+                raise InputError(f"the rig has no device named {name!r} (it has {sorted(self.devices)})")
+            if self.devices[name].kind != kind:
+                raise InputError(f"rig device {name!r} is a {self.devices[name].kind}, not a {kind}")
+            return name, self.devices[name]
+        matching = [n for n, d in self.devices.items() if d.kind == kind]
+        if len(matching) != 1:
+            found = f"several ({', '.join(matching)}); name one" if matching else "none"
+            raise InputError(f"the rig must have exactly one {kind} device to pick by default; it has {found}")
+        return matching[0], self.devices[matching[0]]
+
+
+def _describe_validation_error(source: str, error: ValidationError) -> str:
+    lines = []
+    for item in error.errors():
+        location = ".".join(str(part) for part in item["loc"]) or "(top level)"
+        message = item["msg"].removeprefix("Value error, ")
+        lines.append(f"{source}: {location}: {message}")
+    return "\n".join(lines)
+
+
+def parse_rig(text: str, source: str = "rig") -> Rig:
+    """Validate rig JSON text; errors name ``source``, the device and the field."""
+    try:
+        return Rig.model_validate_json(text)
+    except ValidationError as error:
+        raise InputError(_describe_validation_error(source, error)) from None
+
+
+def load_rig(path: str | Path) -> Rig:
+    """Read and validate a rig file."""
+    path = Path(path)
+    try:
+        text = path.read_text()
+    except OSError as error:
+        raise InputError(f"{path}: cannot read the rig file ({error.strerror or error})") from None
+    return parse_rig(text, str(path))
+
+
+def rig_to_json(rig: Rig) -> str:
+    return json.dumps(rig.model_dump(), indent=2)
+
+
+def save_rig(rig: Rig, path: str | Path) -> None:
+    """Write a rig file atomically (a reader never sees half a file)."""
+    path = Path(path)
+    temporary = path.with_name(path.name + ".part")
+    temporary.write_text(rig_to_json(rig) + "\n")
+    temporary.replace(path)
