@@ -1,0 +1,69 @@
+"""The one configuration object of the thermofield service, read from ``THERMOFIELD_*`` environment variables.
+
+Every process (``thermofield serve``, ``api``, ``worker``, ``gateway``) builds its
+configuration here and nowhere else. Unset locations derive from ``data_dir``, so the
+embedded default needs no configuration at all; the scaled-out deployment sets
+``THERMOFIELD_DATABASE_URL``, ``THERMOFIELD_BROKER_URL`` and the artifact directory.
+See docs/api.md ("Configuration").
+"""
+
+from __future__ import annotations
+
+from functools import lru_cache
+from pathlib import Path
+
+from pydantic import Field
+from pydantic_settings import BaseSettings, SettingsConfigDict
+
+
+class Settings(BaseSettings):
+    """Service configuration; each field is the environment variable ``THERMOFIELD_<NAME>``."""
+
+    model_config = SettingsConfigDict(env_prefix="THERMOFIELD_", extra="ignore")
+
+    data_dir: Path = Field(Path("thermofield-data"), description="Root of the embedded database and artifacts.")
+    database_url: str | None = Field(
+        None, description="SQLAlchemy URL; default SQLite (WAL) at DATA_DIR/thermofield.db."
+    )
+    database_schema: str | None = Field(
+        None, description="PostgreSQL schema holding the tables (isolates deployments sharing one database)."
+    )
+    broker_url: str | None = Field(
+        None, description="RabbitMQ AMQP URL; unset means the embedded in-process worker."
+    )
+    artifact_dir: Path | None = Field(None, description="Content-addressed artifact store; default DATA_DIR/artifacts.")
+
+    api_host: str = Field("127.0.0.1", description="Address the HTTP API binds to.")
+    api_port: int = Field(8000, ge=0, le=65535, description="Port of the HTTP API.")
+
+    gateway_url: str = Field("http://127.0.0.1:8001", description="Base URL of the device gateway.")
+
+    rerun_host: str = Field("127.0.0.1", description="Address the Rerun gRPC proxy binds to / is reached at.")
+    rerun_port: int = Field(9876, ge=0, le=65535, description="Port of the Rerun gRPC proxy.")
+
+    mqtt_host: str | None = Field("127.0.0.1", description="MQTT broker host; empty disables events.")
+    mqtt_port: int = Field(1883, ge=1, le=65535, description="MQTT broker port.")
+    site: str = Field("plant", pattern=r"^[A-Za-z0-9_-]+$", description="First level of the MQTT topic tree.")
+    station: str = Field("station1", pattern=r"^[A-Za-z0-9_-]+$", description="Second level of the MQTT topic tree.")
+
+    worker_processes: int = Field(2, ge=1, description="Worker processes started by `thermofield worker`.")
+    worker_threads: int = Field(1, ge=1, description="Jobs run at once per worker process.")
+    compute_threads: int = Field(2, ge=1, description="Numeric threads (numba, OpenCV, BLAS) per worker process.")
+
+    @property
+    def resolved_database_url(self) -> str:
+        return self.database_url or f"sqlite:///{(self.data_dir / 'thermofield.db').resolve()}"
+
+    @property
+    def resolved_artifact_dir(self) -> Path:
+        return self.artifact_dir or self.data_dir / "artifacts"
+
+    @property
+    def topic_prefix(self) -> str:
+        return f"{self.site}/{self.station}"
+
+
+@lru_cache
+def get_settings() -> Settings:
+    """The process's settings, read once from the environment."""
+    return Settings()
