@@ -55,6 +55,8 @@ class Device(BaseModel):
             raise ValueError(f"focal lengths must be positive; got fx={k[0, 0]}, fy={k[1, 1]}")
         if not np.allclose(k[2], [0, 0, 1]) or k[1, 0] != 0:
             raise ValueError("K must be upper triangular with last row [0, 0, 1]")
+        if k[0, 1] != 0:
+            raise ValueError("K[0][1] (skew) must be 0: OpenCV's camera model has no skew")
         return K
 
     @field_validator("dist")
