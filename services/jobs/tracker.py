@@ -1,0 +1,113 @@
+"""Job lifecycle in the database: queued -> running -> succeeded | failed, with progress and retries.
+
+Every change is committed at once (so the API, SSE streams and other processes see
+it) and then published over MQTT when a publisher is configured. A job whose
+attempt fails but will be retried goes back to ``queued`` with the error kept.
+Jobs that a crash left ``queued`` or ``running`` are found by :meth:`JobTracker.recover`.
+"""
+
+from __future__ import annotations
+
+from datetime import UTC, datetime
+from typing import Any
+
+from sqlalchemy import select
+from sqlalchemy.orm import Session, sessionmaker
+
+from services.db.models import TERMINAL_STATUSES, Job, Scan
+from services.events.mqtt import EventPublisher, job_topic, scan_topic
+
+
+def job_state(job: Job) -> dict[str, Any]:
+    """The public state of a job (the API body and the MQTT payload share it)."""
+    return {
+        "job_id": job.id,
+        "kind": job.kind,
+        "status": job.status,
+        "stage": job.stage,
+        "fraction": round(job.fraction, 4),
+        "attempts": job.attempts,
+        "error": job.error,
+        "result": job.result,
+        "scan_id": job.params.get("scan_id"),
+        "created_at": job.created_at.isoformat() if job.created_at else None,
+        "started_at": job.started_at.isoformat() if job.started_at else None,
+        "finished_at": job.finished_at.isoformat() if job.finished_at else None,
+    }
+
+
+class JobTracker:
+    """Records job state changes in the database and announces them."""
+
+    def __init__(self, sessions: sessionmaker[Session], publisher: EventPublisher | None = None) -> None:
+        self.sessions = sessions
+        self.publisher = publisher
+
+    def create(self, session: Session, kind: str, params: dict[str, Any]) -> Job:
+        """Add a queued job to ``session`` (the caller commits, then calls :meth:`announce`)."""
+        job = Job(kind=kind, params=params)
+        session.add(job)
+        session.flush()
+        return job
+
+    def start(self, job_id: str) -> Job | None:
+        """Mark an attempt as running; None when the job is unknown or already finished."""
+        with self.sessions.begin() as session:
+            job = session.get(Job, job_id, with_for_update=True)
+            if job is None or job.status in TERMINAL_STATUSES:
+                return None
+            job.status, job.stage, job.fraction = "running", "starting", 0.0
+            job.attempts += 1
+            job.started_at = datetime.now(UTC)
+        self.announce(job)
+        return job
+
+    def progress(self, job_id: str, stage: str, fraction: float) -> None:
+        if not 0.0 <= fraction <= 1.0:
+            raise ValueError(f"Progress fraction must lie in [0, 1]; got {fraction}.")
+        self._update(job_id, stage=stage, fraction=fraction)
+
+    def succeed(self, job_id: str, result: dict[str, Any]) -> None:
+        self._update(job_id, status="succeeded", stage="done", fraction=1.0, result=result, error=None,
+                     finished_at=datetime.now(UTC))
+
+    def fail(self, job_id: str, error: str, will_retry: bool) -> None:
+        if will_retry:
+            self._update(job_id, status="queued", stage="retrying", error=error)
+        else:
+            self._update(job_id, status="failed", stage="failed", error=error, finished_at=datetime.now(UTC))
+
+    def recover(self) -> list[Job]:
+        """Jobs a crash left unfinished, put back to ``queued`` so they can be sent again."""
+        with self.sessions.begin() as session:
+            jobs = list(session.scalars(select(Job).where(Job.status.in_(("queued", "running")))))
+            for job in jobs:
+                if job.status == "running":
+                    job.status, job.stage, job.error = "queued", "recovered", "interrupted by a restart"
+        for job in jobs:
+            self.announce(job)
+        return jobs
+
+    def announce(self, job: Job) -> None:
+        """Publish the job's state, and its scan's when it is a scan job."""
+        if self.publisher is None:
+            return
+        state = job_state(job)
+        self.publisher.publish(job_topic(self.publisher.prefix, job.id), state)
+        scan_id = job.params.get("scan_id")
+        if scan_id is not None:
+            with self.sessions() as session:
+                scan = session.get(Scan, scan_id)
+                summary = scan.summary if scan is not None else None
+            scan_state = {"scan_id": scan_id, **{k: v for k, v in state.items() if k != "scan_id"},
+                          "summary": summary}
+            self.publisher.publish(scan_topic(self.publisher.prefix, scan_id), scan_state)
+
+    def _update(self, job_id: str, **changes: Any) -> None:
+        with self.sessions.begin() as session:
+            job = session.get(Job, job_id)
+            if job is None:
+                raise KeyError(f"job {job_id} does not exist")
+            for name, value in changes.items():
+                setattr(job, name, value)
+        self.announce(job)

@@ -1,0 +1,97 @@
+"""A content-addressed artifact store in a directory: each blob is named by its SHA-256.
+
+Layout: ``ROOT/sha256/ab/abcdef...`` (two-character fan-out). Blobs are immutable;
+writing the same content twice stores it once. Every write goes to a temporary
+file that is renamed into place, so a reader never sees a partial blob and a
+crash never corrupts a stored one.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import os
+import re
+import tempfile
+from pathlib import Path
+
+_DIGEST = re.compile(r"^[0-9a-f]{64}$")
+_CHUNK = 1 << 20
+
+
+class ArtifactStore:
+    """Blobs under ``root`` addressed by their SHA-256 hex digest."""
+
+    def __init__(self, root: str | Path) -> None:
+        self.root = Path(root)
+        self._objects = self.root / "sha256"
+        self._incoming = self.root / "incoming"
+        self._objects.mkdir(parents=True, exist_ok=True)
+        self._incoming.mkdir(parents=True, exist_ok=True)
+
+    def path(self, digest: str) -> Path:
+        """Where the blob ``digest`` lives; ``KeyError`` if it is not stored."""
+        if not _DIGEST.match(digest):
+            raise KeyError(f"{digest!r} is not a SHA-256 hex digest")
+        path = self._objects / digest[:2] / digest
+        if not path.is_file():
+            raise KeyError(f"artifact {digest} is not in the store at {self.root}")
+        return path
+
+    def exists(self, digest: str) -> bool:
+        try:
+            self.path(digest)
+        except KeyError:
+            return False
+        return True
+
+    def put_bytes(self, data: bytes) -> str:
+        """Store ``data``; return its digest."""
+        with self._temporary() as (handle, temporary):
+            handle.write(data)
+        return self._commit(temporary, hashlib.sha256(data).hexdigest())
+
+    def put_file(self, source: str | Path) -> str:
+        """Copy the file ``source`` into the store (streaming); return its digest."""
+        hasher = hashlib.sha256()
+        with open(source, "rb") as reader, self._temporary() as (handle, temporary):
+            while chunk := reader.read(_CHUNK):
+                hasher.update(chunk)
+                handle.write(chunk)
+        return self._commit(temporary, hasher.hexdigest())
+
+    def read_bytes(self, digest: str) -> bytes:
+        return self.path(digest).read_bytes()
+
+    def _temporary(self):
+        return _TemporaryFile(self._incoming)
+
+    def _commit(self, temporary: Path, digest: str) -> str:
+        target = self._objects / digest[:2] / digest
+        if target.is_file():
+            temporary.unlink()
+        else:
+            target.parent.mkdir(exist_ok=True)
+            temporary.replace(target)
+        return digest
+
+
+class _TemporaryFile:
+    """A file in ``directory`` that is flushed to disk on success and removed on failure."""
+
+    def __init__(self, directory: Path) -> None:
+        self.directory = directory
+
+    def __enter__(self):
+        descriptor, name = tempfile.mkstemp(dir=self.directory, suffix=".part")
+        self.path = Path(name)
+        self.handle = os.fdopen(descriptor, "wb")
+        return self.handle, self.path
+
+    def __exit__(self, exc_type, exc, traceback) -> None:
+        if exc_type is None:
+            self.handle.flush()
+            os.fsync(self.handle.fileno())
+        self.handle.close()
+        if exc_type is not None:
+            self.path.unlink(missing_ok=True)
+
