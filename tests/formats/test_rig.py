@@ -1,0 +1,67 @@
+import json
+
+import numpy as np
+import pytest
+
+from services.errors import InputError
+from services.formats.rig import load_rig, parse_rig, rig_to_json, save_rig
+
+
+def _device(**overrides):
+    device = {"kind": "camera", "width": 1280, "height": 800,
+              "K": [[1400, 0, 640], [0, 1400, 400], [0, 0, 1]], "dist": [0.1, -0.05, 0, 0, 0.01],
+              "R": np.eye(3).tolist(), "t": [0, 0, 0]}
+    device.update(overrides)
+    return device
+
+
+def _rig_text(**overrides):
+    return json.dumps({"units": "mm", "devices": {"cam": _device(**overrides),
+                                                   "proj": _device(kind="projector", dist=[])}})
+
+
+def test_round_trip(tmp_path):
+    rig = parse_rig(_rig_text())
+    save_rig(rig, tmp_path / "rig.json")
+    again = load_rig(tmp_path / "rig.json")
+    assert again == rig
+    assert json.loads(rig_to_json(rig))["devices"]["cam"]["kind"] == "camera"
+    np.testing.assert_array_equal(again.devices["cam"].K_array, rig.devices["cam"].K_array)
+
+
+@pytest.mark.parametrize("overrides, field, words", [
+    ({"R": [[1, 0, 0], [0, 1, 0], [0, 0.2, 1]]}, "devices.cam.R", "not a rotation"),
+    ({"R": [[-1, 0, 0], [0, 1, 0], [0, 0, 1]]}, "devices.cam.R", "not a rotation"),
+    ({"K": [[-5, 0, 640], [0, 1400, 400], [0, 0, 1]]}, "devices.cam.K", "focal lengths must be positive"),
+    ({"K": [[1400, 3, 640], [0, 1400, 400], [0, 0, 1]]}, "devices.cam.K", "skew"),
+    ({"kind": "lidar"}, "devices.cam.kind", "camera"),
+    ({"dist": [0.1, 0.2, 0.3]}, "devices.cam.dist", "coefficients"),
+    ({"width": 0}, "devices.cam.width", "greater than 0"),
+    ({"t": [0, 0]}, "devices.cam.t", "at least 3"),
+    ({"colour": "red"}, "devices.cam.colour", "Extra inputs"),
+])
+def test_impossible_rigs_are_refused_naming_device_and_field(overrides, field, words):
+    with pytest.raises(InputError) as error:
+        parse_rig(_rig_text(**overrides), "rig.json")
+    assert f"rig.json: {field}" in str(error.value)
+    assert words in str(error.value)
+
+
+def test_unreadable_and_malformed_files(tmp_path):
+    with pytest.raises(InputError, match="cannot read the rig file"):
+        load_rig(tmp_path / "missing.json")
+    (tmp_path / "bad.json").write_text("{not json")
+    with pytest.raises(InputError, match="bad.json"):
+        load_rig(tmp_path / "bad.json")
+
+
+def test_device_lookup_by_name_and_kind():
+    rig = parse_rig(_rig_text())
+    assert rig.device(None, "camera")[0] == "cam"
+    assert rig.device("proj", "projector")[0] == "proj"
+    with pytest.raises(InputError, match="no device named 'nope'"):
+        rig.device("nope", "camera")
+    with pytest.raises(InputError, match="is a projector, not a camera"):
+        rig.device("proj", "camera")
+    with pytest.raises(InputError, match="exactly one thermal"):
+        rig.device(None, "thermal")
