@@ -1,0 +1,65 @@
+"""``thermofield reconstruct``: a structured-light capture directory to a point cloud PLY."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+import numpy as np
+
+from services.errors import InputError
+from services.formats.ply import write_cloud
+from services.formats.rig import load_rig
+from services.formats.sequence import read_capture
+from services.structured_light.decode import decode
+from services.structured_light.reconstruct import reconstruct_points
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    parser = subparsers.add_parser(
+        "reconstruct",
+        help="decode a structured-light capture and triangulate a point cloud",
+        description="Decode the frames of a capture directory (sequence.json + camera frames) and "
+                    "triangulate them with the rig's camera and projector into a binary PLY.",
+    )
+    parser.add_argument("--rig", required=True, type=Path, help="rig file (JSON)")
+    parser.add_argument("--captures", required=True, type=Path, help="directory with sequence.json and the frames")
+    parser.add_argument("--out", required=True, type=Path, help="output point cloud (.ply)")
+    parser.add_argument("--camera", help="camera device name (default: the rig's only camera)")
+    parser.add_argument("--projector", help="projector device name (default: the rig's only projector)")
+    parser.set_defaults(handler=_run)
+
+
+def reconstruct_from_files(rig_path: Path, captures: Path, camera_name: str | None = None,
+                           projector_name: str | None = None) -> dict[str, np.ndarray]:
+    """Read a rig and a capture directory and reconstruct; every error names the file at fault."""
+    rig = load_rig(rig_path)
+    _, camera = rig.device(camera_name, "camera")
+    _, projector = rig.device(projector_name, "projector")
+    sequence, frames = read_capture(captures)
+    if (sequence.projector.width, sequence.projector.height) != projector.size:
+        raise InputError(
+            f"{captures / 'sequence.json'}: the manifest is for a {sequence.projector.width}x"
+            f"{sequence.projector.height} projector but the rig's projector is {projector.width}x{projector.height}"
+        )
+    if (frames.shape[2], frames.shape[1]) != camera.size:
+        raise InputError(
+            f"{captures}: frames are {frames.shape[2]}x{frames.shape[1]} but the rig's camera is "
+            f"{camera.width}x{camera.height}"
+        )
+    cloud = reconstruct_points(frames, sequence, camera, projector)
+    if len(cloud["x"]) == 0:
+        counts = np.bincount(decode(frames, sequence).rejection.ravel())
+        reasons = ", ".join(f"code {code}: {count} px" for code, count in enumerate(counts) if count)
+        raise InputError(
+            f"{captures}: no point could be reconstructed (rejected pixels by reason {reasons}; see "
+            "docs/sequence-manifest.md for the codes); check exposure, the manifest and the rig"
+        )
+    return cloud
+
+
+def _run(args: argparse.Namespace) -> int:
+    cloud = reconstruct_from_files(args.rig, args.captures, args.camera, args.projector)
+    write_cloud(args.out, cloud, comments=[f"thermofield reconstruct of {args.captures.name}"])
+    print(f"{args.out}: {len(cloud['x'])} points")
+    return 0

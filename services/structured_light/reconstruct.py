@@ -1,0 +1,117 @@
+"""From a decoded structured-light capture to a point cloud with per-point properties."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from services.formats.rig import Device
+from services.formats.sequence import Sequence
+from services.structured_light.decode import DecodedCapture, decode
+from services.structured_light.triangulate import camera_ray_table, triangulate
+
+
+def coded_axis(decoded: DecodedCapture, camera: Device, projector: Device) -> str:
+    """The projector axis to triangulate against: the coded one that best crosses the baseline.
+
+    A coded projector column constrains depth when the camera-projector baseline runs across the
+    columns (along projector x); a row when it runs along projector y.
+    """
+    available = [axis for axis in ("x", "y") if getattr(decoded, f"projector_{axis}") is not None]
+    if not available:
+        raise ValueError("The capture codes neither projector axis, so nothing can be triangulated.")
+    camera_centre = -camera.R_array.T @ camera.t_array
+    baseline = projector.R_array @ camera_centre + projector.t_array
+    return max(available, key=lambda axis: abs(baseline[0 if axis == "x" else 1]))
+
+
+def surface_normals(points_map: np.ndarray, camera_centre: np.ndarray) -> np.ndarray:
+    """Unit normals of an organised point map from central differences, facing the camera.
+
+    Parameters
+    ----------
+    points_map : (H, W, 3) array
+        World points per camera pixel, NaN where there is none.
+    camera_centre : (3,) array
+        Camera centre in world coordinates, used to orient the normals.
+
+    Returns
+    -------
+    normals : (H, W, 3) float32 array
+        NaN where a neighbour is missing.
+
+    Notes
+    -----
+    n = (P(u+1, v) - P(u-1, v)) x (P(u, v+1) - P(u, v-1)), normalised and flipped so that
+    n . (C - P) > 0.
+    """
+    normals = np.full(points_map.shape, np.nan, dtype=np.float32)
+    along_u = points_map[1:-1, 2:] - points_map[1:-1, :-2]
+    along_v = points_map[2:, 1:-1] - points_map[:-2, 1:-1]
+    inner = np.cross(along_u, along_v)
+    inner /= np.linalg.norm(inner, axis=2, keepdims=True)
+    facing = np.einsum("ijk,ijk->ij", inner, camera_centre - points_map[1:-1, 1:-1])
+    inner[facing < 0] *= -1
+    normals[1:-1, 1:-1] = inner
+    return normals
+
+
+def reconstruct_points(
+    frames: np.ndarray,
+    sequence: Sequence,
+    camera: Device,
+    projector: Device,
+    *,
+    rays: np.ndarray | None = None,
+) -> dict[str, np.ndarray]:
+    """Decode a capture and triangulate every valid camera pixel.
+
+    Parameters
+    ----------
+    frames : (F, H, W) uint8 or uint16 array
+        Camera frames in the manifest's display order.
+    sequence : Sequence
+        What each frame encodes.
+    camera, projector : Device
+        Calibrated devices of the rig.
+    rays : (H, W, 2) array, optional
+        :func:`camera_ray_table` of the camera, to reuse across scans of one calibration.
+
+    Returns
+    -------
+    cloud : dict of 1-D arrays
+        ``x, y, z`` (float32 world mm), ``nx, ny, nz`` (unit normals, NaN at the cloud's border),
+        ``u, v`` (camera pixel, float32), ``projector`` (decoded projector coordinate),
+        ``quality``, ``modulation``, ``intensity`` (float32), one entry per reconstructed point, in
+        camera raster order.
+    """
+    height, width = frames.shape[1:]
+    if (width, height) != camera.size:
+        raise ValueError(
+            f"The frames are {width}x{height} but the camera is calibrated for {camera.width}x{camera.height}."
+        )
+    if rays is None:
+        rays = camera_ray_table(camera.K_array, camera.dist_array, width, height)
+    decoded = decode(frames, sequence)
+    axis = coded_axis(decoded, camera, projector)
+    coordinates = getattr(decoded, f"projector_{axis}")
+    valid = np.isfinite(coordinates)
+    flat_index = np.flatnonzero(valid)
+    points = triangulate(rays.reshape(-1, 2)[flat_index], coordinates.ravel()[flat_index], axis,
+                         camera.R_array, camera.t_array, projector.K_array, projector.dist_array,
+                         projector.R_array, projector.t_array)
+    met = np.isfinite(points[:, 0])
+    flat_index, points = flat_index[met], points[met]
+
+    points_map = np.full((height, width, 3), np.nan, dtype=np.float32)
+    points_map.reshape(-1, 3)[flat_index] = points
+    normals = surface_normals(points_map, -camera.R_array.T @ camera.t_array).reshape(-1, 3)[flat_index]
+    v, u = np.divmod(flat_index, width)
+    return {
+        "x": points[:, 0], "y": points[:, 1], "z": points[:, 2],
+        "nx": normals[:, 0], "ny": normals[:, 1], "nz": normals[:, 2],
+        "u": u.astype(np.float32), "v": v.astype(np.float32),
+        "projector": coordinates.ravel()[flat_index].astype(np.float32),
+        "quality": decoded.quality.ravel()[flat_index].astype(np.float32),
+        "modulation": decoded.modulation.ravel()[flat_index].astype(np.float32),
+        "intensity": decoded.intensity.ravel()[flat_index].astype(np.float32),
+    }
