@@ -1,0 +1,210 @@
+"""Thermal frames: temperature images in degrees Celsius, centikelvin, or raw counts with Planck constants.
+
+Formats, chosen by the file and an optional sidecar JSON of the same stem
+(``frame.png`` -> ``frame.json``):
+
+- float32/float64 TIFF or ``.npy``: degrees Celsius (NaN for no data);
+- 16-bit PNG or TIFF (or uint16 ``.npy``): centikelvin, T = v / 100 - 273.15 degrees
+  Celsius; 0 (no data) and 65535 (saturated) read as NaN. 16 bits reach only
+  382 degrees C: store hot parts as float TIFF or raw counts;
+- raw sensor counts (any numeric type) when the sidecar says so:
+
+```json
+{"unit": "counts", "planck": {"R1": 21106.77, "R2": 0.012545258, "B": 1501, "F": 1, "O": -7340},
+ "emissivity": 0.9, "reflected_temperature": 20.0}
+```
+
+``unit`` is one of ``celsius``, ``kelvin``, ``centikelvin``, ``counts``. Temperature
+frames are apparent (black-body) temperatures; when an emissivity below 1 is
+given (sidecar or caller), they are corrected for it on the sidecar's Planck curve
+(or the typical long-wave curve). See docs/temperature-field.md for the equation.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Literal
+
+import cv2
+import numpy as np
+import tifffile
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+
+from services.errors import InputError
+from services.fusion.radiometry import KELVIN_OFFSET, PlanckConstants, correct_emissivity, counts_to_temperature
+
+THERMAL_SUFFIXES = (".npy", ".tif", ".tiff", ".png")
+_CENTIKELVIN_NO_DATA = (0, 65535)
+
+
+class PlanckCurve(BaseModel):
+    """The camera's Planck constants as its metadata lists them."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    R1: float = Field(gt=0)
+    R2: float = Field(gt=0)
+    B: float = Field(gt=0)
+    F: float
+    O: float
+
+    def constants(self) -> PlanckConstants:
+        return PlanckConstants(self.R1, self.R2, self.B, self.F, self.O)
+
+
+class ThermalSidecar(BaseModel):
+    """What the numbers of a thermal frame mean."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    unit: Literal["celsius", "kelvin", "centikelvin", "counts"]
+    planck: PlanckCurve | None = None
+    emissivity: float = Field(1.0, gt=0.0, le=1.0)
+    reflected_temperature: float = Field(20.0, gt=-KELVIN_OFFSET)
+
+    @model_validator(mode="after")
+    def _counts_need_planck(self) -> ThermalSidecar:
+        if self.unit == "counts" and self.planck is None:
+            raise ValueError("raw counts need the camera's 'planck' constants (R1, R2, B, F, O)")
+        return self
+
+
+def sidecar_path(frame_path: str | Path) -> Path:
+    """The sidecar JSON that describes a frame: same directory and stem, ``.json``."""
+    return Path(frame_path).with_suffix(".json")
+
+
+def _read_sidecar(path: Path) -> ThermalSidecar | None:
+    if not path.is_file():
+        return None
+    try:
+        return ThermalSidecar.model_validate_json(path.read_text())
+    except ValidationError as error:
+        details = "; ".join(
+            f"{'.'.join(str(part) for part in item['loc']) or '(top level)'}: "
+            f"{item['msg'].removeprefix('Value error, ')}" for item in error.errors()
+        )
+        raise InputError(f"{path}: invalid thermal sidecar ({details})") from None
+    except OSError as error:
+        raise InputError(f"{path}: cannot read the thermal sidecar ({error.strerror or error})") from None
+
+
+def _read_array(path: Path) -> np.ndarray:
+    suffix = path.suffix.lower()
+    if suffix not in THERMAL_SUFFIXES:
+        raise InputError(f"{path}: thermal frames must be {', '.join(THERMAL_SUFFIXES)} files")
+    if not path.is_file():
+        raise InputError(f"{path}: thermal frame file is missing")
+    try:
+        if suffix == ".npy":
+            return np.load(path, allow_pickle=False)
+        if suffix == ".png":
+            image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+            if image is None:
+                raise ValueError("OpenCV cannot decode it")
+            return image
+        return tifffile.imread(path)
+    except Exception as error:  # numpy, OpenCV and tifffile raise many types for corrupt files
+        raise InputError(f"{path}: cannot read the thermal frame ({error})") from None
+
+
+def _default_unit(path: Path, array: np.ndarray) -> str:
+    if np.issubdtype(array.dtype, np.floating):
+        return "celsius"
+    if array.dtype == np.uint16:
+        return "centikelvin"
+    raise InputError(
+        f"{path}: a {array.dtype} thermal frame is not radiometric; give degrees C as float TIFF/.npy, "
+        f"centikelvin as 16-bit PNG/TIFF, or raw counts with a sidecar {sidecar_path(path).name}"
+    )
+
+
+def read_thermal_frame(
+    path: str | Path,
+    size: tuple[int, int] | None = None,
+    emissivity: float | None = None,
+) -> np.ndarray:
+    """Read a thermal frame as object temperatures in degrees Celsius.
+
+    Parameters
+    ----------
+    path : path
+        The frame; a sidecar JSON of the same stem, if present, gives its unit.
+    size : (width, height), optional
+        The thermal camera's size; a frame of another size is refused.
+    emissivity : float, optional
+        Emissivity of the object, overriding the sidecar's.
+
+    Returns
+    -------
+    temperature : (height, width) float32 array
+        Degrees Celsius, NaN where the frame has no data.
+
+    Raises
+    ------
+    InputError
+        Unreadable file or sidecar, not a 2-D image, wrong size, no finite value.
+    """
+    path = Path(path)
+    sidecar = _read_sidecar(sidecar_path(path))
+    array = _read_array(path)
+    if array.ndim != 2 or not (np.issubdtype(array.dtype, np.number) and not np.iscomplexobj(array)):
+        raise InputError(f"{path}: a thermal frame must be a 2-D grey image of numbers; got {array.dtype} {array.shape}")
+    height, width = array.shape
+    if size is not None and (width, height) != tuple(size):
+        raise InputError(
+            f"{path}: thermal frame is {width}x{height} but the thermal camera is {size[0]}x{size[1]}"
+        )
+    unit = sidecar.unit if sidecar else _default_unit(path, array)
+    values = array.astype(np.float64)
+    if unit == "centikelvin":
+        values[np.isin(array, _CENTIKELVIN_NO_DATA)] = np.nan
+        temperature = values / 100.0 - KELVIN_OFFSET
+    elif unit == "kelvin":
+        temperature = values - KELVIN_OFFSET
+    elif unit == "celsius":
+        temperature = values
+    if not np.isfinite(values).any():
+        raise InputError(f"{path}: thermal frame has no finite value (all NaN or no data)")
+    object_emissivity = emissivity if emissivity is not None else (sidecar.emissivity if sidecar else 1.0)
+    if not 0.0 < object_emissivity <= 1.0:
+        raise InputError(f"emissivity must be in (0, 1]; got {object_emissivity}")
+    reflected = sidecar.reflected_temperature if sidecar else 20.0
+    constants = sidecar.planck.constants() if sidecar and sidecar.planck else None
+    try:
+        if unit == "counts":
+            temperature = counts_to_temperature(values, constants, object_emissivity, reflected)
+        elif object_emissivity < 1.0:
+            temperature = correct_emissivity(temperature, object_emissivity, reflected, constants)
+    except ValueError as error:
+        raise InputError(f"{path}: {error}") from None
+    if not np.isfinite(temperature).any():
+        raise InputError(f"{path}: no pixel of the thermal frame gives a temperature (check the unit and constants)")
+    return temperature.astype(np.float32)
+
+
+def write_thermal_frame(path: str | Path, temperature: np.ndarray) -> None:
+    """Write a temperature image (degrees C): float32 for ``.tif``/``.tiff``/``.npy``, centikelvin for ``.png``.
+
+    PNG values outside 0.01..655.34 K are stored as no data. The file appears
+    atomically (written beside the target and renamed).
+    """
+    path = Path(path)
+    suffix = path.suffix.lower()
+    temperature = np.asarray(temperature, dtype=np.float32)
+    temporary = path.with_name(path.name + ".part")
+    if suffix == ".npy":
+        with open(temporary, "wb") as handle:
+            np.save(handle, temperature)
+    elif suffix in (".tif", ".tiff"):
+        tifffile.imwrite(temporary, temperature)
+    elif suffix == ".png":
+        centikelvin = np.round((temperature.astype(np.float64) + KELVIN_OFFSET) * 100.0)
+        in_range = np.isfinite(centikelvin) & (centikelvin > 0) & (centikelvin < 65535)
+        encoded = np.where(in_range, centikelvin, 0).astype(np.uint16)
+        if not cv2.imwrite(str(temporary) + ".png", encoded):
+            raise OSError(f"{path}: could not write the PNG")
+        Path(str(temporary) + ".png").replace(temporary)
+    else:
+        raise ValueError(f"Thermal frames are written as {', '.join(THERMAL_SUFFIXES)}; got {path.name!r}.")
+    temporary.replace(path)
