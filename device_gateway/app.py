@@ -1,0 +1,116 @@
+"""The gateway's own small HTTP API, used by the workers: devices, health, capture.
+
+- ``GET /healthz``: 200 when every device is open, else 503; both list the devices.
+- ``GET /v1/devices``: the devices with name, kind, driver, resolution, identity.
+- ``GET /v1/sequence``: the sequence manifest every capture projects.
+- ``POST /v1/captures`` ``{"thermal_frames": 1}``: runs one capture and answers the
+  ``.npz`` archive of :mod:`device_gateway.transfer`.
+
+Errors are RFC 9457 ``application/problem+json``: 422 for a bad request, 503 when a
+device is unavailable or was lost during the capture (it is re-opened; retry).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+from collections.abc import AsyncIterator
+from contextlib import asynccontextmanager
+from typing import Annotated, Any
+
+import numpy as np
+from fastapi import Depends, FastAPI, Request
+from fastapi.exceptions import RequestValidationError
+from fastapi.responses import JSONResponse, Response
+from pydantic import BaseModel, Field
+
+from device_gateway.devices import DeviceError
+from device_gateway.station import Station
+from device_gateway.transfer import MEDIA_TYPE, encode_capture
+from services.formats.sequence import Sequence
+
+logger = logging.getLogger(__name__)
+PROBLEM_MEDIA_TYPE = "application/problem+json"
+
+
+class CaptureRequest(BaseModel):
+    thermal_frames: int = Field(1, ge=1, le=64, description="Thermal frames grabbed after the last pattern.")
+
+
+class DeviceStatus(BaseModel):
+    name: str
+    kind: str
+    driver: str
+    width: int
+    height: int
+    model: str
+    serial: str
+    open: bool
+
+
+class Health(BaseModel):
+    status: str = Field(description="ok when every device is open, else degraded")
+    devices: dict[str, bool]
+
+
+def problem(status: int, title: str, detail: str) -> JSONResponse:
+    """An RFC 9457 problem document."""
+    return JSONResponse({"type": "about:blank", "title": title, "status": status, "detail": detail},
+                        status_code=status, media_type=PROBLEM_MEDIA_TYPE)
+
+
+def _station(request: Request) -> Station:
+    return request.app.state.station
+
+
+StationDep = Annotated[Station, Depends(_station)]
+
+
+def create_app(station: Station, sequence: Sequence, patterns: np.ndarray) -> FastAPI:
+    """The gateway app serving ``station``, projecting ``patterns`` (described by ``sequence``) per capture."""
+
+    @asynccontextmanager
+    async def lifespan(app: FastAPI) -> AsyncIterator[None]:
+        try:
+            station.open()
+        except DeviceError as error:
+            logger.warning("starting with devices unavailable (captures will retry): %s", error)
+        yield
+        station.close()
+
+    app = FastAPI(title="thermofield device gateway", version="1", lifespan=lifespan)
+    app.state.station = station
+
+    @app.exception_handler(DeviceError)
+    async def device_error(request: Request, error: DeviceError) -> JSONResponse:
+        return problem(503, "Device unavailable", str(error))
+
+    @app.exception_handler(RequestValidationError)
+    async def invalid_request(request: Request, error: RequestValidationError) -> JSONResponse:
+        details = "; ".join(f"{'.'.join(map(str, item['loc']))}: {item['msg']}" for item in error.errors())
+        return problem(422, "Invalid request", details)
+
+    @app.get("/healthz", operation_id="health", response_model=Health,
+             responses={503: {"model": Health, "description": "A device is not open."}})
+    def health(station: StationDep) -> Any:
+        devices = station.health()
+        healthy = all(devices.values())
+        body = Health(status="ok" if healthy else "degraded", devices=devices)
+        return body if healthy else JSONResponse(body.model_dump(), status_code=503)
+
+    @app.get("/v1/devices", operation_id="listDevices", response_model=list[DeviceStatus])
+    def list_devices(station: StationDep) -> list[DeviceStatus]:
+        return [DeviceStatus(**dataclasses.asdict(device.info), open=device.is_open) for device in station.devices]
+
+    @app.get("/v1/sequence", operation_id="getSequence", response_model=Sequence)
+    def get_sequence() -> Sequence:
+        return sequence
+
+    @app.post("/v1/captures", operation_id="capture", response_class=Response,
+              responses={200: {"content": {MEDIA_TYPE: {}}, "description": "The capture archive."}})
+    def capture(station: StationDep, body: CaptureRequest | None = None) -> Response:
+        request = body or CaptureRequest()
+        result = station.capture(sequence, patterns, thermal_frames=request.thermal_frames)
+        return Response(encode_capture(result), media_type=MEDIA_TYPE)
+
+    return app

@@ -1,0 +1,107 @@
+"""The small interfaces every driver implements: camera, thermal camera, projector.
+
+A driver is opened once and then used for many captures. ``open`` fails fast with
+:class:`DeviceUnavailable` when the hardware (or display) is not there; a device
+that stops answering during a capture raises :class:`DeviceLost`, after which the
+station closes and re-opens it.
+"""
+
+from __future__ import annotations
+
+import abc
+from dataclasses import dataclass, field
+from typing import Any, Literal
+
+import numpy as np
+
+DeviceKind = Literal["camera", "thermal", "projector"]
+
+
+class DeviceError(RuntimeError):
+    """A device problem, as opposed to bad input or a bug."""
+
+
+class DeviceUnavailable(DeviceError):
+    """The device cannot be opened (not connected, no display, refused); the message says which and why."""
+
+
+class DeviceLost(DeviceError):
+    """The device stopped answering during a capture; that capture is failed and the device re-opened."""
+
+
+@dataclass(frozen=True)
+class DeviceInfo:
+    """What the gateway reports about one device."""
+
+    name: str
+    kind: DeviceKind
+    driver: str
+    width: int
+    height: int
+    model: str = ""
+    serial: str = ""
+
+
+@dataclass(frozen=True)
+class Frame:
+    """One image grabbed from a device.
+
+    ``image`` is uint8/uint16 grey for a camera and float32 degrees Celsius for a
+    thermal camera; ``timestamp`` is the host's wall-clock time (seconds since the
+    epoch) when the frame was exposed, or received when the device gives no better.
+    """
+
+    image: np.ndarray
+    timestamp: float
+    metadata: dict[str, Any] = field(default_factory=dict)
+
+
+class Device(abc.ABC):
+    """A device the gateway owns: opened once, closed on shutdown, re-opened after a loss."""
+
+    @property
+    @abc.abstractmethod
+    def info(self) -> DeviceInfo:
+        """Name, kind, driver, resolution and identity of the device."""
+
+    @abc.abstractmethod
+    def open(self) -> None:
+        """Connect to the device; raise :class:`DeviceUnavailable` quickly when it is not there."""
+
+    @abc.abstractmethod
+    def close(self) -> None:
+        """Release the device; safe to call when it is not open."""
+
+    @property
+    @abc.abstractmethod
+    def is_open(self) -> bool:
+        """Whether ``open`` succeeded and the device has not been closed or lost since."""
+
+
+class Camera(Device):
+    """A visible camera filming the projected patterns."""
+
+    @abc.abstractmethod
+    def grab(self, timeout_s: float) -> Frame:
+        """A frame exposed after this call started; :class:`DeviceLost` when none comes in time."""
+
+
+class ThermalCamera(Device):
+    """An infrared camera giving temperatures in degrees Celsius."""
+
+    @abc.abstractmethod
+    def grab(self, timeout_s: float) -> Frame:
+        """A float32 temperature frame; :class:`DeviceLost` when none comes in time."""
+
+
+class Projector(Device):
+    """A projector showing full-screen patterns."""
+
+    @property
+    @abc.abstractmethod
+    def settle_s(self) -> float:
+        """Seconds from ``show`` until the pattern is steadily on the part (display latency)."""
+
+    @abc.abstractmethod
+    def show(self, pattern: np.ndarray) -> None:
+        """Put a (height, width) uint8 pattern on the projector."""

@@ -1,0 +1,174 @@
+"""Luxonis OAK cameras through depthai's v3 API: a ``Camera`` node with manual exposure, the OAK-T ``Thermal`` node.
+
+Opening searches once for connected devices (``Device.getAllAvailableDevices``,
+about half a second) and connects only to the one asked for, so a missing device
+is reported at once by name instead of blocking in depthai's implicit search.
+"""
+
+from __future__ import annotations
+
+import datetime
+import time
+from typing import Any
+
+import depthai as dai
+import numpy as np
+
+from device_gateway.devices import Camera, DeviceInfo, DeviceLost, DeviceUnavailable, Frame, ThermalCamera
+
+
+def find_device(device_id: str | None, role: str) -> dai.DeviceInfo:
+    """The connected OAK with ``device_id`` (serial/MxId, IP address or name), or the only one when None.
+
+    Raises
+    ------
+    DeviceUnavailable
+        When no device, not that device, or several devices (and no id) are found.
+    """
+    found = dai.Device.getAllAvailableDevices()
+    described = ", ".join(f"{info.getDeviceId()} ({info.name})" for info in found) or "none"
+    if device_id is not None:
+        for info in found:
+            if device_id in (info.getDeviceId(), info.name):
+                return info
+        raise DeviceUnavailable(f"{role}: OAK device {device_id!r} is not connected (found: {described})")
+    if len(found) != 1:
+        problem = "no OAK device is connected" if not found else f"several OAK devices are connected ({described})"
+        raise DeviceUnavailable(f"{role}: {problem}; set its device id in the gateway configuration")
+    return found[0]
+
+
+def host_time_of(message: dai.ImgFrame) -> float:
+    """Wall-clock seconds since the epoch at which a frame was exposed.
+
+    depthai stamps frames on the host's steady clock (``dai.Clock``); the offset to
+    the wall clock is measured now.
+    """
+    age = (dai.Clock.now() - message.getTimestamp()).total_seconds()
+    return time.time() - age
+
+
+def frame_metadata(message: dai.ImgFrame) -> dict[str, Any]:
+    """Sequence number and exposure settings a frame reports."""
+    return {
+        "sequence": int(message.getSequenceNum()),
+        "exposure_us": round(message.getExposureTime().total_seconds() * 1e6),
+        "iso": int(message.getSensitivity()),
+    }
+
+
+class _OakDevice:
+    """Connection, pipeline and output queue shared by the OAK drivers."""
+
+    role: str
+
+    def __init__(self, name: str, device_id: str | None, socket: str, width: int, height: int) -> None:
+        if not hasattr(dai.CameraBoardSocket, socket):
+            raise ValueError(f"Unknown OAK board socket {socket!r}; use e.g. CAM_A, CAM_B, CAM_C or CAM_E.")
+        self.name = name
+        self.device_id = device_id
+        self.socket = getattr(dai.CameraBoardSocket, socket)
+        self.width, self.height = width, height
+        self._device: dai.Device | None = None
+        self._pipeline: dai.Pipeline | None = None
+        self._queue: dai.MessageQueue | None = None
+        self._serial = ""
+        self._model = ""
+
+    def _build(self, pipeline: dai.Pipeline) -> dai.Node.Output:
+        raise NotImplementedError
+
+    @property
+    def info(self) -> DeviceInfo:
+        return DeviceInfo(self.name, self.role, "oak", self.width, self.height, self._model, self._serial)
+
+    @property
+    def is_open(self) -> bool:
+        return self._queue is not None and self._device is not None and not self._device.isClosed()
+
+    def open(self) -> None:
+        found = find_device(self.device_id, f"{self.role} {self.name!r}")
+        try:
+            self._device = dai.Device(found)
+            self._serial = found.getDeviceId()
+            self._model = self._device.getDeviceName()
+            self._pipeline = dai.Pipeline(self._device)
+            output = self._build(self._pipeline)
+            self._queue = output.createOutputQueue(maxSize=4, blocking=False)
+            self._pipeline.start()
+        except RuntimeError as error:
+            self.close()
+            raise DeviceUnavailable(f"{self.role} {self.name!r}: cannot start OAK {found.getDeviceId()}: {error}") from None
+
+    def close(self) -> None:
+        for release in (self._pipeline and self._pipeline.stop, self._device and self._device.close):
+            if release is not None:
+                try:
+                    release()
+                except RuntimeError:
+                    pass  # already gone: closing a lost device must not fail
+        self._device = self._pipeline = self._queue = None
+
+    def _next_message(self, timeout_s: float) -> dai.ImgFrame:
+        """The first frame exposed after this call (older queued frames are dropped)."""
+        if self._queue is None:
+            raise DeviceLost(f"{self.role} {self.name!r} is not open")
+        requested = dai.Clock.now()
+        deadline = time.monotonic() + timeout_s
+        try:
+            self._queue.tryGetAll()
+            while (remaining := deadline - time.monotonic()) > 0:
+                message = self._queue.get(datetime.timedelta(seconds=remaining))
+                if message is not None and message.getTimestamp() >= requested:
+                    return message
+        except (RuntimeError, dai.MessageQueue.QueueException) as error:
+            self.close()
+            raise DeviceLost(f"{self.role} {self.name!r}: connection lost: {error}") from None
+        self.close()
+        raise DeviceLost(f"{self.role} {self.name!r}: no frame within {timeout_s:g} s")
+
+
+class OakCamera(_OakDevice, Camera):
+    """An OAK colour/mono sensor as a grey 8-bit camera with fixed (manual) exposure."""
+
+    role = "camera"
+
+    def __init__(self, name: str = "camera", device_id: str | None = None, socket: str = "CAM_A",
+                 width: int = 1280, height: int = 800, exposure_us: int = 8000, iso: int = 100) -> None:
+        super().__init__(name, device_id, socket, width, height)
+        self.exposure_us, self.iso = exposure_us, iso
+
+    def _build(self, pipeline: dai.Pipeline) -> dai.Node.Output:
+        node = pipeline.create(dai.node.Camera).build(self.socket)
+        node.initialControl.setManualExposure(self.exposure_us, self.iso)
+        return node.requestOutput((self.width, self.height), dai.ImgFrame.Type.GRAY8)
+
+    def grab(self, timeout_s: float) -> Frame:
+        message = self._next_message(timeout_s)
+        return Frame(np.array(message.getFrame(), dtype=np.uint8), host_time_of(message), frame_metadata(message))
+
+
+class OakThermal(_OakDevice, ThermalCamera):
+    """The OAK-T radiometric sensor: its ``temperature`` output (FP16 degrees Celsius) as float32."""
+
+    role = "thermal"
+
+    def __init__(self, name: str = "thermal", device_id: str | None = None, socket: str = "CAM_E",
+                 width: int = 256, height: int = 192, fps: float = 25.0) -> None:
+        super().__init__(name, device_id, socket, width, height)
+        self.fps = fps
+
+    def _build(self, pipeline: dai.Pipeline) -> dai.Node.Output:
+        return pipeline.create(dai.node.Thermal).build(self.socket, self.fps).temperature
+
+    def grab(self, timeout_s: float) -> Frame:
+        message = self._next_message(timeout_s)
+        metadata = {"sequence": int(message.getSequenceNum()), "units": "degC"}
+        return Frame(thermal_image(message), host_time_of(message), metadata)
+
+
+def thermal_image(message: dai.ImgFrame) -> np.ndarray:
+    """The float32 temperature image (degrees Celsius) of a ``Thermal.temperature`` frame."""
+    if message.getType() != dai.ImgFrame.Type.GRAYF16:
+        raise DeviceLost(f"thermal frame has type {message.getType().name}, expected GRAYF16 temperatures")
+    return np.asarray(message.getFrame(), dtype=np.float32)

@@ -1,0 +1,74 @@
+"""Rerun's gRPC proxy as a child process, bound to one address (127.0.0.1 by default).
+
+The SDK's own ``serve_grpc`` always listens on every interface; the ``rerun`` CLI
+takes ``--bind``, so the embedded default runs that. Viewers join with
+``rerun --connect rerun+http://HOST:PORT/proxy``; the SDK logs to the same URL.
+"""
+
+from __future__ import annotations
+
+import socket
+import subprocess
+import sys
+import tempfile
+import time
+
+from services.errors import InputError
+
+
+def proxy_url(host: str, port: int) -> str:
+    """The URL loggers and viewers use to reach a proxy."""
+    return f"rerun+http://{host}:{port}/proxy"
+
+
+class RerunProxy:
+    """A running ``rerun --serve-grpc`` on ``host:port``; a context manager that stops it on exit."""
+
+    def __init__(self, host: str = "127.0.0.1", port: int = 9876, memory_limit: str = "1GiB",
+                 start_timeout_s: float = 15.0) -> None:
+        self.host, self.port = host, port
+        self.url = proxy_url(host, port)
+        if _accepts_connections(host, port):
+            raise InputError(f"Rerun port {port} on {host} is already in use; choose another (THERMOFIELD_RERUN_PORT)")
+        self._log = tempfile.TemporaryFile()
+        self._process = subprocess.Popen(
+            [sys.executable, "-m", "rerun_cli", "--serve-grpc", "--bind", host, "--port", str(port),
+             "--server-memory-limit", memory_limit],
+            stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=self._log,
+        )
+        deadline = time.monotonic() + start_timeout_s
+        while not _accepts_connections(host, port):
+            if self._process.poll() is not None or time.monotonic() > deadline:
+                self.stop()
+                self._log.seek(0)
+                error = self._log.read().decode(errors="replace").strip().splitlines()
+                raise RuntimeError(f"the Rerun proxy did not start on {host}:{port}: {error[-1] if error else 'timeout'}")
+            time.sleep(0.05)
+
+    def __enter__(self) -> RerunProxy:
+        return self
+
+    def __exit__(self, *exc_info: object) -> None:
+        self.stop()
+
+    @property
+    def running(self) -> bool:
+        return self._process.poll() is None
+
+    def stop(self) -> None:
+        if self._process.poll() is None:
+            self._process.terminate()
+            try:
+                self._process.wait(timeout=5)
+            except subprocess.TimeoutExpired:
+                self._process.kill()
+                self._process.wait()
+        self._log.close()
+
+
+def _accepts_connections(host: str, port: int) -> bool:
+    try:
+        with socket.create_connection((host, port), timeout=0.2):
+            return True
+    except OSError:
+        return False
