@@ -1,0 +1,1 @@
+"""The thermofield HTTP API (FastAPI, mounted under ``/v1``)."""

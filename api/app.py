@@ -1,0 +1,36 @@
+"""The FastAPI application: routers under ``/v1``, health at the root, problem+json errors, metrics."""
+
+from __future__ import annotations
+
+from fastapi import APIRouter, FastAPI
+from fastapi.routing import APIRoute
+
+from api.metrics import ApiMetrics, MetricsMiddleware
+from api.problems import install_problem_handlers
+from api.routers import calibrations, devices, health, jobs, scans
+from workers.runtime import Runtime
+
+
+def _operation_id(route: APIRoute) -> str:
+    """Stable operation ids: the route's name (e.g. ``create_scan``), never derived from the path."""
+    return route.name
+
+
+def create_app(runtime: Runtime) -> FastAPI:
+    """The API serving ``runtime``'s database and artifact store; jobs go to the global Dramatiq broker."""
+    app = FastAPI(
+        title="thermofield",
+        version="1",
+        summary="3D temperature fields of hot forgings: scans, calibration sets, jobs.",
+        generate_unique_id_function=_operation_id,
+    )
+    app.state.runtime = runtime
+    app.state.metrics = ApiMetrics(runtime)
+    install_problem_handlers(app)
+    app.add_middleware(MetricsMiddleware, metrics=app.state.metrics)
+    app.include_router(health.router)
+    v1 = APIRouter(prefix="/v1")
+    for module in (scans, jobs, calibrations, devices):
+        v1.include_router(module.router)
+    app.include_router(v1)
+    return app

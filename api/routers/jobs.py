@@ -1,0 +1,73 @@
+"""Jobs: status, progress and results; progress as server-sent events."""
+
+from __future__ import annotations
+
+import asyncio
+from collections.abc import AsyncIterator
+from typing import Annotated
+
+from fastapi import APIRouter, Depends, Query
+from fastapi.concurrency import run_in_threadpool
+from fastapi.sse import EventSourceResponse, ServerSentEvent
+from sqlalchemy import select
+
+from api.deps import ReaderKey, RuntimeDep, SessionDep
+from api.problems import Problem
+from api.schemas import JobOut
+from services.db.models import TERMINAL_STATUSES, Job
+from services.jobs.tracker import job_state
+
+router = APIRouter(prefix="/jobs", tags=["jobs"])
+_POLL_INTERVAL_S = 0.1
+_KEEPALIVE_S = 15.0
+
+
+def job_out(job: Job) -> JobOut:
+    return JobOut(**job_state(job), links={"self": f"/v1/jobs/{job.id}", "events": f"/v1/jobs/{job.id}/events"})
+
+
+def _existing_job(job_id: str, session: SessionDep, _: ReaderKey) -> Job:
+    job = session.get(Job, job_id)
+    if job is None:
+        raise Problem(404, "not-found", f"There is no job {job_id!r}.")
+    return job
+
+
+ExistingJob = Annotated[Job, Depends(_existing_job)]
+
+
+@router.get("", name="list_jobs")
+def list_jobs(session: SessionDep, _: ReaderKey, limit: Annotated[int, Query(ge=1, le=500)] = 50) -> list[JobOut]:
+    """The most recent jobs, newest first."""
+    return [job_out(job) for job in session.scalars(select(Job).order_by(Job.created_at.desc()).limit(limit))]
+
+
+@router.get("/{job_id}", name="get_job")
+def get_job(job: ExistingJob) -> JobOut:
+    """A job's status, progress (stage and fraction), attempts, error and result artifacts."""
+    return job_out(job)
+
+
+@router.get("/{job_id}/events", name="stream_job_events", response_class=EventSourceResponse)
+async def stream_job_events(job: ExistingJob, runtime: RuntimeDep) -> AsyncIterator[ServerSentEvent]:
+    """Server-sent events: a ``progress`` event at each change, then ``done`` when the job has finished."""
+    last, idle = None, 0.0
+    while True:
+        state = await run_in_threadpool(_read_state, runtime, job.id)
+        snapshot = (state["status"], state["stage"], state["fraction"], state["attempts"])
+        if snapshot != last:
+            last, idle = snapshot, 0.0
+            finished = state["status"] in TERMINAL_STATUSES
+            yield ServerSentEvent(data=state, event="done" if finished else "progress")
+            if finished:
+                return
+        elif idle >= _KEEPALIVE_S:
+            idle = 0.0
+            yield ServerSentEvent(comment="keep-alive")
+        await asyncio.sleep(_POLL_INTERVAL_S)
+        idle += _POLL_INTERVAL_S
+
+
+def _read_state(runtime, job_id: str) -> dict:
+    with runtime.sessions() as session:
+        return job_state(session.get(Job, job_id))

@@ -1,0 +1,140 @@
+"""Scans: start one (202 + job), read its metadata and summary, download its artifacts."""
+
+from __future__ import annotations
+
+from typing import Annotated
+
+from fastapi import APIRouter, Depends, Path, Request
+from fastapi.responses import FileResponse
+from sqlalchemy import select
+
+from api.deps import OperatorKey, ReaderKey, RuntimeDep, SessionDep
+from api.idempotency import IdempotencyKeyHeader, Outcome, request_digest, respond_once
+from api.problems import Problem
+from api.schemas import Accepted, ScanOut, ScanRequest
+from services.db.models import CalibrationSet, Job, Scan, new_id
+from workers.broker import send_job
+
+router = APIRouter(prefix="/scans", tags=["scans"])
+
+ARTIFACT_MEDIA_TYPES = {"cloud.ply": "application/octet-stream", "field.ply": "application/octet-stream",
+                        "field.rrd": "application/octet-stream"}
+FRAME_KINDS = {"frames": ("image/png", "png"), "thermal": ("image/tiff", "tiff")}
+
+
+def scan_links(scan: Scan) -> dict[str, str]:
+    links = {"self": f"/v1/scans/{scan.id}", "job": f"/v1/jobs/{scan.job_id}",
+             "calibration_set": f"/v1/calibration-sets/{scan.calibration_set_id}"}
+    for name in ARTIFACT_MEDIA_TYPES:
+        if name in scan.artifacts:
+            links[name] = f"/v1/scans/{scan.id}/{name}"
+    for kind, (_, suffix) in FRAME_KINDS.items():
+        for index in range(len(scan.artifacts.get(kind, []))):
+            links[f"{kind}/{index}"] = f"/v1/scans/{scan.id}/{kind}/{index}.{suffix}"
+    return links
+
+
+def _existing_scan(scan_id: str, session: SessionDep, _: ReaderKey) -> Scan:
+    scan = session.get(Scan, scan_id)
+    if scan is None:
+        raise Problem(404, "not-found", f"There is no scan {scan_id!r}.")
+    return scan
+
+
+ExistingScan = Annotated[Scan, Depends(_existing_scan)]
+
+
+def scan_out(scan: Scan, job: Job) -> ScanOut:
+    return ScanOut(scan_id=scan.id, station=scan.station, part_id=scan.part_id,
+                   calibration_set_id=scan.calibration_set_id, job_id=scan.job_id, status=job.status,
+                   created_at=scan.created_at, summary=scan.summary, links=scan_links(scan))
+
+
+@router.post("", name="create_scan", status_code=202, response_model=Accepted,
+             responses={202: {"headers": {"Location": {"description": "The scan's job."}}}})
+async def create_scan(request: Request, session: SessionDep, runtime: RuntimeDep, key: OperatorKey,
+                      idempotency_key: IdempotencyKeyHeader = None, body: ScanRequest | None = None):
+    """Scan the part in the station: capture, reconstruct, fuse, store and stream, as a background job."""
+    body = body or ScanRequest()
+    station = runtime.settings.station
+
+    def start() -> Outcome:
+        calibration = _calibration_for(session, station, body.calibration_set_id)
+        scan_id = new_id()
+        job = runtime.tracker.create(session, "scan", {"scan_id": scan_id, "calibration_set_id": calibration.id})
+        scan = Scan(id=scan_id, station=station, calibration_set_id=calibration.id, part_id=body.part_id,
+                    job_id=job.id)
+        session.add(scan)
+        accepted = Accepted(job_id=job.id, scan_id=scan.id, status="queued",
+                            links={"job": f"/v1/jobs/{job.id}", "scan": f"/v1/scans/{scan.id}",
+                                   "events": f"/v1/jobs/{job.id}/events"})
+
+        def dispatch() -> None:
+            runtime.tracker.announce(job)
+            send_job("scan", job.id)
+
+        return Outcome(202, accepted.model_dump(mode="json"), f"/v1/jobs/{job.id}", dispatch)
+
+    return respond_once(session, key, idempotency_key, await request_digest(request), start)
+
+
+def _calibration_for(session, station: str, calibration_set_id: str | None) -> CalibrationSet:
+    if calibration_set_id is not None:
+        calibration = session.get(CalibrationSet, calibration_set_id)
+        if calibration is None or calibration.station != station:
+            raise Problem(422, "invalid-input", f"calibration_set_id: there is no calibration set "
+                                                f"{calibration_set_id!r} for station {station!r}.")
+        return calibration
+    calibration = session.scalar(
+        select(CalibrationSet).where(CalibrationSet.station == station, CalibrationSet.active.is_(True))
+    )
+    if calibration is None:
+        raise Problem(409, "no-active-calibration", f"Station {station!r} has no active calibration set; "
+                                                    "activate one or pass calibration_set_id.")
+    return calibration
+
+
+@router.get("", name="list_scans")
+def list_scans(session: SessionDep, _: ReaderKey) -> list[ScanOut]:
+    """The station's 100 most recent scans, newest first."""
+    rows = session.execute(select(Scan, Job).join(Job, Scan.job_id == Job.id)
+                           .order_by(Scan.created_at.desc()).limit(100))
+    return [scan_out(scan, job) for scan, job in rows]
+
+
+@router.get("/{scan_id}", name="get_scan")
+def get_scan(scan: ExistingScan, session: SessionDep) -> ScanOut:
+    """Metadata, links to the artifacts and the field's summary (point count, bounding box, temperatures)."""
+    return scan_out(scan, session.get(Job, scan.job_id))
+
+
+@router.get("/{scan_id}/{artifact}", name="download_scan_artifact",
+            responses={200: {"content": {"application/octet-stream": {}}}})
+def download_scan_artifact(scan: ExistingScan, runtime: RuntimeDep,
+                           artifact: Annotated[str, Path(pattern="^(cloud\\.ply|field\\.ply|field\\.rrd)$")]):
+    """The point cloud (``cloud.ply``), the temperature field (``field.ply``) or its Rerun recording."""
+    return _artifact_file(runtime, scan, scan.artifacts.get(artifact), f"{scan.id}-{artifact}",
+                          ARTIFACT_MEDIA_TYPES[artifact])
+
+
+@router.get("/{scan_id}/{kind}/{index}.{suffix}", name="download_scan_frame",
+            responses={200: {"content": {"image/png": {}, "image/tiff": {}}}})
+def download_scan_frame(scan: ExistingScan, runtime: RuntimeDep,
+                        kind: Annotated[str, Path(pattern="^(frames|thermal)$")], index: int,
+                        suffix: Annotated[str, Path(pattern="^(png|tiff)$")]):
+    """A raw frame of the capture: camera ``frames/<i>.png`` or thermal ``thermal/<i>.tiff`` (float32 °C)."""
+    media_type, expected_suffix = FRAME_KINDS[kind]
+    digests = scan.artifacts.get(kind, [])
+    if suffix != expected_suffix or not 0 <= index < len(digests):
+        raise Problem(404, "not-found", f"Scan {scan.id} has no {kind}/{index}.{suffix}.")
+    return _artifact_file(runtime, scan, digests[index], f"{scan.id}-{kind}-{index}.{suffix}", media_type)
+
+
+def _artifact_file(runtime, scan: Scan, digest: str | None, filename: str, media_type: str) -> FileResponse:
+    if digest is None:
+        raise Problem(404, "not-ready", f"Scan {scan.id} does not have this artifact (yet); see its job.")
+    try:
+        path = runtime.store.path(digest)
+    except KeyError:
+        raise Problem(500, "artifact-missing", f"Artifact {digest} of scan {scan.id} is missing from the store.")
+    return FileResponse(path, media_type=media_type, filename=filename)

@@ -1,0 +1,96 @@
+"""Request and response bodies of the API (separate from the database models)."""
+
+from __future__ import annotations
+
+from datetime import datetime
+from typing import Any, Literal
+
+from pydantic import BaseModel, ConfigDict, Field
+
+JobStatus = Literal["queued", "running", "succeeded", "failed"]
+
+
+class JobOut(BaseModel):
+    job_id: str
+    kind: str
+    status: JobStatus
+    stage: str
+    fraction: float = Field(ge=0, le=1)
+    attempts: int
+    error: str | None
+    result: dict[str, Any]
+    scan_id: str | None
+    created_at: datetime
+    started_at: datetime | None
+    finished_at: datetime | None
+    links: dict[str, str]
+
+
+class ScanRequest(BaseModel):
+    """Everything is optional: an empty body scans with the station's active calibration set."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    part_id: str | None = Field(None, max_length=200, description="The MES's identifier of the part.")
+    calibration_set_id: str | None = Field(None, description="Defaults to the station's active calibration set.")
+
+
+class Accepted(BaseModel):
+    job_id: str
+    scan_id: str | None = None
+    status: JobStatus
+    links: dict[str, str]
+
+
+class TemperatureSummary(BaseModel):
+    min: float
+    max: float
+    mean: float
+    percentiles: dict[str, float] = Field(description="p5, p25, p50, p75, p95 in degrees Celsius.")
+
+
+class FieldSummary(BaseModel):
+    point_count: int
+    points_with_temperature: int
+    bbox_min: list[float] = Field(description="World millimetres.")
+    bbox_max: list[float]
+    temperature: TemperatureSummary | None
+
+
+class ScanOut(BaseModel):
+    scan_id: str
+    station: str
+    part_id: str | None
+    calibration_set_id: str
+    job_id: str
+    status: JobStatus
+    created_at: datetime
+    summary: FieldSummary | None
+    links: dict[str, str]
+
+
+class CalibrationSetOut(BaseModel):
+    calibration_set_id: str
+    name: str
+    station: str
+    active: bool
+    source: str
+    job_id: str | None
+    created_at: datetime
+    links: dict[str, str]
+
+
+class CalibrationCaptureRequest(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+    name: str = Field(min_length=1, max_length=200)
+    activate: bool = False
+
+
+class Health(BaseModel):
+    status: Literal["ok"]
+
+
+class Readiness(BaseModel):
+    status: Literal["ready"]
+    checks: dict[str, str]

@@ -1,0 +1,137 @@
+"""Dramatiq actors: plain functions that load their job's inputs, call ``services/`` and store the outputs.
+
+Each actor takes a job id; its parameters are the job row's ``params`` and its
+return value becomes the job's ``result`` (via the JobBookkeeping middleware).
+Retries and time limits are set per actor: device and network trouble is retried,
+bad input (``ValueError``, including ``InputError``) is not.
+"""
+
+from __future__ import annotations
+
+import io
+import tempfile
+from functools import lru_cache
+from pathlib import Path
+from typing import Any
+
+import cv2
+import dramatiq
+import numpy as np
+import tifffile
+
+from device_gateway.client import GatewayClient
+from services.db.models import CalibrationSet, Job, Scan
+from services.formats.ply import write_cloud
+from services.formats.rig import Rig, parse_rig
+from services.fusion.field import temperature_field
+from services.fusion.fuse import ThermalView
+from services.geometry.camera import camera_center
+from services.storage.artifacts import ArtifactStore
+from services.streaming.proxy import proxy_url
+from services.streaming.recording import StationView, scan_recording
+from services.structured_light.reconstruct import reconstruct_points
+from services.structured_light.triangulate import camera_ray_table
+from workers.runtime import Runtime, current_runtime
+from workers.summary import field_summary
+
+QUEUE = "thermofield"
+_NOT_RETRIED = (ValueError,)
+_PNG_FAST = [cv2.IMWRITE_PNG_COMPRESSION, 1]
+
+
+def _options(max_retries: int, time_limit_s: float) -> dict[str, Any]:
+    return {"queue_name": QUEUE, "max_retries": max_retries, "time_limit": int(time_limit_s * 1000),
+            "min_backoff": 500, "max_backoff": 10_000, "throws": _NOT_RETRIED}
+
+
+@dramatiq.actor(actor_name="scan", **_options(max_retries=2, time_limit_s=120))
+def scan(job_id: str) -> dict[str, Any]:
+    """Capture with the gateway, reconstruct, fuse, store the artifacts, stream to Rerun, summarise."""
+    runtime = current_runtime()
+    tracker, store = runtime.tracker, runtime.store
+    params = _job_params(runtime, job_id)
+    rig_digest, rig = _calibration_rig(runtime, params["calibration_set_id"])
+    camera_name, camera = rig.device(None, "camera")
+    _, projector = rig.device(None, "projector")
+    thermal_name, thermal = rig.device(None, "thermal")
+
+    tracker.progress(job_id, "capture", 0.05)
+    with GatewayClient(runtime.settings.gateway_url) as gateway:
+        capture = gateway.capture(thermal_frames=1)
+    tracker.progress(job_id, "reconstruct", 0.3)
+    cloud = reconstruct_points(capture.frames, capture.sequence, camera, projector,
+                               rays=_ray_table(rig_digest, camera_name, rig))
+    tracker.progress(job_id, "fuse", 0.55)
+    field = temperature_field(cloud, [ThermalView(thermal, capture.thermal)],
+                              camera_center(camera.R_array, camera.t_array))
+    tracker.progress(job_id, "store", 0.7)
+    artifacts = {
+        "cloud.ply": _store_cloud(store, cloud),
+        "field.ply": _store_cloud(store, field),
+        "frames": [store.put_bytes(_png(frame)) for frame in capture.frames],
+        "thermal": [store.put_bytes(_tiff(frame)) for frame in capture.thermal],
+    }
+    tracker.progress(job_id, "stream", 0.85)
+    captured_at = float(capture.frame_timestamps[0]) if len(capture.frame_timestamps) else None
+    artifacts["field.rrd"] = store.put_bytes(
+        scan_recording(params["scan_id"], field, rig, capture.thermal[0], captured_at))
+    _station_view(runtime.settings.rerun_host, runtime.settings.rerun_port, runtime.settings.station).publish(
+        field, rig, capture.thermal[0], captured_at)
+    summary = field_summary(field)
+    with runtime.sessions.begin() as session:
+        row = session.get(Scan, params["scan_id"])
+        row.artifacts, row.summary = artifacts, summary
+    return {"scan_id": params["scan_id"], "artifacts": {k: v for k, v in artifacts.items() if isinstance(v, str)},
+            "thermal_device": thermal_name}
+
+
+ACTORS = {"scan": scan}
+
+
+def _job_params(runtime: Runtime, job_id: str) -> dict[str, Any]:
+    with runtime.sessions() as session:
+        return dict(session.get(Job, job_id).params)
+
+
+def _calibration_rig(runtime: Runtime, calibration_set_id: str) -> tuple[str, Rig]:
+    with runtime.sessions() as session:
+        calibration = session.get(CalibrationSet, calibration_set_id)
+        digest = calibration.rig_sha256
+    return digest, parse_rig(runtime.store.read_bytes(digest).decode(), f"calibration set {calibration_set_id}")
+
+
+_ray_tables: dict[tuple[str, str], np.ndarray] = {}
+
+
+def _ray_table(rig_digest: str, camera_name: str, rig: Rig) -> np.ndarray:
+    """The camera's undistorted ray table, computed once per calibration and process (it is the slow part)."""
+    if (rig_digest, camera_name) not in _ray_tables:
+        camera = rig.devices[camera_name]
+        _ray_tables[rig_digest, camera_name] = camera_ray_table(camera.K_array, camera.dist_array,
+                                                                camera.width, camera.height)
+    return _ray_tables[rig_digest, camera_name]
+
+
+@lru_cache(maxsize=1)
+def _station_view(host: str, port: int, station: str) -> StationView:
+    return StationView(proxy_url(host, port), station)
+
+
+def _store_cloud(store: ArtifactStore, cloud: dict[str, np.ndarray]) -> str:
+    with tempfile.TemporaryDirectory() as directory:
+        path = Path(directory) / "cloud.ply"
+        write_cloud(path, cloud)
+        return store.put_file(path)
+
+
+def _png(frame: np.ndarray) -> bytes:
+    ok, encoded = cv2.imencode(".png", frame, _PNG_FAST)
+    if not ok:
+        raise RuntimeError("OpenCV could not encode a camera frame as PNG.")
+    return encoded.tobytes()
+
+
+def _tiff(frame: np.ndarray) -> bytes:
+    buffer = io.BytesIO()
+    tifffile.imwrite(buffer, np.asarray(frame, dtype=np.float32))
+    return buffer.getvalue()

@@ -1,0 +1,35 @@
+"""The Dramatiq broker: RabbitMQ when scaled out, an in-memory broker for the embedded in-process worker."""
+
+from __future__ import annotations
+
+import importlib
+
+import dramatiq
+from dramatiq.brokers.rabbitmq import RabbitmqBroker
+from dramatiq.brokers.stub import StubBroker
+
+from services.settings import Settings
+from workers.middleware import ComputeThreads, JobBookkeeping
+
+
+def setup_broker(settings: Settings) -> dramatiq.Broker:
+    """Build the broker for ``settings``, make it the global one and declare every actor on it."""
+    broker: dramatiq.Broker
+    if settings.broker_url:
+        broker = RabbitmqBroker(url=settings.broker_url)
+    else:
+        broker = StubBroker()
+    broker.add_middleware(ComputeThreads(settings.compute_threads))
+    broker.add_middleware(JobBookkeeping())
+    dramatiq.set_broker(broker)
+    actors = importlib.import_module("workers.actors")
+    for actor in actors.ACTORS.values():
+        if actor.broker is not broker:  # declared on an earlier broker of this process
+            actor.broker = broker
+            broker.declare_actor(actor)
+    return broker
+
+
+def send_job(kind: str, job_id: str) -> None:
+    """Queue job ``job_id`` for the actor named ``kind`` on the global broker."""
+    dramatiq.get_broker().get_actor(kind).send(job_id)

@@ -1,0 +1,76 @@
+"""Cross-cutting concerns of every actor: job bookkeeping and numeric thread counts."""
+
+from __future__ import annotations
+
+import logging
+import os
+import threading
+
+import dramatiq
+from dramatiq.middleware import Middleware, SkipMessage
+
+from workers.runtime import current_runtime
+
+logger = logging.getLogger(__name__)
+_THREAD_VARIABLES = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "NUMBA_NUM_THREADS")
+
+
+def limit_thread_environment(threads: int) -> None:
+    """Set the numeric libraries' thread variables; call before they are imported (spawned children inherit it)."""
+    for name in _THREAD_VARIABLES:
+        os.environ[name] = str(threads)
+
+
+class ComputeThreads(Middleware):
+    """Caps OpenCV's and numba's thread pools in each worker process so that replicas share the cores."""
+
+    def __init__(self, threads: int) -> None:
+        self.threads = threads
+
+    def before_worker_boot(self, broker, worker) -> None:
+        import cv2
+        import numba
+
+        cv2.setNumThreads(self.threads)
+        numba.set_num_threads(min(self.threads, numba.config.NUMBA_NUM_THREADS))
+
+
+class JobBookkeeping(Middleware):
+    """Keeps the jobs table in step with message processing.
+
+    Each message carries a job id as its first argument. Before the actor runs the
+    job becomes ``running`` (a new attempt); afterwards ``succeeded`` with the
+    actor's result, or ``queued`` again when the Retries middleware will retry, or
+    ``failed`` when it will not. A message whose job already finished (a duplicate
+    delivery after a crash) is skipped.
+    """
+
+    def __init__(self) -> None:
+        self._local = threading.local()
+
+    def before_process_message(self, broker, message) -> None:
+        job_id = message.args[0]
+        if current_runtime().tracker.start(job_id) is None:
+            logger.info("Skipping message %s: job %s is unknown or already finished.", message.message_id, job_id)
+            raise SkipMessage()
+
+    def after_process_message(self, broker, message, *, result=None, exception=None) -> None:
+        tracker = current_runtime().tracker
+        job_id = message.args[0]
+        if exception is None:
+            tracker.succeed(job_id, result or {})
+            return
+        tracker.fail(job_id, _describe(exception), will_retry=_will_retry(broker, message, exception))
+
+
+def _will_retry(broker: dramatiq.Broker, message: dramatiq.Message, exception: BaseException) -> bool:
+    # This middleware is added after Retries, so it sees the message before Retries counts the attempt.
+    actor = broker.get_actor(message.actor_name)
+    throws = actor.options.get("throws")
+    if throws and isinstance(exception, throws):
+        return False
+    return message.options.get("retries", 0) < actor.options.get("max_retries", 0)
+
+
+def _describe(exception: BaseException) -> str:
+    return f"{type(exception).__name__}: {exception}" if str(exception) else type(exception).__name__
