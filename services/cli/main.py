@@ -13,6 +13,7 @@ from services.errors import InputError
 COMMAND_MODULES = [
     "services.cli.structured_light",
     "services.cli.fusion",
+    "services.cli.patterns",
 ]
 
 
