@@ -14,6 +14,7 @@ COMMAND_MODULES = [
     "services.cli.structured_light",
     "services.cli.fusion",
     "services.cli.patterns",
+    "services.cli.service",
 ]
 
 

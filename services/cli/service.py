@@ -1,0 +1,178 @@
+"""``thermofield serve | api | worker | apikey``: run the service embedded or scaled out, manage API keys."""
+
+from __future__ import annotations
+
+import argparse
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+from services.errors import InputError
+from services.settings import Settings
+
+_GATEWAY_START_TIMEOUT_S = 60.0
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    serve = subparsers.add_parser("serve", help="the embedded service: API, in-process worker, simulated "
+                                                "gateway, SQLite, artifact directory, Rerun proxy")
+    serve.add_argument("--host", help="address to bind the API to (default 127.0.0.1)")
+    serve.add_argument("--port", type=int, help="API port (default 8000)")
+    serve.add_argument("--data-dir", type=Path, help="database and artifacts (default ./thermofield-data)")
+    serve.add_argument("--gateway-port", type=int, default=8001, help="port of the simulated gateway (default 8001)")
+    serve.add_argument("--rerun-port", type=int, help="port of the Rerun gRPC proxy (default 9876)")
+    serve.set_defaults(handler=_serve)
+
+    api = subparsers.add_parser("api", help="the HTTP API alone (scaled out: jobs go to RabbitMQ)")
+    api.add_argument("--host", help="bind address (default THERMOFIELD_API_HOST)")
+    api.add_argument("--port", type=int, help="port (default THERMOFIELD_API_PORT)")
+    api.set_defaults(handler=_api)
+
+    worker = subparsers.add_parser("worker", help="Dramatiq worker processes (spawned) consuming RabbitMQ")
+    worker.add_argument("--processes", type=int, help="worker processes (default THERMOFIELD_WORKER_PROCESSES)")
+    worker.add_argument("--threads", type=int, help="jobs at once per process (default THERMOFIELD_WORKER_THREADS)")
+    worker.set_defaults(handler=_worker)
+
+    apikey = subparsers.add_parser("apikey", help="manage API keys")
+    apikey_commands = apikey.add_subparsers(dest="apikey_command", required=True, metavar="ACTION")
+    create = apikey_commands.add_parser("create", help="create a key and print its secret (shown once)")
+    create.add_argument("--scopes", nargs="+", required=True, metavar="SCOPE", help="read, operate and/or admin")
+    create.add_argument("--name", default="api key", help="a label for the key")
+    create.add_argument("--data-dir", type=Path, help="the service's data directory (embedded database)")
+    create.set_defaults(handler=_create_api_key)
+
+
+def _settings(**overrides) -> Settings:
+    return Settings(**{name: value for name, value in overrides.items() if value is not None})
+
+
+def _serve(args: argparse.Namespace) -> int:
+    import dramatiq
+    import uvicorn
+
+    from api.app import create_app
+    from services.streaming.proxy import RerunProxy
+    from workers.broker import send_job, setup_broker
+    from workers.runtime import build_runtime, use_runtime
+
+    settings = _settings(api_host=args.host, api_port=args.port, data_dir=args.data_dir, rerun_port=args.rerun_port,
+                         gateway_url=f"http://127.0.0.1:{args.gateway_port}", broker_url="")
+    runtime = build_runtime(settings)
+    use_runtime(runtime)
+    _ensure_simulator_calibration(runtime)
+    broker = setup_broker(settings)
+    worker = dramatiq.Worker(broker, worker_threads=settings.worker_threads)
+    with RerunProxy(settings.rerun_host, settings.rerun_port) as proxy, _gateway_process(args.gateway_port):
+        worker.start()
+        for job in runtime.tracker.recover():
+            send_job(job.kind, job.id)
+        print(f"thermofield: API on http://{settings.api_host}:{settings.api_port} "
+              f"(docs at /docs), data in {settings.data_dir.resolve()}", flush=True)
+        print(f"thermofield: Rerun: rerun --connect {proxy.url}", flush=True)
+        try:
+            uvicorn.run(create_app(runtime), host=settings.api_host, port=settings.api_port, log_level="warning")
+        finally:
+            worker.stop()
+    return 0
+
+
+def _ensure_simulator_calibration(runtime) -> None:
+    """Out of the box the station's active calibration set is the simulated rig's true calibration."""
+    from sqlalchemy import select
+
+    from services.db.models import CalibrationSet
+    from services.formats.rig import rig_to_json
+    from services.simulation.presets import forging_rig
+
+    with runtime.sessions.begin() as session:
+        if session.scalar(select(CalibrationSet).where(CalibrationSet.station == runtime.settings.station)):
+            return
+        digest = runtime.store.put_bytes(rig_to_json(forging_rig()).encode())
+        session.add(CalibrationSet(name="simulated rig (true calibration)", station=runtime.settings.station,
+                                   rig_sha256=digest, active=True, source="simulator"))
+
+
+class _gateway_process:
+    """``thermofield gateway`` (simulated driver) as a child process for the embedded service."""
+
+    def __init__(self, port: int) -> None:
+        self.port = port
+
+    def __enter__(self) -> subprocess.Popen:
+        import httpx
+
+        self.process = subprocess.Popen([sys.executable, "-m", "services.cli.main", "gateway", "--driver", "simulated",
+                                         "--host", "127.0.0.1", "--port", str(self.port)], stdin=subprocess.DEVNULL)
+        deadline = time.monotonic() + _GATEWAY_START_TIMEOUT_S
+        while True:
+            try:
+                if httpx.get(f"http://127.0.0.1:{self.port}/healthz", timeout=1.0).status_code in (200, 503):
+                    return self.process
+            except httpx.HTTPError:
+                pass
+            if self.process.poll() is not None or time.monotonic() > deadline:
+                self.__exit__()
+                raise InputError(f"the simulated gateway did not start on port {self.port} "
+                                 "(is the port taken? choose another with --gateway-port)")
+            time.sleep(0.2)
+
+    def __exit__(self, *exc_info: object) -> None:
+        if self.process.poll() is None:
+            self.process.terminate()
+            self.process.wait(timeout=10)
+
+
+def _api(args: argparse.Namespace) -> int:
+    import uvicorn
+
+    from api.app import create_app
+    from workers.broker import setup_broker
+    from workers.runtime import build_runtime, use_runtime
+
+    settings = _settings(api_host=args.host, api_port=args.port)
+    _require_broker(settings, "api")
+    runtime = build_runtime(settings)
+    use_runtime(runtime)
+    setup_broker(settings)
+    print(f"thermofield: API on http://{settings.api_host}:{settings.api_port}", flush=True)
+    uvicorn.run(create_app(runtime), host=settings.api_host, port=settings.api_port, log_level="warning")
+    return 0
+
+
+def _worker(args: argparse.Namespace) -> int:
+    from workers.actors import QUEUE
+    from workers.middleware import limit_thread_environment
+
+    settings = _settings(worker_processes=args.processes, worker_threads=args.threads)
+    _require_broker(settings, "worker")
+    limit_thread_environment(settings.compute_threads)
+    command = [sys.executable, "-m", "dramatiq", "workers.main", "--use-spawn", "--queues", QUEUE,
+               "--processes", str(settings.worker_processes), "--threads", str(settings.worker_threads)]
+    return subprocess.run(command, env=os.environ).returncode
+
+
+def _require_broker(settings: Settings, command: str) -> None:
+    if not settings.broker_url:
+        raise InputError(f"`thermofield {command}` needs THERMOFIELD_BROKER_URL (e.g. amqp://guest:guest@127.0.0.1:5672); "
+                         "for a single process use `thermofield serve`")
+
+
+def _create_api_key(args: argparse.Namespace) -> int:
+    from services.db.apikeys import create_api_key, parse_scopes
+    from services.db.engine import make_engine, make_sessions, migrate
+
+    try:
+        scopes = parse_scopes(args.scopes)
+    except ValueError as error:
+        raise InputError(f"--scopes: {error}") from None
+    settings = _settings(data_dir=args.data_dir)
+    engine = make_engine(settings.resolved_database_url, settings.database_schema)
+    migrate(engine)
+    with make_sessions(engine).begin() as session:
+        key, secret = create_api_key(session, args.name, scopes)
+    print(secret)
+    print(f"thermofield: created API key {key.id} ({args.name!r}) with scopes {' '.join(scopes)}; "
+          "the secret above is shown only once", file=sys.stderr)
+    return 0
