@@ -40,6 +40,7 @@ def make_engine(url: str, schema: str | None = None) -> Engine:
             raise ValueError(f"The database schema name {schema!r} must be lower-case letters, digits and '_'.")
         with engine.begin() as connection:
             connection.execute(text(f"CREATE SCHEMA IF NOT EXISTS {schema}"))
+        engine.dispose()  # the pooled connection predates the search path
         event.listen(engine, "connect", lambda connection, _: _set_search_path(connection, schema))
     return engine
 

@@ -1,0 +1,39 @@
+import hashlib
+
+import pytest
+
+from services.storage.artifacts import ArtifactStore
+
+
+def test_put_bytes_is_content_addressed_and_deduplicated(tmp_path):
+    store = ArtifactStore(tmp_path)
+    digest = store.put_bytes(b"field")
+    assert digest == hashlib.sha256(b"field").hexdigest()
+    assert store.put_bytes(b"field") == digest
+    assert store.read_bytes(digest) == b"field"
+    assert len(list((tmp_path / "sha256").rglob("*"))) == 2  # one fan-out directory, one blob
+    assert not list((tmp_path / "incoming").iterdir())
+
+
+def test_put_file_streams_and_matches_put_bytes(tmp_path):
+    source = tmp_path / "cloud.ply"
+    source.write_bytes(bytes(range(256)) * 10_000)
+    store = ArtifactStore(tmp_path / "store")
+    assert store.put_file(source) == hashlib.sha256(source.read_bytes()).hexdigest()
+
+
+def test_missing_or_malformed_digest_is_a_key_error(tmp_path):
+    store = ArtifactStore(tmp_path)
+    with pytest.raises(KeyError, match="not in the store"):
+        store.path("0" * 64)
+    with pytest.raises(KeyError, match="not a SHA-256"):
+        store.path("../etc/passwd")
+    assert not store.exists("0" * 64)
+
+
+def test_failed_write_leaves_no_partial_blob(tmp_path):
+    store = ArtifactStore(tmp_path)
+    with pytest.raises(FileNotFoundError):
+        store.put_file(tmp_path / "absent")
+    assert not list((tmp_path / "incoming").iterdir())
+    assert not list((tmp_path / "sha256").iterdir())

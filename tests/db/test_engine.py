@@ -1,0 +1,32 @@
+from sqlalchemy import inspect, text
+
+from services.db.engine import make_engine, make_sessions, migrate
+from services.db.models import Job
+
+
+def test_migration_creates_every_table(engine):
+    tables = set(inspect(engine).get_table_names())
+    assert {"api_keys", "jobs", "scans", "calibration_sets", "idempotency_records", "alembic_version"} <= tables
+
+
+def test_migrating_twice_is_harmless_and_keeps_rows(engine):
+    sessions = make_sessions(engine)
+    with sessions.begin() as session:
+        session.add(Job(id="j1", kind="scan", params={"a": 1}))
+    migrate(engine)
+    with sessions() as session:
+        assert session.get(Job, "j1").params == {"a": 1}
+
+
+def test_sqlite_runs_in_wal_mode(tmp_path):
+    engine = make_engine(f"sqlite:///{tmp_path / 'x.db'}")
+    with engine.connect() as connection:
+        assert connection.execute(text("PRAGMA journal_mode")).scalar_one() == "wal"
+        assert connection.execute(text("PRAGMA foreign_keys")).scalar_one() == 1
+
+
+def test_postgres_schema_name_is_checked():
+    import pytest
+
+    with pytest.raises(ValueError, match="schema name"):
+        make_engine("postgresql+psycopg://postgres@127.0.0.1:5432/test", "bad; drop")
