@@ -1,0 +1,101 @@
+import numpy as np
+import pytest
+
+from services.fusion.fuse import ThermalView, fuse_temperature, view_angles
+from services.geometry.camera import camera_center, project_points
+
+
+def test_seen_points_get_their_true_temperature(hot_scene):
+    field = fuse_temperature(hot_scene.points, hot_scene.normals, [ThermalView(hot_scene.thermal, hot_scene.image)])
+    error = np.abs(field.temperature - hot_scene.truth)[hot_scene.visible]
+    assert np.mean(np.isfinite(error)) > 0.95
+    assert np.nanmedian(error) <= 1.0
+    assert np.nanpercentile(error, 90) <= 2.0
+
+
+def test_occluded_points_are_nan_not_the_occluder_temperature(hot_scene):
+    field = fuse_temperature(hot_scene.points, hot_scene.normals, [ThermalView(hot_scene.thermal, hot_scene.image)])
+    occluded = ~hot_scene.visible
+    assert occluded.sum() > 1000  # the bar hides part of the plate from the thermal camera
+    assert np.mean(np.isnan(field.temperature[occluded])) >= 0.99
+
+
+def test_occluded_points_would_read_the_occluder_without_the_z_buffer(hot_scene):
+    """The scene tests occlusion for real: where hidden plate points project, the image shows the bar."""
+    hidden_plate = ~hot_scene.visible & (hot_scene.points[:, 2] > 649)
+    assert hidden_plate.sum() > 1000
+    pixels = project_points(hot_scene.points[hidden_plate], hot_scene.thermal.K_array, hot_scene.thermal.dist_array,
+                            hot_scene.thermal.R_array, hot_scene.thermal.t_array)
+    column, row = np.rint(pixels).astype(int).T
+    shown = hot_scene.image[row, column]
+    assert np.median(np.abs(shown - hot_scene.truth[hidden_plate])) > 50
+
+
+def test_view_angle_limit_leaves_grazing_points_nan(hot_scene):
+    field = fuse_temperature(hot_scene.points, hot_scene.normals, [ThermalView(hot_scene.thermal, hot_scene.image)],
+                             max_view_angle_deg=30.0)
+    angle = np.rad2deg(view_angles(hot_scene.points, hot_scene.normals,
+                                   camera_center(hot_scene.thermal.R_array, hot_scene.thermal.t_array)))
+    beyond = hot_scene.visible & (angle > 31)
+    assert beyond.sum() > 1000
+    assert np.all(np.isnan(field.temperature[beyond]))
+    within = np.isfinite(field.temperature)
+    assert np.all(field.view_angle[within] <= 30.0 + 1e-3)
+    np.testing.assert_allclose(field.view_angle[within], angle[within], atol=1e-3)
+
+
+def test_several_frames_average_the_noise(hot_scene):
+    from tests.fusion.conftest import rerender
+
+    plate = hot_scene.visible & (hot_scene.points[:, 2] > 649)
+    single = fuse_temperature(hot_scene.points, hot_scene.normals, [ThermalView(hot_scene.thermal, hot_scene.image)])
+    frames = np.stack([hot_scene.image] + [rerender(hot_scene, seed) for seed in (1, 2, 3)])
+    averaged = fuse_temperature(hot_scene.points, hot_scene.normals, [ThermalView(hot_scene.thermal, frames)])
+    residual_single = single.temperature[plate] - hot_scene.truth[plate]
+    residual_averaged = averaged.temperature[plate] - hot_scene.truth[plate]
+    # 50 mK noise dominates the typical residual; four frames halve it (edge pixels blurred with the
+    # background dominate the tails, so compare medians)
+    assert np.nanmedian(np.abs(residual_averaged)) < 0.7 * np.nanmedian(np.abs(residual_single))
+
+
+def test_views_are_weighted_by_cosine_of_view_angle(hot_scene):
+    from tests.fusion.conftest import look_at
+
+    head_on = look_at("thermal", [0, 0, 0], [0, 0, 650], 380, 320, 256)
+    oblique = look_at("thermal", [500, 0, 150], [0, 0, 650], 380, 320, 256)
+    plate = hot_scene.points[:, 2] > 649
+    points, normals = hot_scene.points[plate], hot_scene.normals[plate]
+    uniform = [ThermalView(head_on, np.full((256, 320), 100.0)), ThermalView(oblique, np.full((256, 320), 200.0))]
+    field = fuse_temperature(points, normals, uniform)
+    cos_head_on = np.cos(view_angles(points, normals, camera_center(head_on.R_array, head_on.t_array)))
+    cos_oblique = np.cos(view_angles(points, normals, camera_center(oblique.R_array, oblique.t_array)))
+    expected = (100 * cos_head_on + 200 * cos_oblique) / (cos_head_on + cos_oblique)
+    both = np.isfinite(field.temperature) & (np.abs(field.temperature - 100) > 1) & (np.abs(field.temperature - 200) > 1)
+    assert both.sum() > 1000
+    np.testing.assert_allclose(field.temperature[both], expected[both], atol=1e-3)
+
+
+def test_nan_pixels_of_a_frame_are_not_sampled(hot_scene):
+    image = hot_scene.image.copy()
+    image[:, : image.shape[1] // 2] = np.nan
+    field = fuse_temperature(hot_scene.points, hot_scene.normals, [ThermalView(hot_scene.thermal, image)])
+    assert np.isfinite(field.temperature).sum() > 1000
+    pixels = project_points(hot_scene.points, hot_scene.thermal.K_array, hot_scene.thermal.dist_array,
+                            hot_scene.thermal.R_array, hot_scene.thermal.t_array)
+    in_nan_half = pixels[:, 0] < image.shape[1] // 2 - 1
+    assert in_nan_half.sum() > 1000
+    assert np.all(np.isnan(field.temperature[in_nan_half]))
+    error = np.abs(field.temperature - hot_scene.truth)[hot_scene.visible]
+    assert np.nanmedian(error) <= 1.0
+
+
+def test_bad_arguments_are_refused(hot_scene):
+    view = ThermalView(hot_scene.thermal, hot_scene.image)
+    with pytest.raises(ValueError, match="normals"):
+        fuse_temperature(hot_scene.points, hot_scene.normals[:10], [view])
+    with pytest.raises(ValueError, match="thermal view"):
+        fuse_temperature(hot_scene.points, hot_scene.normals, [])
+    with pytest.raises(ValueError, match="limit"):
+        fuse_temperature(hot_scene.points, hot_scene.normals, [view], max_view_angle_deg=95)
+    with pytest.raises(ValueError, match="for this device"):
+        ThermalView(hot_scene.thermal, hot_scene.image[:100])
