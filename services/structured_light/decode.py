@@ -269,7 +269,7 @@ def decode(
     min_intensity: float | None = None,
     min_modulation: float | None = None,
     min_quality: float = 0.5,
-    consistency: float = 0.5,
+    consistency: float = 0.25,
 ) -> DecodedCapture:
     """Decode camera frames of a structured-light sequence into projector coordinates.
 
