@@ -7,11 +7,14 @@ takes ``--bind``, so the embedded default runs that. Viewers join with
 
 from __future__ import annotations
 
+import os
 import socket
 import subprocess
-import sys
 import tempfile
 import time
+from pathlib import Path
+
+import rerun_cli
 
 from services.errors import InputError
 
@@ -19,6 +22,15 @@ from services.errors import InputError
 def proxy_url(host: str, port: int) -> str:
     """The URL loggers and viewers use to reach a proxy."""
     return f"rerun+http://{host}:{port}/proxy"
+
+
+def rerun_executable() -> str:
+    """The ``rerun`` binary shipped in the rerun-sdk wheel (``RERUN_CLI_PATH`` overrides it).
+
+    Run directly rather than through ``python -m rerun_cli``, whose wrapper process
+    would leave the binary running when it is terminated.
+    """
+    return os.environ.get("RERUN_CLI_PATH") or str(Path(rerun_cli.__file__).with_name("rerun"))
 
 
 class RerunProxy:
@@ -32,7 +44,7 @@ class RerunProxy:
             raise InputError(f"Rerun port {port} on {host} is already in use; choose another (THERMOFIELD_RERUN_PORT)")
         self._log = tempfile.TemporaryFile()
         self._process = subprocess.Popen(
-            [sys.executable, "-m", "rerun_cli", "--serve-grpc", "--bind", host, "--port", str(port),
+            [rerun_executable(), "--serve-grpc", "--bind", host, "--port", str(port),
              "--server-memory-limit", memory_limit],
             stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=self._log,
         )
