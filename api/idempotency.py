@@ -34,10 +34,10 @@ class Outcome:
     after_commit: Callable[[], None] | None = None
 
 
-async def request_digest(request: Request) -> str:
-    """SHA-256 of the method, path and body of ``request``."""
+def request_digest(request: Request, content: bytes) -> str:
+    """SHA-256 of the method and path of ``request`` and its ``content`` (the body, or the parsed form)."""
     hasher = hashlib.sha256(f"{request.method} {request.url.path}\n".encode())
-    hasher.update(await request.body())
+    hasher.update(content)
     return hasher.hexdigest()
 
 

@@ -1,4 +1,4 @@
-"""Prometheus metrics of one API process: requests and latencies per route, jobs by status."""
+"""Prometheus metrics of one API process: requests and latencies per operation, jobs by status."""
 
 from __future__ import annotations
 
@@ -34,15 +34,15 @@ class ApiMetrics:
     def __init__(self, runtime: Runtime) -> None:
         self.registry = CollectorRegistry()
         self.requests = Counter("thermofield_http_requests", "HTTP requests answered.",
-                                ["method", "route", "status"], registry=self.registry)
+                                ["method", "operation", "status"], registry=self.registry)
         self.latency = Histogram("thermofield_http_request_duration_seconds", "Time to answer an HTTP request.",
-                                 ["method", "route"], registry=self.registry,
+                                 ["method", "operation"], registry=self.registry,
                                  buckets=(0.001, 0.0025, 0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1, 2.5, 10))
         self.registry.register(_JobsByStatus(runtime))
 
 
 class MetricsMiddleware:
-    """Pure ASGI middleware (cheaper than BaseHTTPMiddleware) timing each HTTP request by route template."""
+    """Pure ASGI middleware (cheaper than BaseHTTPMiddleware) counting and timing requests by operation id."""
 
     def __init__(self, app: ASGIApp, metrics: ApiMetrics) -> None:
         self.app = app
@@ -64,6 +64,6 @@ class MetricsMiddleware:
         try:
             await self.app(scope, receive, record_status)
         finally:
-            route = getattr(scope.get("route"), "path", "unmatched")
-            self.metrics.requests.labels(scope["method"], route, str(status)).inc()
-            self.metrics.latency.labels(scope["method"], route).observe(time.perf_counter() - start)
+            operation = getattr(scope.get("route"), "name", "unmatched")
+            self.metrics.requests.labels(scope["method"], operation, str(status)).inc()
+            self.metrics.latency.labels(scope["method"], operation).observe(time.perf_counter() - start)

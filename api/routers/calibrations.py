@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 from typing import Annotated
 
 from fastapi import APIRouter, Depends, File, Form, Request, UploadFile
@@ -63,7 +64,8 @@ async def create_calibration_set(request: Request, session: SessionDep, runtime:
         out = calibration_out(calibration)
         return Outcome(201, out.model_dump(mode="json"), out.links["self"])
 
-    return respond_once(session, key, idempotency_key, await request_digest(request), create)
+    form = json.dumps({"name": name, "activate": activate}).encode() + text
+    return respond_once(session, key, idempotency_key, request_digest(request, form), create)
 
 
 @router.post("/capture", name="start_calibration_capture", status_code=202, response_model=Accepted)
@@ -83,7 +85,7 @@ async def start_calibration_capture(request: Request, body: CalibrationCaptureRe
                             links={"job": f"/v1/jobs/{job.id}", "events": f"/v1/jobs/{job.id}/events"})
         return Outcome(202, accepted.model_dump(mode="json"), f"/v1/jobs/{job.id}", dispatch)
 
-    return respond_once(session, key, idempotency_key, await request_digest(request), start)
+    return respond_once(session, key, idempotency_key, request_digest(request, await request.body()), start)
 
 
 @router.get("", name="list_calibration_sets")

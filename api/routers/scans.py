@@ -75,7 +75,7 @@ async def create_scan(request: Request, session: SessionDep, runtime: RuntimeDep
 
         return Outcome(202, accepted.model_dump(mode="json"), f"/v1/jobs/{job.id}", dispatch)
 
-    return respond_once(session, key, idempotency_key, await request_digest(request), start)
+    return respond_once(session, key, idempotency_key, request_digest(request, await request.body()), start)
 
 
 def _calibration_for(session, station: str, calibration_set_id: str | None) -> CalibrationSet:

@@ -1,0 +1,160 @@
+import json
+
+from services.db.models import Job, Scan
+from services.formats.rig import rig_to_json
+from services.simulation.presets import forging_rig
+
+PROBLEM = "application/problem+json"
+
+
+def upload_rig(client, headers, text=None, name="station rig", activate=True, **extra_headers):
+    text = rig_to_json(forging_rig()) if text is None else text
+    return client.post("/v1/calibration-sets", headers={**headers, **extra_headers},
+                       files={"rig": ("rig.json", text, "application/json")},
+                       data={"name": name, "activate": str(activate).lower()})
+
+
+def test_health_needs_no_key_and_readiness_checks_the_schema(client):
+    assert client.get("/healthz").json() == {"status": "ok"}
+    ready = client.get("/readyz").json()
+    assert ready["status"] == "ready" and "0001" in ready["checks"]["database"]
+
+
+def test_without_keys_nothing_but_health_is_served(client):
+    for path in ("/v1/scans", "/v1/jobs", "/v1/calibration-sets", "/v1/devices", "/v1/jobs/x"):
+        response = client.get(path)
+        assert response.status_code == 401, path
+        assert response.headers["content-type"] == PROBLEM
+        assert response.headers["www-authenticate"] == "Bearer"
+    assert client.post("/v1/scans").status_code == 401
+
+
+def test_unknown_key_and_missing_scope_are_refused(client, auth):
+    response = client.get("/v1/scans", headers={"Authorization": "Bearer tf_wrong"})
+    assert response.status_code == 401 and "unknown or revoked" in response.json()["detail"]
+    response = client.post("/v1/scans", headers=auth["read"])
+    assert response.status_code == 403
+    body = response.json()
+    assert body["type"].endswith("/forbidden") and "'operate'" in body["detail"] and body["status"] == 403
+
+
+def test_scan_without_active_calibration_is_a_conflict(client, auth):
+    response = client.post("/v1/scans", headers=auth["operate"])
+    assert response.status_code == 409
+    assert response.headers["content-type"] == PROBLEM
+    assert "no active calibration set" in response.json()["detail"]
+
+
+def test_calibration_set_upload_download_activate(client, auth, runtime):
+    created = upload_rig(client, auth["admin"], activate=False)
+    assert created.status_code == 201, created.text
+    first = created.json()
+    assert created.headers["location"] == first["links"]["self"] and not first["active"]
+    downloaded = client.get(first["links"]["rig"], headers=auth["read"])
+    assert json.loads(downloaded.text) == json.loads(rig_to_json(forging_rig()))
+    second = upload_rig(client, auth["admin"], name="recalibrated").json()
+    assert second["active"]
+    activated = client.post(f"/v1/calibration-sets/{first['calibration_set_id']}/activate", headers=auth["admin"])
+    assert activated.json()["active"]
+    listed = {c["calibration_set_id"]: c["active"] for c in client.get("/v1/calibration-sets", headers=auth["read"]).json()}
+    assert listed == {first["calibration_set_id"]: True, second["calibration_set_id"]: False}
+    assert upload_rig(client, auth["operate"]).status_code == 403
+
+
+def test_bad_rig_upload_names_the_file_and_field(client, auth):
+    rig = json.loads(rig_to_json(forging_rig()))
+    rig["devices"]["camera"]["K"][0][0] = -5
+    response = upload_rig(client, auth["admin"], text=json.dumps(rig))
+    assert response.status_code == 422 and response.headers["content-type"] == PROBLEM
+    assert "rig (rig.json): devices.camera.K" in response.json()["detail"]
+    assert upload_rig(client, auth["admin"], text="{not json").status_code == 422
+
+
+def test_validation_errors_are_problems_naming_the_field(client, auth):
+    upload_rig(client, auth["admin"])
+    response = client.post("/v1/scans", headers=auth["operate"], json={"part_id": 5, "colour": "red"})
+    assert response.status_code == 422 and response.headers["content-type"] == PROBLEM
+    fields = {error["field"] for error in response.json()["errors"]}
+    assert {"body.part_id", "body.colour"} <= fields
+
+
+def test_scan_is_accepted_with_a_location_and_a_queued_job(client, auth, runtime):
+    calibration = upload_rig(client, auth["admin"]).json()
+    response = client.post("/v1/scans", headers=auth["operate"], json={"part_id": "billet-17"})
+    assert response.status_code == 202
+    accepted = response.json()
+    assert response.headers["location"] == f"/v1/jobs/{accepted['job_id']}"
+    job = client.get(response.headers["location"], headers=auth["read"]).json()
+    assert (job["status"], job["kind"], job["scan_id"]) == ("queued", "scan", accepted["scan_id"])
+    scan = client.get(f"/v1/scans/{accepted['scan_id']}", headers=auth["read"]).json()
+    assert scan["part_id"] == "billet-17" and scan["calibration_set_id"] == calibration["calibration_set_id"]
+    assert scan["summary"] is None and scan["status"] == "queued"
+    missing = client.get(f"/v1/scans/{accepted['scan_id']}/field.ply", headers=auth["read"])
+    assert missing.status_code == 404 and missing.json()["type"].endswith("/not-ready")
+    assert client.get("/v1/scans/nope", headers=auth["read"]).status_code == 404
+    assert client.get(f"/v1/scans/{accepted['scan_id']}/other.txt", headers=auth["read"]).status_code in (404, 422)
+
+
+def test_idempotency_key_replays_the_first_answer_and_refuses_another_body(client, auth, runtime):
+    upload_rig(client, auth["admin"])
+    headers = {**auth["operate"], "Idempotency-Key": "mes-42"}
+    first = client.post("/v1/scans", headers=headers, json={"part_id": "a"})
+    again = client.post("/v1/scans", headers=headers, json={"part_id": "a"})
+    assert first.status_code == again.status_code == 202
+    assert again.json() == first.json() and again.headers["location"] == first.headers["location"]
+    assert again.headers["idempotent-replayed"] == "true"
+    with runtime.sessions() as session:
+        assert session.query(Scan).count() == 1 and session.query(Job).count() == 1
+    other = client.post("/v1/scans", headers=headers, json={"part_id": "b"})
+    assert other.status_code == 422 and other.json()["type"].endswith("/idempotency-key-reused")
+    fresh = client.post("/v1/scans", headers={**auth["operate"], "Idempotency-Key": "mes-43"}, json={"part_id": "a"})
+    assert fresh.json()["scan_id"] != first.json()["scan_id"]
+
+
+def test_scan_artifacts_and_summary_are_served_from_the_store(client, auth, runtime):
+    upload_rig(client, auth["admin"])
+    accepted = client.post("/v1/scans", headers=auth["operate"]).json()
+    digest = runtime.store.put_bytes(b"ply bytes")
+    summary = {"point_count": 3, "points_with_temperature": 2, "bbox_min": [0, 0, 0], "bbox_max": [1, 1, 1],
+               "temperature": {"min": 1, "max": 2, "mean": 1.5, "percentiles": {"p50": 1.5}}}
+    with runtime.sessions.begin() as session:
+        scan = session.get(Scan, accepted["scan_id"])
+        scan.artifacts, scan.summary = {"field.ply": digest, "frames": [digest]}, summary
+    got = client.get(f"/v1/scans/{accepted['scan_id']}", headers=auth["read"]).json()
+    assert got["summary"]["temperature"]["mean"] == 1.5
+    assert set(got["links"]) >= {"field.ply", "frames/0"} and "cloud.ply" not in got["links"]
+    assert client.get(got["links"]["field.ply"], headers=auth["read"]).content == b"ply bytes"
+    assert client.get(got["links"]["frames/0"], headers=auth["read"]).status_code == 200
+    assert client.get(f"/v1/scans/{accepted['scan_id']}/frames/1.png", headers=auth["read"]).status_code == 404
+
+
+def test_job_events_stream_until_the_job_is_done(client, auth, runtime):
+    upload_rig(client, auth["admin"])
+    job_id = client.post("/v1/scans", headers=auth["operate"]).json()["job_id"]
+    runtime.tracker.start(job_id)
+    runtime.tracker.succeed(job_id, {"ok": 1})
+    with client.stream("GET", f"/v1/jobs/{job_id}/events", headers=auth["read"]) as response:
+        assert response.headers["content-type"].startswith("text/event-stream")
+        text = "".join(response.iter_text())
+    assert "event: done" in text and '"status":"succeeded"' in text.replace(" ", "")
+
+
+def test_metrics_count_requests_and_jobs(client, auth):
+    client.get("/v1/jobs", headers=auth["read"])
+    text = client.get("/metrics").text
+    assert 'thermofield_http_requests_total{method="GET",operation="list_jobs",status="200"} 1.0' in text
+    assert 'thermofield_jobs{status="queued"}' in text
+
+
+def test_openapi_operation_ids_are_stable_names(client):
+    operations = {op["operationId"] for path in client.get("/openapi.json").json()["paths"].values()
+                  for op in path.values()}
+    assert {"create_scan", "get_scan", "list_scans", "download_scan_artifact", "get_job", "stream_job_events",
+            "create_calibration_set", "activate_calibration_set", "download_calibration_set", "list_devices",
+            "get_health", "get_readiness", "get_metrics"} <= operations
+
+
+def test_devices_without_a_gateway_is_a_bad_gateway_problem(client, auth):
+    response = client.get("/v1/devices", headers=auth["read"])
+    assert response.status_code == 502 and response.headers["content-type"] == PROBLEM
+    assert "unreachable" in response.json()["detail"]
