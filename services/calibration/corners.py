@@ -58,8 +58,11 @@ def detect_board(image: np.ndarray, board: BoardSpec) -> BoardDetection | None:
 
     Notes
     -----
-    Chessboards are located by OpenCV's quad detector, falling back to the sector-based
-    detector [2]_ and, for frames under 480 pixels, to both on a twice-upsampled frame.
+    Chessboards are located by OpenCV's sector-based detector [2]_, falling back to the quad
+    detector (which finds boards whose quiet zone is cut by the image border but misplaces
+    the outer corners of a board without a light frame, such as a hollowed infrared board
+    seen with its own polarity) and, for frames under 480 pixels, to both on a
+    twice-upsampled frame.
     Each corner is then refined as the saddle point of the intensity, the point q where
     sum_i (grad I(p_i) . (p_i - q)) = 0 over a window (``cv2.cornerSubPix``). The half
     window is a quarter of the corner's distance to its nearest neighbour, so it adapts to
@@ -79,14 +82,11 @@ def detect_board(image: np.ndarray, board: BoardSpec) -> BoardDetection | None:
         raise ValueError(f"The image must be a 2-D uint8 or uint16 array; got {image.dtype} {image.shape}.")
     grey = _stretch_to_uint8(image)
     polarities = ("normal", "inverted") if board.polarity == "auto" else (board.polarity,)
+    if isinstance(board, ChessboardSpec):
+        return _detect_chessboard(grey, board, polarities)
     for polarity in polarities:
         view = grey if polarity == "normal" else 255 - grey
-        if isinstance(board, ChessboardSpec):
-            found = _detect_chessboard(view, board)
-        elif isinstance(board, CharucoSpec):
-            found = _detect_charuco(view, board)
-        else:
-            found = _detect_circles(view, board)
+        found = _detect_charuco(view, board) if isinstance(board, CharucoSpec) else _detect_circles(view, board)
         if found is not None:
             points, ids = found
             return BoardDetection(points.astype(np.float64), ids.astype(int), polarity)
@@ -101,26 +101,30 @@ def _stretch_to_uint8(image: np.ndarray) -> np.ndarray:
     return np.clip(scaled, 0, 255).astype(np.uint8)
 
 
-def _locate_chessboard(grey: np.ndarray, size: tuple[int, int]) -> np.ndarray | None:
-    found, corners = cv2.findChessboardCorners(grey, size, flags=_CLASSIC_FLAGS)
-    if found:
-        return corners.reshape(-1, 2)
-    found, corners = cv2.findChessboardCornersSB(grey, size, flags=_SECTOR_FLAGS)
-    return corners.reshape(-1, 2) if found else None
-
-
-def _detect_chessboard(grey: np.ndarray, board: ChessboardSpec) -> tuple[np.ndarray, np.ndarray] | None:
+def _detect_chessboard(grey: np.ndarray, board: ChessboardSpec, polarities: tuple[str, ...]) -> BoardDetection | None:
+    """Try the locators from the cheapest to the costliest, each with every polarity."""
     size = board.pattern_size
-    corners = _locate_chessboard(grey, size)
-    if corners is None and min(grey.shape) < _UPSAMPLE_BELOW:
-        upsampled = cv2.resize(grey, None, fx=2, fy=2, interpolation=cv2.INTER_CUBIC)
-        found = _locate_chessboard(upsampled, size)
-        corners = None if found is None else (found + 0.5) / 2 - 0.5
-    if corners is None:
-        return None
-    corners = refine_corners(grey, corners)
-    corners = _canonical_chessboard_order(grey, corners, size)
-    return corners, np.arange(len(corners))
+    scales = (1, 2) if min(grey.shape) < _UPSAMPLE_BELOW else (1,)
+    for scale in scales:
+        frame = grey if scale == 1 else cv2.resize(grey, None, fx=scale, fy=scale, interpolation=cv2.INTER_CUBIC)
+        for locate in (_locate_by_sectors, _locate_by_quads):
+            for polarity in polarities:
+                corners = locate(frame if polarity == "normal" else 255 - frame, size)
+                if corners is not None:
+                    corners = (corners + 0.5) / scale - 0.5
+                    corners = _canonical_chessboard_order(grey, refine_corners(grey, corners), size)
+                    return BoardDetection(corners, np.arange(len(corners)), polarity)
+    return None
+
+
+def _locate_by_quads(view: np.ndarray, size: tuple[int, int]) -> np.ndarray | None:
+    found, corners = cv2.findChessboardCorners(view, size, flags=_CLASSIC_FLAGS)
+    return corners.reshape(-1, 2).astype(np.float64) if found else None
+
+
+def _locate_by_sectors(view: np.ndarray, size: tuple[int, int]) -> np.ndarray | None:
+    found, corners = cv2.findChessboardCornersSB(view, size, flags=_SECTOR_FLAGS)
+    return corners.reshape(-1, 2).astype(np.float64) if found else None
 
 
 def _detect_charuco(grey: np.ndarray, board: CharucoSpec) -> tuple[np.ndarray, np.ndarray] | None:

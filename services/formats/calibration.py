@@ -1,0 +1,97 @@
+"""The camera calibration result file (JSON) and its report pictures.
+
+```json
+{"name": "thermal", "kind": "thermal", "width": 320, "height": 256,
+ "K": [[...], [...], [...]], "dist": [k1, k2, p1, p2, k3], "distortion_model": "standard",
+ "rms_px": 0.05, "std": {"fx": 0.1, "fy": 0.1, "cx": 0.2, ...},
+ "board": {...board spec...},
+ "views": [{"image": "ir01.png", "rms_px": 0.04, "polarity": "inverted",
+            "R": [[...]], "t": [...], "pose_std": [rx, ry, rz, tx, ty, tz]}],
+ "rejected": [{"image": "ir07.png", "reason": "reprojection RMS ... exceeds ..."}]}
+```
+
+``views[i].R, t`` is the board-to-camera pose, x_cam = R x_board + t, in millimetres;
+``pose_std`` holds the standard deviations of the Rodrigues vector (rad) and of t (mm).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from matplotlib.figure import Figure
+from pydantic import BaseModel, ConfigDict, ValidationError
+
+from services.errors import InputError
+from services.formats.board import BoardSpec
+from services.formats.rig import Device, DeviceKind, Matrix3
+
+
+class CalibratedView(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+    image: str
+    rms_px: float
+    polarity: str
+    R: Matrix3
+    t: list[float]
+    pose_std: list[float]
+
+
+class RejectedView(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+    image: str
+    reason: str
+
+
+class CameraCalibrationFile(BaseModel):
+    """What ``thermofield calibrate camera`` writes."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    name: str
+    kind: DeviceKind
+    width: int
+    height: int
+    K: Matrix3
+    dist: list[float]
+    distortion_model: str
+    rms_px: float
+    std: dict[str, float]
+    board: BoardSpec
+    views: list[CalibratedView]
+    rejected: list[RejectedView]
+
+    def device(self) -> Device:
+        """The calibrated device at the world origin, as a rig entry."""
+        return Device(kind=self.kind, width=self.width, height=self.height, K=self.K, dist=self.dist)
+
+
+def load_camera_calibration(path: str | Path) -> CameraCalibrationFile:
+    """Read and validate a camera calibration file."""
+    path = Path(path)
+    try:
+        text = path.read_text()
+    except OSError as error:
+        raise InputError(f"{path}: cannot read the camera calibration ({error.strerror or error})") from None
+    try:
+        return CameraCalibrationFile.model_validate_json(text)
+    except ValidationError as error:
+        problems = "; ".join(f"{'.'.join(map(str, e['loc']))}: {e['msg']}" for e in error.errors())
+        raise InputError(f"{path}: not a camera calibration file ({problems})") from None
+
+
+def save_camera_calibration(calibration: CameraCalibrationFile, path: str | Path) -> None:
+    """Write the calibration atomically (temporary file, then rename)."""
+    path = Path(path)
+    temporary = path.with_name(path.name + ".part")
+    temporary.write_text(calibration.model_dump_json(indent=2) + "\n")
+    temporary.replace(path)
+
+
+def save_figure(figure: Figure, path: str | Path) -> None:
+    """Write a report figure as PNG atomically."""
+    path = Path(path)
+    temporary = path.with_name(path.name + ".part")
+    figure.savefig(temporary, format="png", dpi=100)
+    temporary.replace(path)
