@@ -21,6 +21,8 @@ def setup_broker(settings: Settings) -> dramatiq.Broker:
         broker = StubBroker()
     broker.add_middleware(ComputeThreads(settings.compute_threads))
     broker.add_middleware(JobBookkeeping())
+    if not settings.broker_url:
+        broker.emit_after("process_boot")  # the dramatiq CLI does this for its processes; it starts TimeLimit's timer
     dramatiq.set_broker(broker)
     actors = importlib.import_module("workers.actors")
     for actor in actors.ACTORS.values():
