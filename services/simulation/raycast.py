@@ -86,24 +86,48 @@ def cast_rays(scene: Scene, origins: np.ndarray, directions: np.ndarray, t_min: 
     distance = np.full(count, np.inf)
     normals = np.full((count, 3), np.nan)
     surface = np.full(count, -1, dtype=np.int64)
+    bounds = [_bounding_sphere(shape) for shape in scene.surfaces]
     for start in range(0, count, _CHUNK):
         chunk = slice(start, start + _CHUNK)
-        o, d = np.ascontiguousarray(origins[chunk]), directions[chunk]
+        o, d = origins[chunk], directions[chunk]
+        chunk_distance, chunk_normals, chunk_surface = distance[chunk], normals[chunk], surface[chunk]
         for index, shape in enumerate(scene.surfaces):
+            rays = np.flatnonzero(_may_hit(*bounds[index], o, d, t_min))
             if index in meshes:
-                s, n = _intersect_mesh(meshes[index], o, d, t_min)
+                s, n = _intersect_mesh(meshes[index], o[rays], d[rays], t_min)
             else:
-                s, n = _ANALYTIC[type(shape)](shape, o, d, t_min)
-            closer = s < distance[chunk]
-            distance[chunk][closer] = s[closer]
-            normals[chunk][closer] = n[closer]
-            surface[chunk][closer] = index
+                s, n = _ANALYTIC[type(shape)](shape, o[rays], d[rays], t_min)
+            closer = s < chunk_distance[rays]
+            chunk_distance[rays[closer]] = s[closer]
+            chunk_normals[rays[closer]] = n[closer]
+            chunk_surface[rays[closer]] = index
     hit = surface >= 0
     with np.errstate(invalid="ignore"):
         points = np.where(hit[:, None], origins + distance[:, None] * directions, np.nan)
     facing_away = np.einsum("ij,ij->i", normals, directions) > 0
     normals[facing_away] *= -1
     return Hits(distance=distance, points=points, normals=normals, surface=surface)
+
+
+def _bounding_sphere(shape) -> tuple[np.ndarray, float]:
+    """Centre and radius of a sphere enclosing the surface."""
+    if isinstance(shape, Mesh):
+        corners = shape.triangles().reshape(-1, 3)
+        low, high = corners.min(axis=0), corners.max(axis=0)
+        return (low + high) / 2, float(np.linalg.norm(high - low)) / 2
+    if isinstance(shape, Plane):
+        return np.asarray(shape.center), float(np.hypot(*shape.size)) / 2
+    if isinstance(shape, Cylinder):
+        return np.asarray(shape.center), float(np.hypot(shape.radius, shape.length / 2))
+    return np.asarray(shape.center), shape.radius
+
+
+def _may_hit(centre: np.ndarray, radius: float, o: np.ndarray, d: np.ndarray, t_min: float) -> np.ndarray:
+    """Rays (unit d) passing within ``radius`` of ``centre`` ahead of t_min: a cheap cull before exact tests."""
+    to_centre = centre - o
+    along = np.einsum("ij,ij->i", to_centre, d)
+    squared = np.einsum("ij,ij->i", to_centre, to_centre)
+    return (squared - along * along <= radius * radius * (1 + 1e-9)) & (along + radius >= t_min)
 
 
 def _nearest_root(a: np.ndarray, half_b: np.ndarray, c: np.ndarray, accept, t_min: float) -> np.ndarray:

@@ -1,0 +1,102 @@
+"""Ready-made rigs and scenes: the paper's simulated experiment and the forging station of later issues.
+
+Paper rig (section 2.1 and 3 of the paper): projector "projector" at the world origin (R = I, t = 0) and
+camera "camera" centred at (400, 0, 0) mm, rotated 20.0 degrees about y (the exactly orthonormal form
+of the paper's Table 1 rotation [[0.94, 0, 0.342], [0, 1, 0], [-0.342, 0, 0.94]]) so that its optical
+axis (-0.342, 0, 0.940) turns toward the projector's; both 1024x768 with principal points at the image
+centres and no distortion; focal lengths 1300 px (projector) and 800 px (camera).
+
+Forging rig: projector "projector" 1280x800, f = 1500 px, at the origin looking along +z; camera
+"camera" 1280x800, f = 1400 px, centred at (350, 0, 0); thermal camera "thermal" 320x256, f = 380 px,
+centred at (180, -120, 0) (above the projector, y pointing down). Camera and thermal camera aim at
+(0, 0, 600). All three have mild radial and tangential distortion.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from services.formats.rig import Device, Rig
+from services.simulation.scene import Albedo, Cylinder, Plane, Scene, Sphere
+
+PAPER_SIZE = (1024, 768)
+PAPER_PROJECTOR_FOCAL = 1300.0
+PAPER_CAMERA_FOCAL = 800.0
+PAPER_CAMERA_CENTRE = (400.0, 0.0, 0.0)
+PAPER_CAMERA_ROTATION_DEG = 20.0
+PAPER_SPHERE_CENTRE = (0.0, 0.0, 480.0)
+FORGING_AIM = (0.0, 0.0, 600.0)
+
+
+def _intrinsics(focal: float, width: int, height: int) -> list[list[float]]:
+    return [[focal, 0.0, (width - 1) / 2], [0.0, focal, (height - 1) / 2], [0.0, 0.0, 1.0]]
+
+
+def _device(kind: str, size: tuple[int, int], focal: float, dist: list[float], R: np.ndarray,
+            centre: tuple[float, float, float]) -> Device:
+    t = -R @ np.asarray(centre, dtype=np.float64)
+    return Device(kind=kind, width=size[0], height=size[1], K=_intrinsics(focal, *size), dist=dist,
+                  R=R.tolist(), t=t.tolist())
+
+
+def _rotation_about_y(degrees: float) -> np.ndarray:
+    c, s = np.cos(np.radians(degrees)), np.sin(np.radians(degrees))
+    return np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])
+
+
+def _look_at(centre: tuple[float, float, float], target: tuple[float, float, float]) -> np.ndarray:
+    """Rotation aiming the device z axis from ``centre`` at ``target``, its x axis level (normal to world y)."""
+    forward = np.subtract(target, centre, dtype=np.float64)
+    forward /= np.linalg.norm(forward)
+    right = np.cross([0.0, 1.0, 0.0], forward)
+    right /= np.linalg.norm(right)
+    return np.stack([right, np.cross(forward, right), forward])
+
+
+def paper_rig() -> Rig:
+    """The paper's simulated structured-light rig (numbers in the module docstring)."""
+    return Rig(devices={
+        "projector": _device("projector", PAPER_SIZE, PAPER_PROJECTOR_FOCAL, [], np.eye(3), (0.0, 0.0, 0.0)),
+        "camera": _device("camera", PAPER_SIZE, PAPER_CAMERA_FOCAL, [],
+                          _rotation_about_y(PAPER_CAMERA_ROTATION_DEG), PAPER_CAMERA_CENTRE),
+    })
+
+
+def paper_plane(depth_mm: float, albedo: Albedo = Albedo()) -> Scene:
+    """The paper's 300 x 200 mm plane facing the projector (normal -z), centred at (0, 0, depth_mm)."""
+    return Scene(surfaces=[Plane(center=[0.0, 0.0, depth_mm], normal=[0.0, 0.0, -1.0], u_axis=[1.0, 0.0, 0.0],
+                                 size=[300.0, 200.0], albedo=albedo)])
+
+
+def paper_sphere(radius_mm: float, albedo: Albedo = Albedo()) -> Scene:
+    """The paper's sphere of radius ``radius_mm`` centred at (0, 0, 480) mm."""
+    return Scene(surfaces=[Sphere(center=list(PAPER_SPHERE_CENTRE), radius=radius_mm, albedo=albedo)])
+
+
+def forging_rig() -> Rig:
+    """The forging station: projector, visible camera and thermal camera (numbers in the module docstring)."""
+    return Rig(devices={
+        "projector": _device("projector", (1280, 800), 1500.0, [0.02, -0.01, 0.0, 0.0, 0.0],
+                             np.eye(3), (0.0, 0.0, 0.0)),
+        "camera": _device("camera", (1280, 800), 1400.0, [-0.08, 0.12, 0.0005, -0.0003, -0.02],
+                          _look_at((350.0, 0.0, 0.0), FORGING_AIM), (350.0, 0.0, 0.0)),
+        "thermal": _device("thermal", (320, 256), 380.0, [-0.15, 0.08, 0.001, 0.0005, 0.0],
+                           _look_at((180.0, -120.0, 0.0), FORGING_AIM), (180.0, -120.0, 0.0)),
+    })
+
+
+def forging_scene() -> Scene:
+    """A hot forged part at about 600 mm: a capped billet lying along x with a flange, before a back wall.
+
+    Surfaces (index: shape): 0: billet, cylinder radius 55 mm, length 220 mm, axis x, centre (0, 20, 600);
+    1: flange, cylinder radius 80 mm, length 24 mm, coaxial, centre (-95, 20, 600); 2: back wall, plane
+    700 x 500 mm at z = 760 facing the devices. The thermal camera looks from above, so parts of the wall
+    below the billet and of the billet's underside that the camera and projector see are hidden from it.
+    """
+    steel = Albedo(base=0.55, texture_amplitude=0.15, feature_size=25.0, seed=1)
+    return Scene(ambient=0.05, surfaces=[
+        Cylinder(center=[0.0, 20.0, 600.0], axis=[1.0, 0.0, 0.0], radius=55.0, length=220.0, albedo=steel),
+        Cylinder(center=[-95.0, 20.0, 600.0], axis=[1.0, 0.0, 0.0], radius=80.0, length=24.0, albedo=steel),
+        Plane(center=[0.0, 0.0, 760.0], normal=[0.0, 0.0, -1.0], u_axis=[1.0, 0.0, 0.0], size=[700.0, 500.0],
+              albedo=Albedo(base=0.4, texture_amplitude=0.1, feature_size=40.0, seed=2)),
+    ])
