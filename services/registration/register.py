@@ -1,0 +1,234 @@
+"""Register an infrared image to a visible one by maximising mutual information.
+
+Pipeline: (1) bring the visible image to about the infrared pixel size (an
+anti-aliasing blur and an exact isotropic down-scaling, so every model stays
+the same model); (2) preprocess both images (the paper's inversion and
+histogram equalisation, or CLAHE, or gradient magnitude); (3) build Gaussian
+pyramids; (4) scan rotations, scales and shifts exhaustively at the coarsest
+level (:mod:`services.registration.search`); (5) refine the best candidates
+with Powell's derivative-free method, level by level down to full resolution,
+switching from similarity to the requested affine or homography model below
+the coarsest level.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+from scipy.optimize import minimize
+
+from services.registration.models import MODELS, PARAMETER_COUNTS, update_matrix
+from services.registration.mutual_information import DEFAULT_BINS, DEFAULT_LOG_BASE, quantize
+from services.registration.objective import METRICS, information, sample_fixed, score
+from services.registration.preprocess import PREPROCESSING, preprocess
+from services.registration.search import coarse_search
+
+_COARSEST_SIZE = 48  # the coarsest level keeps at least this many moving pixels across
+_SEARCH_STEP = 2.0  # coarse-search grid step, in coarse moving pixels of corner motion
+_CANDIDATES = 4
+_POWELL_TOLERANCE = 0.01  # moving pixels at the level being refined
+
+
+@dataclass(frozen=True)
+class Registration:
+    """The result: ``matrix`` maps moving (infrared) pixel coordinates to fixed (visible) ones.
+
+    ``mi`` and ``nmi`` are measured at full moving resolution over the overlap,
+    with ``bins`` bins per image and logarithms of base ``log_base``.
+    """
+
+    model: str
+    matrix: np.ndarray
+    mi: float
+    nmi: float
+    bins: int
+    log_base: float
+
+
+def _check_inputs(fixed: np.ndarray, moving: np.ndarray, model: str, preprocessing: str, metric: str) -> None:
+    for name, image in (("fixed", fixed), ("moving", moving)):
+        if np.ndim(image) != 2:
+            raise ValueError(f"The {name} image must be a 2-D grey image; got shape {np.shape(image)}.")
+        if min(np.shape(image)) < 2 * _COARSEST_SIZE:
+            raise ValueError(f"The {name} image is too small to register: {np.shape(image)[1]}x{np.shape(image)[0]} "
+                             f"pixels, at least {2 * _COARSEST_SIZE} needed on each side.")
+    if model not in MODELS:
+        raise ValueError(f"Unknown registration model {model!r}; choose one of {', '.join(MODELS)}.")
+    if preprocessing not in PREPROCESSING:
+        raise ValueError(f"Unknown preprocessing {preprocessing!r}; choose one of {', '.join(PREPROCESSING)}.")
+    if metric not in METRICS:
+        raise ValueError(f"Unknown metric {metric!r}; choose one of {', '.join(METRICS)}.")
+
+
+def _scaling(factor: float) -> np.ndarray:
+    """Pixel-centre scaling x' = factor (x + 0.5) - 0.5 as a 3x3 matrix."""
+    offset = 0.5 * factor - 0.5
+    return np.array([[factor, 0.0, offset], [0.0, factor, offset], [0.0, 0.0, 1.0]])
+
+
+def _reduce(image: np.ndarray, factor: float) -> np.ndarray:
+    """Anti-alias and shrink an image by ``factor`` <= 1 with the exact matrix :func:`_scaling`."""
+    image = np.asarray(image, dtype=np.float32)
+    if factor >= 1.0:
+        return image
+    sigma = 0.5 * np.sqrt(1.0 / factor**2 - 1.0)
+    blurred = cv2.GaussianBlur(image, (0, 0), sigma)
+    size = (int(np.ceil(image.shape[1] * factor)), int(np.ceil(image.shape[0] * factor)))
+    return cv2.warpAffine(blurred, _scaling(factor)[:2], size, flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+
+
+def _pyramid(image: np.ndarray, levels: int, bins: int) -> list[np.ndarray]:
+    """Quantised Gaussian pyramid, finest first; level l has pixel coordinates x / 2**l."""
+    images = [image]
+    for _ in range(levels):
+        images.append(cv2.pyrDown(images[-1]))
+    return [quantize(level, bins) for level in images]
+
+
+def _level_matrix(matrix: np.ndarray, level: int) -> np.ndarray:
+    """Express a full-resolution matrix in level-``level`` pixel coordinates of both images."""
+    down = np.diag([0.5**level, 0.5**level, 1.0])
+    return down @ matrix @ np.linalg.inv(down)
+
+
+def _refine(
+    fixed: np.ndarray, moving: np.ndarray, start: np.ndarray, model: str,
+    bins: int, log_base: float, metric: str, min_overlap: float,
+) -> tuple[np.ndarray, float]:
+    """Maximise the objective over ``start @ G(p)`` with Powell's method; return the matrix and its value."""
+    height, width = moving.shape
+
+    def negative_score(parameters: np.ndarray) -> float:
+        matrix = start @ update_matrix(model, parameters, width, height)
+        value = score(sample_fixed(fixed, matrix, width, height), moving, bins, log_base, metric, min_overlap)
+        return -value if np.isfinite(value) else 1.0e6
+
+    result = minimize(negative_score, np.zeros(PARAMETER_COUNTS[model]), method="Powell",
+                      options={"xtol": _POWELL_TOLERANCE, "ftol": 1e-9})
+    return start @ update_matrix(model, result.x, width, height), -float(result.fun)
+
+
+
+def _coarse_model(model: str) -> str:
+    """The model refined at the coarsest level: similarity stands in for affine and homography."""
+    return model if model in ("translation", "rigid", "similarity") else "similarity"
+
+
+def register(
+    fixed: np.ndarray,
+    moving: np.ndarray,
+    model: str = "similarity",
+    *,
+    preprocessing: str = "paper",
+    bins: int = DEFAULT_BINS,
+    log_base: float = DEFAULT_LOG_BASE,
+    metric: str = "nmi",
+    scale: float | None = None,
+    max_shift: float | None = None,
+    max_angle: float = 6.0,
+    max_scale_change: float = 0.12,
+    min_overlap: float = 0.3,
+) -> Registration:
+    """Find the matrix mapping moving (infrared) pixels to fixed (visible) pixels that maximises MI.
+
+    Parameters
+    ----------
+    fixed : 2-D array
+        Visible image (uint8, uint16 or float), any size.
+    moving : 2-D array
+        Infrared image, any size and bit depth.
+    model : {"translation", "rigid", "similarity", "affine", "homography"}
+        Geometric model. Translation and rigid keep the nominal ``scale``
+        (the two cameras' pixel-size ratio is not a motion).
+    preprocessing : {"paper", "clahe", "gradient", "none"}
+        See :mod:`services.registration.preprocess`; the visible image is
+        inverted (its negative resembles infrared) except for ``"gradient"``.
+    bins : int
+        Intensity bins per image of the joint histogram.
+    log_base : float
+        Logarithm base of the reported MI (2: bits).
+    metric : {"nmi", "mi"}
+        Objective to maximise. NMI is the default because it does not
+        favour transforms that shrink the overlap.
+    scale : float, optional
+        Nominal fixed pixels per moving pixel; by default the ratio that fits
+        the moving image inside the fixed one, min(W_f / W_m, H_f / H_m).
+    max_shift : float, optional
+        Search range of the shift of the image centres, in fixed pixels;
+        by default 20 % of the moving image's smaller side, in fixed pixels.
+    max_angle : float
+        Search range of the rotation, degrees (ignored by translation).
+    max_scale_change : float
+        Search range of the relative scale change (similarity and above).
+    min_overlap : float
+        Least fraction of moving pixels that must fall on the fixed image.
+
+    Returns
+    -------
+    Registration
+
+    Notes
+    -----
+    Maximises NMI(A, B) = (H(A) + H(B)) / H(A, B) (or MI = H(A) + H(B) -
+    H(A, B), the paper's equation (5)) of the preprocessed fixed image A
+    sampled at H u and the moving image B at its pixels u, with the
+    bilinear-Parzen histogram estimator of
+    :mod:`services.registration.mutual_information`.
+
+    References
+    ----------
+    .. [1] Paper, section 4.
+    .. [2] F. Maes et al., "Multimodality image registration by maximization
+       of mutual information", IEEE TMI 16(2), 1997.
+    """
+    _check_inputs(fixed, moving, model, preprocessing, metric)
+    if bins < 4:
+        raise ValueError(f"Registration needs at least 4 histogram bins; got {bins}.")
+    if not 0.0 < min_overlap <= 1.0:
+        raise ValueError(f"The minimum overlap must be a fraction in (0, 1]; got {min_overlap}.")
+    moving_height, moving_width = np.shape(moving)
+    nominal = scale if scale is not None else min(np.shape(fixed)[1] / moving_width, np.shape(fixed)[0] / moving_height)
+    if not nominal > 0.0:
+        raise ValueError(f"The nominal scale must be positive; got {nominal}.")
+    reduction = min(1.0, 1.0 / nominal)
+    fixed_reduced = _reduce(fixed, reduction)
+    fixed_pre = preprocess(fixed_reduced, preprocessing, invert=True)
+    moving_pre = preprocess(moving, preprocessing)
+    levels = int(max(0, np.floor(np.log2(min(moving_height, moving_width) / _COARSEST_SIZE))))
+    fixed_pyramid = _pyramid(fixed_pre, levels, bins)
+    moving_pyramid = _pyramid(moving_pre, levels, bins)
+
+    coarse_fixed, coarse_moving = fixed_pyramid[levels], moving_pyramid[levels]
+    radius = 0.5 * float(np.hypot(*coarse_moving.shape))
+    step = _SEARCH_STEP / radius
+    angle_range = 0.0 if model == "translation" else np.deg2rad(max_angle)
+    log_scale_range = np.log1p(max_scale_change) if model not in ("translation", "rigid") else 0.0
+    angles = np.arange(-angle_range, angle_range + 0.5 * step, step) if angle_range else np.zeros(1)
+    factors = np.exp(np.arange(-log_scale_range, log_scale_range + 0.5 * step, step)) if log_scale_range else np.ones(1)
+    shift_range = max_shift if max_shift is not None else 0.2 * min(moving_height, moving_width) * nominal
+    reduced_scale = nominal * reduction
+    coarse_shift = int(np.ceil(shift_range / (nominal * 2**levels)))
+    candidates = coarse_search(coarse_fixed, coarse_moving, reduced_scale, angles, factors, coarse_shift,
+                               bins, log_base, metric, min_overlap, _CANDIDATES)
+    if not candidates:
+        raise ValueError("The images do not overlap enough anywhere in the search range; "
+                         "check the nominal scale and the search range.")
+
+    coarse_model = _coarse_model(model)
+    refined = [_refine(coarse_fixed, coarse_moving, candidate.matrix, coarse_model, bins, log_base, metric, min_overlap)
+               for candidate in candidates]
+    matrix = _level_matrix(max(refined, key=lambda item: item[1])[0], -levels)
+    for level in range(levels - 1, -1, -1):
+        level_start = _level_matrix(matrix, level)
+        level_matrix, _ = _refine(fixed_pyramid[level], moving_pyramid[level], level_start, model,
+                                  bins, log_base, metric, min_overlap)
+        matrix = _level_matrix(level_matrix, -level)
+    if levels == 0 and coarse_model != model:
+        matrix, _ = _refine(fixed_pyramid[0], moving_pyramid[0], matrix, model, bins, log_base, metric, min_overlap)
+
+    samples = sample_fixed(fixed_pyramid[0], matrix, moving_width, moving_height)
+    mi, nmi, _ = information(samples, moving_pyramid[0], bins, log_base)
+    full_matrix = np.linalg.inv(_scaling(reduction)) @ matrix
+    return Registration(model, full_matrix / full_matrix[2, 2], mi, nmi, bins, log_base)
