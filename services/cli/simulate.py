@@ -1,0 +1,142 @@
+"""``thermofield simulate``: render what the rig's camera captures of a scene while the projector shows a sequence."""
+
+from __future__ import annotations
+
+import argparse
+import re
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from services.errors import InputError
+from services.formats.images import read_frame_stack
+from services.formats.rig import Rig, load_rig, save_rig
+from services.formats.sequence import load_sequence, save_sequence
+from services.simulation.presets import forging_rig, forging_scene, paper_plane, paper_rig, paper_sphere
+from services.simulation.render import CameraEffects, ProjectorEffects, render_frames, render_view
+from services.simulation.scene import Scene, load_scene
+
+RIG_PRESETS = {"paper": paper_rig, "forging": forging_rig}
+_SCENE_PRESET = re.compile(r"(paper-plane|paper-sphere):(\d+(?:\.\d+)?)|forging")
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    parser = subparsers.add_parser(
+        "simulate",
+        help="render simulated camera frames of a scene lit by the projector's sequence",
+        description="Render the camera frames of a virtual rig while the projector shows the patterns of "
+                    "DIR/sequence.json, and write them under the manifest's names with sequence.json, rig.json, "
+                    "scene.json and the ground truth (depth.npy, points.npy, projector_pixels.npy, "
+                    "lit_mask.png). See docs/simulator.md.",
+    )
+    parser.add_argument("--scene", required=True, metavar="SCENE",
+                        help="scene JSON file, or a preset: paper-plane:DEPTH_MM, paper-sphere:RADIUS_MM, forging")
+    parser.add_argument("--rig", required=True, metavar="RIG", help="rig JSON file, or a preset: paper, forging")
+    parser.add_argument("--patterns", required=True, type=Path, metavar="DIR",
+                        help="directory with sequence.json and the projector pattern images")
+    parser.add_argument("--out", required=True, type=Path, metavar="DIR", help="output directory (created if needed)")
+    parser.add_argument("--camera", help="camera device name (default: the rig's only camera)")
+    parser.add_argument("--projector", help="projector device name (default: the rig's only projector)")
+    parser.add_argument("--noise", type=float, default=1.5, metavar="GREY",
+                        help="Gaussian sensor noise sigma in grey levels (default 1.5)")
+    parser.add_argument("--shot-noise", type=float, default=0.0, metavar="GAIN",
+                        help="shot-noise variance per grey level (default 0)")
+    parser.add_argument("--blur", type=float, default=0.5, metavar="PX",
+                        help="camera defocus blur sigma in camera pixels (default 0.5)")
+    parser.add_argument("--projector-blur", type=float, default=0.5, metavar="PX",
+                        help="projector defocus blur sigma in projector pixels (default 0.5)")
+    parser.add_argument("--gamma", type=float, default=1.0, help="camera encoding gamma (default 1)")
+    parser.add_argument("--projector-gamma", type=float, default=1.0, help="projector gamma (default 1)")
+    parser.add_argument("--black-level", type=float, default=0.0,
+                        help="projector light for pattern value 0, as a fraction of full (default 0)")
+    parser.add_argument("--exposure", type=float, default=0.8,
+                        help="fraction of full scale for full light on white at normal incidence (default 0.8)")
+    parser.add_argument("--bit-depth", type=int, choices=(8, 16), default=8, help="frame bit depth (default 8)")
+    parser.add_argument("--supersample", type=int, default=3, help="odd sub-samples per pixel side (default 3)")
+    parser.add_argument("--seed", type=int, default=0, help="noise seed (default 0)")
+    parser.set_defaults(handler=_run)
+
+
+def _scene(value: str) -> Scene:
+    preset = _SCENE_PRESET.fullmatch(value)
+    if preset is None:
+        return load_scene(value)
+    if value == "forging":
+        return forging_scene()
+    size = float(preset[2])
+    if size <= 0:
+        raise InputError(f"--scene: the size in {value!r} must be positive")
+    return paper_plane(size) if preset[1] == "paper-plane" else paper_sphere(size)
+
+
+def _rig(value: str) -> Rig:
+    return RIG_PRESETS[value]() if value in RIG_PRESETS else load_rig(value)
+
+
+def _effects(args: argparse.Namespace) -> tuple[CameraEffects, ProjectorEffects]:
+    try:
+        camera = CameraEffects(exposure=args.exposure, gamma=args.gamma, blur_sigma=args.blur,
+                               noise_sigma=args.noise, shot_noise_gain=args.shot_noise, bit_depth=args.bit_depth)
+        projector = ProjectorEffects(gamma=args.projector_gamma, black_level=args.black_level,
+                                     blur_sigma=args.projector_blur)
+    except ValueError as error:
+        raise InputError(f"effect options: {error}") from None
+    return camera, projector
+
+
+def _write_image(path: Path, image: np.ndarray) -> None:
+    """Write a frame in the format its name says, atomically (temporary name, then rename)."""
+    temporary = path.with_name(f"{path.stem}.part{path.suffix}")
+    try:
+        written = cv2.imwrite(str(temporary), image)
+    except cv2.error:
+        written = False
+    if not written:
+        temporary.unlink(missing_ok=True)
+        raise InputError(f"{path}: cannot write a {image.dtype} frame in this format (16-bit needs PNG or TIFF)")
+    temporary.replace(path)
+
+
+def _write_array(path: Path, array: np.ndarray) -> None:
+    temporary = path.with_name(path.name + ".part")
+    with temporary.open("wb") as stream:
+        np.save(stream, array)
+    temporary.replace(path)
+
+
+def _run(args: argparse.Namespace) -> int:
+    if args.supersample < 1 or args.supersample % 2 == 0:
+        raise InputError(f"--supersample must be a positive odd number; got {args.supersample}")
+    camera_effects, projector_effects = _effects(args)
+    scene = _scene(args.scene)
+    rig = _rig(args.rig)
+    _, camera = rig.device(args.camera, "camera")
+    _, projector = rig.device(args.projector, "projector")
+    sequence = load_sequence(args.patterns)
+    if (sequence.projector.width, sequence.projector.height) != (projector.width, projector.height):
+        raise InputError(f"{args.patterns / 'sequence.json'}: projector is {sequence.projector.width}x"
+                         f"{sequence.projector.height} but the rig's projector is {projector.width}x{projector.height}")
+    patterns = read_frame_stack([args.patterns / frame.file for frame in sequence.frames])
+    if patterns.shape[1:] != (projector.height, projector.width):
+        raise InputError(f"{args.patterns}: pattern images are {patterns.shape[2]}x{patterns.shape[1]} but the "
+                         f"projector is {projector.width}x{projector.height}")
+    if args.out.resolve() == args.patterns.resolve():
+        raise InputError(f"--out {args.out}: must differ from --patterns, whose images would be overwritten")
+    args.out.mkdir(parents=True, exist_ok=True)
+
+    view = render_view(scene, camera, projector, args.supersample)
+    frames = render_frames(view, patterns, np.random.default_rng(args.seed), camera_effects, projector_effects)
+    for frame, image in zip(sequence.frames, frames):
+        _write_image(args.out / frame.file, image)
+    save_sequence(sequence, args.out)
+    save_rig(rig, args.out / "rig.json")
+    (args.out / "scene.json.part").write_text(scene.model_dump_json(indent=2, exclude_none=True) + "\n")
+    (args.out / "scene.json.part").replace(args.out / "scene.json")
+    _write_array(args.out / "depth.npy", view.truth.depth)
+    _write_array(args.out / "points.npy", view.truth.points)
+    _write_array(args.out / "projector_pixels.npy", view.truth.projector_pixels)
+    _write_image(args.out / "lit_mask.png", view.truth.lit.astype(np.uint8) * 255)
+    print(f"wrote {len(frames)} frames of {camera.width}x{camera.height} and the ground truth to {args.out} "
+          f"({view.truth.lit.mean():.1%} of pixels lit)")
+    return 0
