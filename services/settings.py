@@ -11,6 +11,7 @@ from __future__ import annotations
 
 from functools import lru_cache
 from pathlib import Path
+from typing import Literal
 
 from pydantic import Field
 from pydantic_settings import BaseSettings, SettingsConfigDict
@@ -37,6 +38,24 @@ class Settings(BaseSettings):
     api_port: int = Field(8000, ge=0, le=65535, description="Port of the HTTP API.")
 
     gateway_url: str = Field("http://127.0.0.1:8001", description="Base URL of the device gateway.")
+    gateway_host: str = Field("127.0.0.1", description="Address the device gateway binds to.")
+    gateway_port: int = Field(8001, ge=0, le=65535, description="Port of the device gateway.")
+    gateway_driver: Literal["simulated", "oak"] = Field(
+        "simulated", description="Devices behind the gateway: the virtual rig, or OAK cameras and a display projector."
+    )
+    oak_camera_id: str | None = Field(None, description="OAK filming the patterns (MxId, IP or name); default the only one.")
+    oak_thermal_id: str | None = Field(None, description="OAK-T thermal camera (MxId, IP or name); default the only one.")
+    camera_width: int = Field(1280, gt=0, description="Width of the OAK camera frames.")
+    camera_height: int = Field(800, gt=0, description="Height of the OAK camera frames.")
+    camera_exposure_us: int = Field(8000, gt=0, description="Manual exposure time of the OAK camera, microseconds.")
+    camera_iso: int = Field(100, ge=100, le=1600, description="Manual sensitivity of the OAK camera.")
+    projector_display: int = Field(0, ge=0, description="Display number the projector is connected as.")
+    projector_width: int = Field(1280, gt=0, description="Native width of the projector.")
+    projector_height: int = Field(800, gt=0, description="Native height of the projector.")
+    projector_settle_ms: float | None = Field(
+        None, ge=0, description="Wait after showing a pattern before filming; default the driver's (100 ms, 0 simulated)."
+    )
+
 
     rerun_host: str = Field("127.0.0.1", description="Address the Rerun gRPC proxy binds to / is reached at.")
     rerun_port: int = Field(9876, ge=0, le=65535, description="Port of the Rerun gRPC proxy.")

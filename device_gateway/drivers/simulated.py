@@ -1,0 +1,170 @@
+"""The simulated station: the virtual rig's renderer behind the same interfaces as real devices.
+
+The camera films whatever pattern the simulated projector shows, rendered by
+``services.simulation.render`` (shadows, shading, texture, blur, noise,
+quantisation); the thermal camera sees the scene's temperature field through
+``services.simulation.thermal`` (area integration, blur, NETD noise). The scene
+geometry is traced once, when the devices are first opened (seconds for a
+1280x800 view); every frame after that is one cheap pass plus fresh noise.
+By default it is the forging station of ``services.simulation.presets``: the
+rig's true calibration is ``presets.forging_rig()``.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from device_gateway.devices import Camera, DeviceInfo, DeviceUnavailable, Frame, Projector, ThermalCamera
+from services.formats.rig import Rig
+from services.simulation import presets
+from services.simulation.render import CameraEffects, ProjectorEffects, ViewGeometry, render_frames, render_view
+from services.simulation.scene import Scene
+from services.simulation.thermal import TemperatureScene, ThermalEffects, forging_temperatures, render_thermal
+
+
+@dataclass(frozen=True)
+class SimulationOptions:
+    """Sensor models of the simulated devices.
+
+    ``camera_supersample`` sub-samples per camera pixel side: 1 keeps a 1280x800
+    frame at tens of milliseconds (the scan's time budget); 3 integrates pixel area.
+    """
+
+    camera_effects: CameraEffects = field(default_factory=lambda: CameraEffects(noise_sigma=1.0, blur_sigma=0.5))
+    projector_effects: ProjectorEffects = field(default_factory=lambda: ProjectorEffects(blur_sigma=0.5))
+    thermal_effects: ThermalEffects = field(default_factory=ThermalEffects)
+    camera_supersample: int = 1
+    seed: int = 0
+
+
+class SimulatedStation:
+    """A scene, its temperatures and the true rig, with one simulated device per rig role.
+
+    Parameters
+    ----------
+    rig : Rig, optional
+        The devices' true calibration; default ``presets.forging_rig()``.
+    scene, temperatures : optional
+        The part and its temperature field; default the forging preset.
+    options : SimulationOptions
+        Sensor models and noise seed.
+    camera, projector, thermal : str, optional
+        Rig device names; default the only device of each kind.
+    """
+
+    def __init__(self, rig: Rig | None = None, scene: Scene | None = None,
+                 temperatures: TemperatureScene | None = None, options: SimulationOptions = SimulationOptions(),
+                 camera: str | None = None, projector: str | None = None, thermal: str | None = None) -> None:
+        self.rig = rig or presets.forging_rig()
+        self.scene = scene or presets.forging_scene()
+        self.temperatures = temperatures or forging_temperatures()
+        self.options = options
+        self._rng = np.random.default_rng(options.seed)
+        self._lock = threading.Lock()
+        self._view: ViewGeometry | None = None
+        self._clean_thermal: np.ndarray | None = None
+        self.shown: np.ndarray | None = None
+        camera_name, _ = self.rig.device(camera, "camera")
+        projector_name, _ = self.rig.device(projector, "projector")
+        thermal_name, _ = self.rig.device(thermal, "thermal")
+        self.camera = SimulatedCamera(self, camera_name)
+        self.projector = SimulatedProjector(self, projector_name)
+        self.thermal = SimulatedThermal(self, thermal_name)
+
+    def view(self) -> ViewGeometry:
+        """The camera's traced view of the scene under the projector, computed once."""
+        with self._lock:
+            if self._view is None:
+                self._view = render_view(self.scene, self.rig.devices[self.camera.name],
+                                         self.rig.devices[self.projector.name], self.options.camera_supersample)
+            return self._view
+
+    def clean_thermal(self) -> np.ndarray:
+        """The thermal camera's noiseless image, computed once (noise is added per frame)."""
+        with self._lock:
+            if self._clean_thermal is None:
+                noiseless = self.options.thermal_effects.model_copy(update={"netd": 0.0})
+                self._clean_thermal = render_thermal(self.scene, self.temperatures, self.rig.devices[self.thermal.name],
+                                                     noiseless, self._rng)
+            return self._clean_thermal
+
+    def film(self) -> np.ndarray:
+        """The camera frame of the pattern on the projector now (black when it shows nothing)."""
+        projector = self.rig.devices[self.projector.name]
+        pattern = self.shown if self.shown is not None else np.zeros((projector.height, projector.width), np.uint8)
+        return render_frames(self.view(), pattern[None], self._rng, self.options.camera_effects,
+                             self.options.projector_effects)[0]
+
+    def thermal_noise(self, shape: tuple[int, ...]) -> np.ndarray:
+        return self._rng.normal(0.0, self.options.thermal_effects.netd, shape)
+
+
+class _SimulatedDevice:
+    kind: str
+
+    def __init__(self, station: SimulatedStation, name: str) -> None:
+        self.station = station
+        self.name = name
+        self._open = False
+
+    @property
+    def info(self) -> DeviceInfo:
+        device = self.station.rig.devices[self.name]
+        return DeviceInfo(self.name, self.kind, "simulated", device.width, device.height, model="virtual rig")
+
+    @property
+    def is_open(self) -> bool:
+        return self._open
+
+    def close(self) -> None:
+        self._open = False
+
+    def _require_open(self) -> None:
+        if not self._open:
+            raise DeviceUnavailable(f"{self.kind} {self.name!r} is not open")
+
+
+class SimulatedCamera(_SimulatedDevice, Camera):
+    kind = "camera"
+
+    def open(self) -> None:
+        self.station.view()
+        self._open = True
+
+    def grab(self, timeout_s: float) -> Frame:
+        self._require_open()
+        exposed = time.time()
+        return Frame(self.station.film(), exposed, {"driver": "simulated"})
+
+
+class SimulatedThermal(_SimulatedDevice, ThermalCamera):
+    kind = "thermal"
+
+    def open(self) -> None:
+        self.station.clean_thermal()
+        self._open = True
+
+    def grab(self, timeout_s: float) -> Frame:
+        self._require_open()
+        clean = self.station.clean_thermal()
+        image = (clean + self.station.thermal_noise(clean.shape)).astype(np.float32)
+        return Frame(image, time.time(), {"driver": "simulated", "units": "degC"})
+
+
+class SimulatedProjector(_SimulatedDevice, Projector):
+    kind = "projector"
+
+    @property
+    def settle_s(self) -> float:
+        return 0.0
+
+    def open(self) -> None:
+        self._open = True
+
+    def show(self, pattern: np.ndarray) -> None:
+        self._require_open()
+        self.station.shown = np.asarray(pattern, dtype=np.uint8)
