@@ -16,6 +16,7 @@ COMMAND_MODULES = [
     "services.cli.patterns",
     "services.cli.service",
     "services.cli.simulate",
+    "services.cli.gateway",
 ]
 
 
