@@ -111,10 +111,45 @@ def _detect_chessboard(grey: np.ndarray, board: ChessboardSpec, polarities: tupl
             for polarity in polarities:
                 corners = locate(frame if polarity == "normal" else 255 - frame, size)
                 if corners is not None:
-                    corners = (corners + 0.5) / scale - 0.5
-                    corners = _canonical_chessboard_order(grey, refine_corners(grey, corners), size)
+                    corners = refine_corners(grey, (corners + 0.5) / scale - 0.5)
+                    if _grid_continues(grey, corners.reshape(size[1], size[0], 2)):
+                        return None
+                    corners = _canonical_chessboard_order(grey, corners, size)
                     return BoardDetection(corners, np.arange(len(corners)), polarity)
     return None
+
+
+def _grid_continues(grey: np.ndarray, grid: np.ndarray) -> bool:
+    """Whether the board has more corners than specified on some side (a spec/board mismatch).
+
+    The corner row or column beyond each side is extrapolated; a side continues when most of
+    those points are X-junctions about as strong as the detected corners.
+    """
+    strength = np.median(_saddle_strength(grey, grid.reshape(-1, 2), grid))
+    beyond = (2 * grid[0] - grid[1], 2 * grid[-1] - grid[-2], 2 * grid[:, 0] - grid[:, 1], 2 * grid[:, -1] - grid[:, -2])
+    return any(np.mean(_saddle_strength(grey, side, grid) > 0.5 * strength) > 0.5 for side in beyond)
+
+
+def _saddle_strength(grey: np.ndarray, points: np.ndarray, grid: np.ndarray) -> np.ndarray:
+    """Second minus first angular harmonic amplitude of the intensity on a ring around each point.
+
+    An X-junction (a chessboard corner) alternates four times around the ring: a strong second
+    harmonic (2/pi of the contrast) and no first. The T-junctions where the outer squares meet
+    the board's margin score below zero, edges, blobs and flat areas about zero. Points whose
+    ring leaves the image get zero.
+    """
+    spacing = np.median(np.linalg.norm(np.diff(grid, axis=1), axis=-1))
+    radius = 0.3 * spacing
+    angles = np.linspace(0, 2 * np.pi, 16, endpoint=False)
+    ring_x = points[:, :1] + radius * np.cos(angles)
+    ring_y = points[:, 1:] + radius * np.sin(angles)
+    height, width = grey.shape
+    inside = np.all((ring_x >= 0) & (ring_x <= width - 1) & (ring_y >= 0) & (ring_y <= height - 1), axis=1)
+    values = cv2.remap(grey.astype(np.float32), ring_x.astype(np.float32), ring_y.astype(np.float32),
+                       cv2.INTER_LINEAR)
+    second = 2 * np.abs(values @ np.exp(-2j * angles)) / len(angles)
+    first = 2 * np.abs(values @ np.exp(-1j * angles)) / len(angles)
+    return np.where(inside, second - first, 0.0)
 
 
 def _locate_by_quads(view: np.ndarray, size: tuple[int, int]) -> np.ndarray | None:

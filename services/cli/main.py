@@ -15,6 +15,7 @@ COMMAND_MODULES = [
     "services.cli.fusion",
     "services.cli.patterns",
     "services.cli.service",
+    "services.cli.calibrate",
     "services.cli.simulate",
     "services.cli.gateway",
 ]

@@ -1,0 +1,183 @@
+"""``thermofield calibrate camera|projector|stereo``: calibration from board images to files and a rig."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+import numpy as np
+
+from services.calibration.camera import MIN_VIEWS, calibrate_camera
+from services.calibration.corners import BoardDetection, detect_board
+from services.calibration.report import coverage_map, residual_bars, residual_vectors
+from services.calibration.stereo import calibrate_stereo
+from services.errors import InputError
+from services.formats.board import BoardSpec, load_board
+from services.formats.calibration import (
+    CalibratedView,
+    CameraCalibrationFile,
+    RejectedView,
+    load_camera_calibration,
+    save_camera_calibration,
+    save_figure,
+)
+from services.formats.images import FRAME_SUFFIXES, read_frame
+from services.formats.rig import Device, Rig, load_rig, save_rig
+
+REPORT_FIGURES = ("residual_bars", "residual_vectors", "coverage")
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    parser = subparsers.add_parser("calibrate", help="calibrate cameras, the projector and the infrared camera")
+    topics = parser.add_subparsers(dest="calibrate_command", required=True, metavar="TARGET")
+
+    camera = topics.add_parser("camera", help="intrinsics of one camera from board images (Zhang's method)")
+    camera.add_argument("--board", required=True, type=Path, help="board specification JSON")
+    camera.add_argument("--images", required=True, type=Path, help="directory of board images")
+    camera.add_argument("--out", required=True, type=Path, help="calibration JSON to write (report PNGs beside it)")
+    camera.add_argument("--name", default=None, help="device name (default: the --kind)")
+    camera.add_argument("--kind", choices=("camera", "thermal"), default="camera")
+    camera.add_argument("--distortion", choices=("none", "radial", "standard", "rational"), default="standard",
+                        help="lens model: none, k1 k2, k1 k2 p1 p2 k3 (default) or rational (8 terms)")
+    camera.set_defaults(handler=run_camera)
+
+    stereo = topics.add_parser("stereo", help="pose of a device relative to the rig's camera from paired views")
+    stereo.add_argument("--board", required=True, type=Path)
+    stereo.add_argument("--pairs", required=True, type=Path,
+                        help="directory with one sub-directory per device (named as in the rig), "
+                             "frames paired by file name")
+    stereo.add_argument("--rig", required=True, type=Path, help="rig holding the reference camera")
+    stereo.add_argument("--device", required=True, help="name of the device to place (e.g. thermal)")
+    stereo.add_argument("--intrinsics", type=Path, default=None,
+                        help="the device's calibration JSON, when the rig does not hold it yet")
+    stereo.add_argument("--camera", default=None, help="reference camera name (default: the rig's only camera)")
+    stereo.add_argument("--out", required=True, type=Path, help="rig JSON to write (may be --rig)")
+    stereo.set_defaults(handler=run_stereo)
+
+
+def list_frames(directory: Path) -> list[Path]:
+    """Frame files of a directory in name order; an error names the directory if there are none."""
+    if not directory.is_dir():
+        raise InputError(f"{directory}: not a directory")
+    frames = sorted(p for p in directory.iterdir() if p.suffix.lower() in FRAME_SUFFIXES + (".jpg", ".jpeg"))
+    if not frames:
+        raise InputError(f"{directory}: no image files ({', '.join(FRAME_SUFFIXES + ('.jpg',))})")
+    return frames
+
+
+def detect_in_frames(paths: list[Path], board: BoardSpec) -> tuple[list[BoardDetection], tuple[int, int]]:
+    """Detect the board in every frame; one error lists every frame that failed and why."""
+    detections, problems, size = [], [], None
+    for path in paths:
+        try:
+            image = read_frame(path)
+        except InputError as error:
+            problems.append(str(error))
+            continue
+        frame_size = (image.shape[1], image.shape[0])
+        if size is None:
+            size = frame_size
+        elif frame_size != size:
+            problems.append(f"{path}: image is {frame_size[0]}x{frame_size[1]} but {paths[0].name} is "
+                            f"{size[0]}x{size[1]}; all images must have one size")
+            continue
+        detection = detect_board(image, board)
+        if detection is None:
+            problems.append(f"{path}: no {_describe(board)} found (polarity {board.polarity}); "
+                            "check the board file or remove the image")
+            continue
+        detections.append(detection)
+    if problems:
+        raise InputError(f"{len(problems)} of {len(paths)} images cannot be used:\n  " + "\n  ".join(problems))
+    return detections, size
+
+
+def _describe(board: BoardSpec) -> str:
+    cols, rows = board.pattern_size
+    feature = "circle" if board.type == "circles" else "inner-corner"
+    return f"{board.type} of {cols}x{rows} {feature}s"
+
+
+def run_camera(args: argparse.Namespace) -> int:
+    board = load_board(args.board)
+    paths = list_frames(args.images)
+    if len(paths) < MIN_VIEWS:
+        raise InputError(f"{args.images}: {len(paths)} images; calibration needs at least {MIN_VIEWS} views")
+    detections, size = detect_in_frames(paths, board)
+    object_points = [board.object_points()[d.ids] for d in detections]
+    result = calibrate_camera(object_points, [d.image_points for d in detections], size, args.distortion)
+    names = [p.name for p in paths]
+    views = [
+        CalibratedView(image=names[i], rms_px=float(rms), polarity=detections[i].polarity, R=R.tolist(),
+                       t=t.tolist(), pose_std=std.tolist())
+        for i, rms, R, t, std in zip(result.views, result.per_view_rms, result.rotations, result.translations,
+                                     result.pose_std)
+    ]
+    output = CameraCalibrationFile(
+        name=args.name or args.kind, kind=args.kind, width=size[0], height=size[1], K=result.K.tolist(),
+        dist=result.dist.tolist(), distortion_model=args.distortion, rms_px=result.rms, std=result.std,
+        board=board, views=views,
+        rejected=[RejectedView(image=names[i], reason=reason) for i, reason in result.rejected],
+    )
+    kept_points = [detections[i].image_points for i in result.views]
+    figures = {
+        "residual_bars": residual_bars(result.per_view_rms, [names[i] for i in result.views], result.rms),
+        "residual_vectors": residual_vectors(kept_points, result.residuals, size),
+        "coverage": coverage_map(kept_points, size),
+    }
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    for name, figure in figures.items():
+        save_figure(figure, report_path(args.out, name))
+    save_camera_calibration(output, args.out)
+    print(f"{output.name}: RMS {result.rms:.3f} px over {len(result.views)} views "
+          f"({len(result.rejected)} rejected); fx {result.K[0, 0]:.2f} +- {result.std['fx']:.2f}, "
+          f"fy {result.K[1, 1]:.2f} +- {result.std['fy']:.2f}, cx {result.K[0, 2]:.2f}, cy {result.K[1, 2]:.2f}")
+    return 0
+
+
+def report_path(calibration_path: Path, figure: str) -> Path:
+    """Where the report figure ``figure`` of a calibration file goes: beside it, sharing its stem."""
+    return calibration_path.with_name(f"{calibration_path.stem}_{figure}.png")
+
+
+def run_stereo(args: argparse.Namespace) -> int:
+    board = load_board(args.board)
+    rig = load_rig(args.rig)
+    camera_name, camera = rig.device(args.camera, "camera")
+    device = _device_to_place(rig, args)
+    reference_dir, device_dir = args.pairs / camera_name, args.pairs / args.device
+    reference_paths = list_frames(reference_dir)
+    device_names = {p.name for p in list_frames(device_dir)}
+    paired = [p for p in reference_paths if p.name in device_names]
+    if not paired:
+        raise InputError(f"{args.pairs}: no file name appears in both {camera_name}/ and {args.device}/")
+    reference, reference_size = detect_in_frames(paired, board)
+    seen, device_size = detect_in_frames([device_dir / p.name for p in paired], board)
+    for label, size, expected in ((camera_name, reference_size, camera), (args.device, device_size, device)):
+        if size != expected.size:
+            raise InputError(f"{args.pairs / label}: images are {size[0]}x{size[1]} but the calibration of "
+                             f"{label} is for {expected.width}x{expected.height}")
+    object_points, first, second = [], [], []
+    for a, b in zip(reference, seen):
+        shared, index_a, index_b = np.intersect1d(a.ids, b.ids, return_indices=True)
+        if len(shared) >= 4:
+            object_points.append(board.object_points()[shared])
+            first.append(a.image_points[index_a])
+            second.append(b.image_points[index_b])
+    result = calibrate_stereo(object_points, first, second, (camera.K_array, camera.dist_array),
+                              (device.K_array, device.dist_array), reference_size)
+    R = result.R @ camera.R_array
+    t = result.R @ camera.t_array + result.t
+    placed = device.model_copy(update={"R": R.tolist(), "t": t.tolist()})
+    save_rig(Rig(units=rig.units, devices={**rig.devices, args.device: placed}), args.out)
+    print(f"{args.device}: stereo RMS {result.rms:.3f} px over {len(object_points)} pairs; "
+          f"baseline {result.baseline_mm:.2f} mm from {camera_name}")
+    return 0
+
+
+def _device_to_place(rig: Rig, args: argparse.Namespace) -> Device:
+    if args.intrinsics is not None:
+        return load_camera_calibration(args.intrinsics).device()
+    if args.device not in rig.devices:
+        raise InputError(f"{args.rig}: has no device {args.device!r}; pass its calibration with --intrinsics")
+    return rig.devices[args.device]
