@@ -1,0 +1,136 @@
+"""The gateway's HTTP API, served by uvicorn on a free port and used through its Python client."""
+
+from __future__ import annotations
+
+import socket
+import threading
+import time
+from collections.abc import Iterator
+from contextlib import contextmanager
+
+import httpx
+import numpy as np
+import pytest
+import uvicorn
+
+from device_gateway.app import create_app
+from device_gateway.client import GatewayClient, GatewayError
+from device_gateway.devices import Camera, DeviceInfo, DeviceLost, Frame
+from device_gateway.station import Station
+from device_gateway.transfer import MEDIA_TYPE
+
+
+def _free_port() -> int:
+    with socket.socket() as probe:
+        probe.bind(("127.0.0.1", 0))
+        return probe.getsockname()[1]
+
+
+@contextmanager
+def _serving(app) -> Iterator[str]:
+    port = _free_port()
+    server = uvicorn.Server(uvicorn.Config(app, host="127.0.0.1", port=port, log_level="warning"))
+    thread = threading.Thread(target=server.run, daemon=True)
+    thread.start()
+    deadline = time.monotonic() + 10
+    while not server.started:
+        assert time.monotonic() < deadline, "the gateway did not start"
+        time.sleep(0.02)
+    try:
+        yield f"http://127.0.0.1:{port}"
+    finally:
+        server.should_exit = True
+        thread.join(timeout=10)
+
+
+@pytest.fixture
+def gateway(station, sequence_and_patterns) -> Iterator[GatewayClient]:
+    with _serving(create_app(station, *sequence_and_patterns)) as url, GatewayClient(url) as client:
+        yield client
+
+
+def test_health_and_devices(gateway, small_rig):
+    assert gateway.health() == {"status": "ok", "devices": {"camera": True, "thermal": True, "projector": True}}
+    devices = {device["name"]: device for device in gateway.devices()}
+    assert set(devices) == {"camera", "thermal", "projector"}
+    for name, device in devices.items():
+        assert (device["width"], device["height"]) == small_rig.devices[name].size
+        assert device["kind"] == small_rig.devices[name].kind
+        assert device["driver"] == "simulated" and device["open"] is True
+
+
+def test_capture_round_trip(gateway, sequence_and_patterns, small_rig, lit):
+    sequence, patterns = sequence_and_patterns
+    assert gateway.sequence() == sequence
+
+    capture = gateway.capture(thermal_frames=2)
+
+    camera, thermal = small_rig.devices["camera"], small_rig.devices["thermal"]
+    assert capture.sequence == sequence
+    assert capture.frames.shape == (len(patterns), camera.height, camera.width)
+    assert capture.thermal.shape == (2, thermal.height, thermal.width)
+    assert capture.frame_timestamps.shape == (len(patterns),)
+    assert capture.thermal_metadata[0]["units"] == "degC"
+    white = capture.frames[sequence.white_index].astype(float)
+    black = capture.frames[sequence.black_index].astype(float)
+    assert np.median((white - black)[lit]) > 40
+    assert [device.kind for device in capture.devices] == ["camera", "thermal", "projector"]
+
+
+def test_bad_capture_request_is_a_problem_document(gateway):
+    response = httpx.post(f"{gateway.base_url}/v1/captures", json={"thermal_frames": 0})
+    assert response.status_code == 422
+    assert response.headers["content-type"] == "application/problem+json"
+    assert "thermal_frames" in response.json()["detail"]
+    with pytest.raises(GatewayError, match="thermal_frames") as error:
+        gateway.capture(thermal_frames=0)
+    assert error.value.status == 422
+
+
+def test_empty_capture_request_takes_the_defaults(gateway, small_rig):
+    response = httpx.post(f"{gateway.base_url}/v1/captures", timeout=30)
+    assert response.status_code == 200
+    assert response.headers["content-type"] == MEDIA_TYPE
+
+
+class _LosesItsThirdFrame(Camera):
+    def __init__(self, camera: Camera) -> None:
+        self.camera = camera
+        self.grabs = 0
+
+    @property
+    def info(self) -> DeviceInfo:
+        return self.camera.info
+
+    @property
+    def is_open(self) -> bool:
+        return self.camera.is_open
+
+    def open(self) -> None:
+        self.camera.open()
+
+    def close(self) -> None:
+        self.camera.close()
+
+    def grab(self, timeout_s: float) -> Frame:
+        self.grabs += 1
+        if self.grabs == 3:
+            raise DeviceLost("camera 'camera': no frame within 2 s")
+        return self.camera.grab(timeout_s)
+
+
+def test_lost_device_answers_503_and_the_next_capture_works(simulated, sequence_and_patterns):
+    station = Station(_LosesItsThirdFrame(simulated.camera), simulated.thermal, simulated.projector)
+    with _serving(create_app(station, *sequence_and_patterns)) as url, GatewayClient(url) as client:
+        response = httpx.post(f"{url}/v1/captures", json={})
+        assert response.status_code == 503
+        assert response.headers["content-type"] == "application/problem+json"
+        assert "no frame within 2 s" in response.json()["detail"]
+        assert client.health()["status"] == "ok", "the camera was re-opened"
+        assert client.capture().frames.shape[0] == len(sequence_and_patterns[1])
+
+
+def test_unreachable_gateway_is_a_gateway_error():
+    with GatewayClient(f"http://127.0.0.1:{_free_port()}", timeout_s=2) as client:
+        with pytest.raises(GatewayError, match="unreachable"):
+            client.health()

@@ -1,0 +1,127 @@
+"""Station captures with the simulated devices: order, content, timestamps, and recovery from a lost device."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from device_gateway.devices import Camera, DeviceInfo, DeviceLost, DeviceUnavailable, Frame
+from device_gateway.station import Station
+
+
+def test_capture_films_every_pattern_then_the_thermal_frames(station, simulated, sequence_and_patterns, small_rig):
+    sequence, patterns = sequence_and_patterns
+    capture = station.capture(sequence, patterns, thermal_frames=3)
+
+    camera, thermal = small_rig.devices["camera"], small_rig.devices["thermal"]
+    assert capture.sequence == sequence
+    assert capture.frames.shape == (len(patterns), camera.height, camera.width)
+    assert capture.frames.dtype == np.uint8
+    assert capture.thermal.shape == (3, thermal.height, thermal.width)
+    assert capture.thermal.dtype == np.float32
+    timestamps = np.concatenate([capture.frame_timestamps, capture.thermal_timestamps])
+    assert np.all(np.diff(timestamps) >= 0), "thermal frames are grabbed after the last pattern"
+    assert len(capture.frame_metadata) == len(patterns) and len(capture.thermal_metadata) == 3
+    assert [info.name for info in capture.devices] == ["camera", "thermal", "projector"]
+
+
+def test_each_frame_shows_its_own_pattern(station, lit, sequence_and_patterns):
+    sequence, patterns = sequence_and_patterns
+    capture = station.capture(sequence, patterns)
+    white, black = sequence.white_index, sequence.black_index
+    assert white is not None and black is not None
+    contrast = capture.frames[white].astype(float) - capture.frames[black].astype(float)
+    assert np.median(contrast[lit]) > 40, "lit pixels are bright under the white pattern, dark under black"
+    assert np.median(np.abs(contrast[~lit])) < 5, "shadowed pixels see only ambient light under both"
+    gray = [index for index, frame in enumerate(sequence.frames) if frame.kind == "gray"]
+    first, inverse = capture.frames[gray[0]].astype(float), capture.frames[gray[1]].astype(float)
+    assert np.mean(np.sign(first - inverse)[lit] != 0) > 0.9, "a Gray plane and its inverse differ where lit"
+
+
+def test_thermal_frames_carry_the_true_temperatures_with_netd_noise(station, simulated, sequence_and_patterns):
+    sequence, patterns = sequence_and_patterns
+    capture = station.capture(sequence, patterns, thermal_frames=2)
+    truth = simulated.clean_thermal()
+    noise = capture.thermal - truth
+    netd = simulated.options.thermal_effects.netd
+    assert abs(np.std(noise) - netd) < 0.1 * netd
+    assert abs(np.mean(noise)) < 0.1 * netd
+    assert not np.array_equal(capture.thermal[0], capture.thermal[1]), "each frame has its own noise"
+    assert truth.max() > 1000, "the hot billet is in view"
+
+
+@pytest.mark.parametrize("shape, message", [((3, 10, 10), "uint8 stack"), (None, "manifest lists")])
+def test_patterns_that_do_not_fit_are_refused(station, sequence_and_patterns, shape, message):
+    sequence, patterns = sequence_and_patterns
+    wrong = np.zeros(shape, np.uint8) if shape else patterns[:-1]
+    with pytest.raises(ValueError, match=message):
+        station.capture(sequence, wrong)
+
+
+def test_at_least_one_thermal_frame(station, sequence_and_patterns):
+    with pytest.raises(ValueError, match="thermal frame"):
+        station.capture(*sequence_and_patterns, thermal_frames=0)
+
+
+class _Unplugged(Camera):
+    """A camera that is lost at its ``fail_at``-th grab and then stays away for ``away`` openings."""
+
+    def __init__(self, camera: Camera, fail_at: int, away: int = 0) -> None:
+        self.camera, self.fail_at, self.away = camera, fail_at, away
+        self.grabs = self.opens = 0
+
+    @property
+    def info(self) -> DeviceInfo:
+        return self.camera.info
+
+    @property
+    def is_open(self) -> bool:
+        return self.camera.is_open
+
+    def open(self) -> None:
+        self.opens += 1
+        if self.grabs >= self.fail_at and self.away > 0:
+            self.away -= 1
+            raise DeviceUnavailable("camera 'camera': not connected")
+        self.camera.open()
+
+    def close(self) -> None:
+        self.camera.close()
+
+    def grab(self, timeout_s: float) -> Frame:
+        self.grabs += 1
+        if self.grabs == self.fail_at:
+            self.camera.close()
+            raise DeviceLost("camera 'camera': connection lost")
+        return self.camera.grab(timeout_s)
+
+
+def test_a_device_lost_mid_capture_fails_that_capture_and_is_reopened(simulated, sequence_and_patterns):
+    sequence, patterns = sequence_and_patterns
+    camera = _Unplugged(simulated.camera, fail_at=4)
+    station = Station(camera, simulated.thermal, simulated.projector)
+
+    with pytest.raises(DeviceLost, match="connection lost"):
+        station.capture(sequence, patterns)
+    assert camera.opens == 2, "re-opened right after the loss"
+    assert all(station.health().values())
+
+    capture = station.capture(sequence, patterns)
+    assert capture.frames.shape[0] == len(patterns)
+    station.close()
+
+
+def test_a_device_still_away_after_a_loss_is_retried_on_the_next_capture(simulated, sequence_and_patterns):
+    sequence, patterns = sequence_and_patterns
+    camera = _Unplugged(simulated.camera, fail_at=2, away=2)
+    station = Station(camera, simulated.thermal, simulated.projector)
+
+    with pytest.raises(DeviceLost):
+        station.capture(sequence, patterns)
+    assert station.health()["camera"] is False
+    with pytest.raises(DeviceUnavailable, match="not connected"):
+        station.capture(sequence, patterns)
+    capture = station.capture(sequence, patterns)
+    assert capture.frames.shape[0] == len(patterns)
+    assert all(station.health().values())
+    station.close()
