@@ -1,54 +1,95 @@
-"""Typed dependencies shared by the routers: the runtime, a database session and the caller's API key."""
+"""Typed dependencies shared by the routers: the runtime, a database session and the caller's API key.
+
+Dependencies that do no I/O are ``async`` so that FastAPI does not hand each of them to
+a worker thread; database queries run in the thread pool. Authenticated keys are
+cached for a few seconds, which spares a query on every poll of a job.
+"""
 
 from __future__ import annotations
 
-from collections.abc import Callable, Iterator
+import time
+from collections.abc import AsyncIterator, Awaitable, Callable
 from typing import Annotated
 
 from fastapi import Depends, Request
+from fastapi.concurrency import run_in_threadpool
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 from sqlalchemy.orm import Session
 
 from api.problems import Problem
-from services.db.apikeys import find_api_key, grants
+from services.db.apikeys import find_api_key, grants, secret_digest
 from services.db.models import ApiKey
 from workers.runtime import Runtime
 
+KEY_CACHE_SECONDS = 5.0
 _bearer = HTTPBearer(auto_error=False, description="An API key made by `thermofield apikey create`.")
 
 
-def get_runtime(request: Request) -> Runtime:
+async def get_runtime(request: Request) -> Runtime:
     return request.app.state.runtime
 
 
 RuntimeDep = Annotated[Runtime, Depends(get_runtime)]
 
 
-def get_session(runtime: RuntimeDep) -> Iterator[Session]:
-    with runtime.sessions() as session:
+async def get_session(runtime: RuntimeDep) -> AsyncIterator[Session]:
+    session = runtime.sessions()
+    try:
         yield session
+    finally:
+        await run_in_threadpool(session.close)
 
 
 SessionDep = Annotated[Session, Depends(get_session)]
 
 
-def get_current_key(
-    session: SessionDep, credentials: Annotated[HTTPAuthorizationCredentials | None, Depends(_bearer)]
+class KeyCache:
+    """Recently authenticated keys by secret digest; a revoked key stops working within the cache time."""
+
+    def __init__(self, seconds: float = KEY_CACHE_SECONDS) -> None:
+        self.seconds = seconds
+        self._keys: dict[str, tuple[float, ApiKey]] = {}
+
+    def get(self, digest: str) -> ApiKey | None:
+        entry = self._keys.get(digest)
+        if entry is None or entry[0] < time.monotonic():
+            return None
+        return entry[1]
+
+    def put(self, digest: str, key: ApiKey) -> None:
+        if len(self._keys) > 10_000:
+            self._keys.clear()
+        self._keys[digest] = (time.monotonic() + self.seconds, key)
+
+
+async def get_current_key(
+    request: Request, runtime: RuntimeDep,
+    credentials: Annotated[HTTPAuthorizationCredentials | None, Depends(_bearer)],
 ) -> ApiKey:
     challenge = {"WWW-Authenticate": "Bearer"}
     if credentials is None:
         raise Problem(401, "unauthenticated", "Send an API key as 'Authorization: Bearer <key>'.", challenge)
-    key = find_api_key(session, credentials.credentials)
+    cache: KeyCache = request.app.state.key_cache
+    digest = secret_digest(credentials.credentials)
+    key = cache.get(digest)
     if key is None:
-        raise Problem(401, "unauthenticated", "The API key is unknown or revoked.", challenge)
+        key = await run_in_threadpool(_find_key, runtime, credentials.credentials)
+        if key is None:
+            raise Problem(401, "unauthenticated", "The API key is unknown or revoked.", challenge)
+        cache.put(digest, key)
     return key
+
+
+def _find_key(runtime: Runtime, secret: str) -> ApiKey | None:
+    with runtime.sessions() as session:
+        return find_api_key(session, secret)
 
 
 CurrentKey = Annotated[ApiKey, Depends(get_current_key)]
 
 
-def _require(scope: str) -> Callable[[ApiKey], ApiKey]:
-    def check(key: CurrentKey) -> ApiKey:
+def _require(scope: str) -> Callable[[ApiKey], Awaitable[ApiKey]]:
+    async def check(key: CurrentKey) -> ApiKey:
         if not grants(key, scope):
             raise Problem(403, "forbidden", f"This API key lacks the '{scope}' scope (it has: {key.scopes}).")
         return key

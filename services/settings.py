@@ -32,6 +32,8 @@ class Settings(BaseSettings):
     broker_url: str | None = Field(
         None, description="RabbitMQ AMQP URL; unset means the embedded in-process worker."
     )
+    job_queue: str = Field("thermofield", pattern=r"^[A-Za-z0-9_.-]+$",
+                           description="Broker queue of the jobs (deployments sharing a RabbitMQ use different ones).")
     artifact_dir: Path | None = Field(None, description="Content-addressed artifact store; default DATA_DIR/artifacts.")
 
     api_host: str = Field("127.0.0.1", description="Address the HTTP API binds to.")
@@ -55,7 +57,6 @@ class Settings(BaseSettings):
     projector_settle_ms: float | None = Field(
         None, ge=0, description="Wait after showing a pattern before filming; default the driver's (100 ms, 0 simulated)."
     )
-
 
     rerun_host: str = Field("127.0.0.1", description="Address the Rerun gRPC proxy binds to / is reached at.")
     rerun_port: int = Field(9876, ge=0, le=65535, description="Port of the Rerun gRPC proxy.")

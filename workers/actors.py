@@ -34,13 +34,12 @@ from services.structured_light.triangulate import camera_ray_table
 from workers.runtime import Runtime, current_runtime
 from workers.summary import field_summary
 
-QUEUE = "thermofield"
 _NOT_RETRIED = (ValueError,)
 _PNG_FAST = [cv2.IMWRITE_PNG_COMPRESSION, 1]
 
 
 def _options(max_retries: int, time_limit_s: float) -> dict[str, Any]:
-    return {"queue_name": QUEUE, "max_retries": max_retries, "time_limit": int(time_limit_s * 1000),
+    return {"max_retries": max_retries, "time_limit": int(time_limit_s * 1000),
             "min_backoff": 500, "max_backoff": 10_000, "throws": _NOT_RETRIED}
 
 

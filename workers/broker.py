@@ -26,9 +26,8 @@ def setup_broker(settings: Settings) -> dramatiq.Broker:
     dramatiq.set_broker(broker)
     actors = importlib.import_module("workers.actors")
     for actor in actors.ACTORS.values():
-        if actor.broker is not broker:  # declared on an earlier broker of this process
-            actor.broker = broker
-            broker.declare_actor(actor)
+        actor.broker, actor.queue_name = broker, settings.job_queue
+        broker.declare_actor(actor)
     return broker
 
 

@@ -26,11 +26,16 @@ def job_out(job: Job) -> JobOut:
     return JobOut(**job_state(job), links={"self": f"/v1/jobs/{job.id}", "events": f"/v1/jobs/{job.id}/events"})
 
 
-def _existing_job(job_id: str, session: SessionDep, _: ReaderKey) -> Job:
-    job = session.get(Job, job_id)
+async def _existing_job(job_id: str, runtime: RuntimeDep, _: ReaderKey) -> Job:
+    job = await run_in_threadpool(_load_job, runtime, job_id)
     if job is None:
         raise Problem(404, "not-found", f"There is no job {job_id!r}.")
     return job
+
+
+def _load_job(runtime, job_id: str) -> Job | None:
+    with runtime.sessions() as session:
+        return session.get(Job, job_id)
 
 
 ExistingJob = Annotated[Job, Depends(_existing_job)]
@@ -43,7 +48,7 @@ def list_jobs(session: SessionDep, _: ReaderKey, limit: Annotated[int, Query(ge=
 
 
 @router.get("/{job_id}", name="get_job")
-def get_job(job: ExistingJob) -> JobOut:
+async def get_job(job: ExistingJob) -> JobOut:
     """A job's status, progress (stage and fraction), attempts, error and result artifacts."""
     return job_out(job)
 

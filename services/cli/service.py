@@ -142,13 +142,12 @@ def _api(args: argparse.Namespace) -> int:
 
 
 def _worker(args: argparse.Namespace) -> int:
-    from workers.actors import QUEUE
     from workers.middleware import limit_thread_environment
 
     settings = _settings(worker_processes=args.processes, worker_threads=args.threads)
     _require_broker(settings, "worker")
     limit_thread_environment(settings.compute_threads)
-    command = [sys.executable, "-m", "dramatiq", "workers.main", "--use-spawn", "--queues", QUEUE,
+    command = [sys.executable, "-m", "dramatiq", "workers.main", "--use-spawn", "--queues", settings.job_queue,
                "--processes", str(settings.worker_processes), "--threads", str(settings.worker_threads)]
     return subprocess.run(command, env=os.environ).returncode
 
