@@ -25,7 +25,7 @@ from services.simulation.raycast import cast_rays
 from services.simulation.scene import Scene, surface_albedo
 
 _SHADOW_TOLERANCE_MM = 1e-3
-_OUTSIDE = -1e6  # remap coordinate for unlit samples: far outside the pattern, so it reads the zero border
+_UNLIT = -1.0  # remap coordinate of unlit samples, whose light weight is zero anyway
 _IDEAL_MARGIN = 0.25  # accept projector pixels whose distortion-free projection is within 25% beyond the image
 
 
@@ -246,7 +246,7 @@ def render_view(scene: Scene, camera: Device, projector: Device, supersample: in
     albedo[hit] = surface_albedo(scene, hits.points[hit], hits.surface[hit])
     shape = (camera.height * supersample, camera.width * supersample)
     direct = np.where(lit, albedo * cosine, 0.0).astype(np.float32).reshape(shape)
-    maps = np.where(lit[:, None], projector_pixels, _OUTSIDE).astype(np.float32)
+    maps = np.where(lit[:, None], projector_pixels, _UNLIT).astype(np.float32)
     truth = _centre_truth(camera, supersample, hits.points, hits.surface, lit, projector_pixels)
     return ViewGeometry(camera=camera, projector=projector, supersample=supersample,
                         projector_x=maps[:, 0].reshape(shape), projector_y=maps[:, 1].reshape(shape),
@@ -302,7 +302,7 @@ def render_frames(view: ViewGeometry, patterns: np.ndarray, rng: np.random.Gener
     -----
     Projector light is sampled bilinearly at the projector pixel of every sub-sample with
     ``cv2.remap`` (OpenCV interpolates at 1/32-pixel positions; averaging s^2 sub-samples per pixel
-    makes the effect negligible), combined as E = direct * L + ambient, and averaged per pixel. See the
+    makes the effect negligible; edge pixels extend to the image border at -1/2 and size - 1/2), combined as E = direct * L + ambient, and averaged per pixel. See the
     module docstring for the full model.
     """
     patterns = np.asarray(patterns)
@@ -313,7 +313,7 @@ def render_frames(view: ViewGeometry, patterns: np.ndarray, rng: np.random.Gener
     frames = np.empty((len(patterns), view.camera.height, view.camera.width), dtype=camera_effects.dtype)
     for index, pattern in enumerate(patterns):
         light = cv2.remap(_projector_light(pattern, projector_effects), view.projector_x, view.projector_y,
-                          cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+                          cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
         irradiance = integrate_pixels(view.direct * light + view.ambient, view.supersample)
         frames[index] = expose(irradiance, camera_effects, rng)
     return frames

@@ -26,3 +26,9 @@ def small_rig():
         "projector": aimed_device("projector", (160, 120), 200.0, (0, 0, 0), (0, 0, 400), (0.08, -0.05, 0.002, 0, 0)),
         "camera": aimed_device("camera", (200, 150), 230.0, (150, 0, 0), (0, 0, 400), (-0.25, 0.1, 0.003, -0.002, 0)),
     })
+
+
+@pytest.fixture
+def aimed():
+    """The ``aimed_device`` factory, for tests that build their own devices."""
+    return aimed_device
