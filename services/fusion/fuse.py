@@ -8,11 +8,14 @@ from dataclasses import dataclass
 import numpy as np
 
 from services.formats.rig import Device
-from services.fusion.visibility import depth_buffer, depth_tolerance, seen_mask
+from services.fusion.visibility import (
+    SAMPLE_FOOTPRINTS, depth_buffer, depth_gradient, depth_tolerance, nearest_depth_around, seen_mask,
+)
 from services.geometry.camera import camera_center, project_points
 
 DEFAULT_MAX_VIEW_ANGLE_DEG = 75.0
 DEFAULT_DEPTH_TOLERANCE_MM = 2.0
+DEFAULT_OCCLUSION_MARGIN_PX = 4
 # cv2.projectPoints slows down several-fold on very large inputs; chunks keep it fast.
 _PROJECTION_CHUNK = 65536
 
@@ -102,8 +105,11 @@ def sample_view(
     view: ThermalView,
     max_view_angle_deg: float = DEFAULT_MAX_VIEW_ANGLE_DEG,
     depth_tolerance_mm: float = DEFAULT_DEPTH_TOLERANCE_MM,
+    occlusion_margin_px: int = DEFAULT_OCCLUSION_MARGIN_PX,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Temperature of each point in one thermal view, averaged over the view's frames.
+
+    See :func:`fuse_temperature` for the parameters.
 
     Returns
     -------
@@ -122,9 +128,13 @@ def sample_view(
     pixels, depth = _project(points, device)
     angle = view_angles(points, normals, camera_center(device.R_array, device.t_array))
     focal = 0.5 * (device.K_array[0, 0] + device.K_array[1, 1])
-    tolerance = depth_tolerance(depth, focal, angle, max_angle, depth_tolerance_mm)
+    gradient = depth_gradient(points @ device.R_array.T + device.t_array, normals @ device.R_array.T, focal, max_angle)
+    tolerance = depth_tolerance(gradient, depth_tolerance_mm)
     buffer = depth_buffer(pixels, depth, device.width, device.height)
     seen = seen_mask(pixels, depth, buffer, tolerance)
+    if occlusion_margin_px > 0:
+        guard = depth_tolerance(gradient, depth_tolerance_mm, SAMPLE_FOOTPRINTS + occlusion_margin_px)
+        seen &= seen_mask(pixels, depth, nearest_depth_around(buffer, occlusion_margin_px), guard)
     usable = seen & (angle <= max_angle)
 
     temperature = np.full(len(points), np.nan)
@@ -145,6 +155,7 @@ def fuse_temperature(
     views: Sequence[ThermalView],
     max_view_angle_deg: float = DEFAULT_MAX_VIEW_ANGLE_DEG,
     depth_tolerance_mm: float = DEFAULT_DEPTH_TOLERANCE_MM,
+    occlusion_margin_px: int = DEFAULT_OCCLUSION_MARGIN_PX,
 ) -> TemperatureField:
     """Temperature of every cloud point from calibrated thermal views, fused by view-angle weight.
 
@@ -164,6 +175,11 @@ def fuse_temperature(
     depth_tolerance_mm : float
         Depth margin of the z-buffer test beyond the slope term (covers the
         cloud's noise).
+    occlusion_margin_px : int
+        Points within this many pixels of a nearer surface in the thermal view
+        are treated as unseen (0 to disable): it guards against occluders the
+        cloud lacks (e.g. parts in the projector's shadow) and against the
+        optics' blur mixing an occluder's radiance into the pixels beside it.
 
     Returns
     -------
@@ -176,7 +192,9 @@ def fuse_temperature(
     Each point X projects to distorted pixel coordinates p = pi(K, dist, R X + t)
     in each thermal camera. It is seen if its depth z is within a tolerance of the
     z-buffer of the cloud at p (see :func:`services.fusion.visibility.depth_buffer`),
-    so that a hidden point gets NaN rather than its occluder's temperature. Its
+    so that a hidden point gets NaN rather than its occluder's temperature, and
+    no surface nearer by more than the slope-scaled tolerance lies within the
+    occlusion margin (a guard band at depth discontinuities [2]_). Its
     temperature is the depth-aware bilinear sample at p, averaged over the
     view's frames, and views are fused by
 
@@ -191,7 +209,11 @@ def fuse_temperature(
     ----------
     .. [1] M. Vollmer and K.-P. Moellmann, "Infrared Thermal Imaging", 2nd ed.,
        Wiley-VCH, 2018, sec. 1.4 (directional emissivity).
+    .. [2] V. Lempitsky and D. Ivanov, "Seamless Mosaicing of Image-Based
+       Texture Maps", CVPR 2007 (rejecting views near depth discontinuities).
     """
+    if occlusion_margin_px < 0:
+        raise ValueError(f"The occlusion margin must be a non-negative number of pixels; got {occlusion_margin_px}.")
     points = np.asarray(points, dtype=np.float64)
     normals = np.asarray(normals, dtype=np.float64)
     if points.ndim != 2 or points.shape[1] != 3 or normals.shape != points.shape:
@@ -204,7 +226,8 @@ def fuse_temperature(
     weight_sum = np.zeros(len(points))
     best_angle = np.full(len(points), np.inf)
     for view in views:
-        temperature, angle, weight = sample_view(points, normals, view, max_view_angle_deg, depth_tolerance_mm)
+        temperature, angle, weight = sample_view(points, normals, view, max_view_angle_deg, depth_tolerance_mm,
+                                                 occlusion_margin_px)
         weighted_sum += np.where(weight > 0, temperature * weight, 0.0)
         weight_sum += weight
         best_angle = np.fmin(best_angle, angle)

@@ -7,7 +7,7 @@ from scipy import ndimage
 
 # Nearest-pixel assignment puts points up to 1.5 pixel footprints from a bilinear
 # corner's centre, so a tilted surface's depth may differ by that many footprints.
-_FOOTPRINTS_PER_SAMPLE = 1.5
+SAMPLE_FOOTPRINTS = 1.5
 
 
 def depth_buffer(pixels: np.ndarray, depth: np.ndarray, width: int, height: int) -> np.ndarray:
@@ -55,22 +55,53 @@ def depth_buffer(pixels: np.ndarray, depth: np.ndarray, width: int, height: int)
     return buffer
 
 
-def depth_tolerance(
-    depth: np.ndarray, focal_px: float, view_angle: np.ndarray, max_view_angle: float, absolute_mm: float
+def depth_gradient(
+    points_device: np.ndarray, normals_device: np.ndarray, focal_px: float, max_view_angle: float
 ) -> np.ndarray:
-    """How much deeper than the z-buffer a point may lie and still count as seen, millimetres.
+    """How fast each point's surface recedes in the view: depth change per pixel step, millimetres.
+
+    Parameters
+    ----------
+    points_device, normals_device : (N, 3) arrays
+        Points and unit normals in the device frame; NaN normals are unknown.
+    focal_px : float
+        Focal length in pixels.
+    max_view_angle : float
+        Radians; steeper surfaces are taken as seen at this angle (and
+        unknown normals as seen at it on the optical axis).
 
     Notes
     -----
-    A pixel at depth z covers z / f millimetres; on a surface tilted by the view
-    angle theta, depth changes by (z / f) tan(theta) across it, so
+    For the tangent plane n . X = d through a point at depth z, the depth at
+    normalised image position r is z(r) = d / (n . r), whose gradient per pixel has
+    magnitude
 
-        tol = absolute + 1.5 (z / f) tan(min(theta, theta_max)),
+        |grad z| = z^2 sqrt(n_x^2 + n_y^2) / (f |n . X|),
 
-    with theta_max where the angle is unknown (NaN).
+    with |n . X| = |X| cos(theta) for the view angle theta, floored at
+    cos(theta_max).
     """
-    angle = np.where(np.isfinite(view_angle), np.minimum(view_angle, max_view_angle), max_view_angle)
-    return absolute_mm + _FOOTPRINTS_PER_SAMPLE * (depth / focal_px) * np.tan(angle)
+    depth = points_device[:, 2]
+    distance = np.linalg.norm(points_device, axis=1)
+    along = np.abs(np.einsum("ni,ni->n", normals_device, points_device))
+    along = np.maximum(along, distance * np.cos(max_view_angle))
+    gradient = depth**2 * np.hypot(normals_device[:, 0], normals_device[:, 1]) / (focal_px * along)
+    unknown = ~np.isfinite(gradient)
+    gradient[unknown] = depth[unknown] / focal_px * np.tan(max_view_angle)
+    return gradient
+
+
+def depth_tolerance(gradient: np.ndarray, absolute_mm: float, footprints: float = SAMPLE_FOOTPRINTS) -> np.ndarray:
+    """How much deeper than the z-buffer a point may lie and still count as seen, millimetres.
+
+    tol = absolute + k |grad z| over ``k`` pixel footprints (see :func:`depth_gradient`).
+    """
+    return absolute_mm + footprints * gradient
+
+
+def nearest_depth_around(buffer: np.ndarray, radius_px: int) -> np.ndarray:
+    """Smallest z-buffer depth within ``radius_px`` pixels (a square window) of each pixel."""
+    return ndimage.minimum_filter(buffer, size=2 * radius_px + 1, mode="nearest")
 
 
 def _nearest_pixel(pixels: np.ndarray, width: int, height: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

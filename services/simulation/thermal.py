@@ -19,8 +19,9 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from services.formats.rig import Device
 from services.fusion.radiometry import PlanckConstants, blackbody_counts, blackbody_temperature
-from services.geometry.camera import camera_center, pixel_grid, pixel_rays
+from services.geometry.camera import camera_center
 from services.simulation.raycast import cast_rays
+from services.simulation.render import integrate_pixels, subsample_rays
 from services.simulation.scene import Scene
 
 Vector3 = Annotated[list[float], Field(min_length=3, max_length=3)]
@@ -68,16 +69,16 @@ class TemperatureScene(BaseModel):
 class ThermalEffects(BaseModel):
     """The thermal camera's imperfections.
 
-    ``supersample`` x ``supersample`` rays per pixel integrate its area;
+    ``supersample`` x ``supersample`` rays per pixel (an odd number) integrate its area;
     ``blur_sigma`` is the optics' Gaussian blur in pixels; ``netd`` the noise
     equivalent temperature difference in kelvin (Gaussian noise of that standard
     deviation at every temperature). Area integration and blur act on radiance
     (counts on ``planck``'s curve), not on temperature, as in a real camera.
     """
 
-    model_config = ConfigDict(extra="forbid", frozen=True, arbitrary_types_allowed=True)
+    model_config = ConfigDict(extra="forbid", frozen=True)
 
-    supersample: int = Field(3, ge=1, le=8)
+    supersample: int = Field(3, ge=1, le=7)
     blur_sigma: float = Field(0.6, ge=0.0)
     netd: float = Field(0.05, ge=0.0)
     planck: PlanckConstants = Field(default_factory=PlanckConstants)
@@ -131,15 +132,11 @@ def render_thermal(
             f"The temperature scene has {len(temperatures.surfaces)} surface fields but the scene has "
             f"{len(scene.surfaces)} surfaces; give one per surface."
         )
-    samples = effects.supersample
-    offsets = (np.arange(samples) + 0.5) / samples - 0.5
-    grid = pixel_grid(device.width, device.height)
-    sub_u, sub_v = np.meshgrid(offsets, offsets)
-    subpixels = (grid[:, None, :] + np.column_stack([sub_u.ravel(), sub_v.ravel()])[None]).reshape(-1, 2)
-    origin, directions = pixel_rays(subpixels, device.K_array, device.dist_array, device.R_array, device.t_array)
+    origin, directions = subsample_rays(device, effects.supersample)
     hits = cast_rays(scene, origin, directions)
     temperature = surface_temperature(temperatures, hits.points, hits.surface)
-    counts = blackbody_counts(temperature, effects.planck).reshape(device.height, device.width, -1).mean(axis=2)
+    samples = blackbody_counts(temperature, effects.planck).reshape(device.height * effects.supersample, -1)
+    counts = integrate_pixels(samples, effects.supersample)
     if effects.blur_sigma > 0:
         counts = cv2.GaussianBlur(counts, (0, 0), effects.blur_sigma, borderType=cv2.BORDER_REPLICATE)
     image = blackbody_temperature(counts, effects.planck)
@@ -160,3 +157,21 @@ def seen_by(scene: Scene, device: Device, points: np.ndarray, tolerance_mm: floa
     distance = np.linalg.norm(toward, axis=1)
     hits = cast_rays(scene, centre, toward)
     return hits.distance >= distance - tolerance_mm
+
+
+def forging_temperatures() -> TemperatureScene:
+    """The temperature field of ``presets.forging_scene()`` (surfaces billet, flange, back wall), degrees C.
+
+    Billet: 1040 C at its centre, rising 0.2 K/mm toward +x (the end last out of the furnace), a
+    +45 K hot spot (sigma 30 mm) on its front and a -80 K spot (sigma 25 mm) where it was gripped,
+    so 950-1100 C. Flange: thinner, cooler, 960 C falling 0.4 K/mm toward its top (y < 0). Back wall:
+    45 C warmed to 120 C (sigma 150 mm) behind the part. Misses see 25 C.
+    """
+    return TemperatureScene(background=25.0, surfaces=[
+        SurfaceTemperature(base=1040.0, gradient=[0.2, 0.0, 0.0], origin=[0.0, 20.0, 600.0], spots=[
+            Spot(center=[30.0, 10.0, 545.0], radius=30.0, amplitude=45.0),
+            Spot(center=[-60.0, -30.0, 580.0], radius=25.0, amplitude=-80.0),
+        ]),
+        SurfaceTemperature(base=960.0, gradient=[0.0, 0.4, 0.0], origin=[-95.0, 20.0, 600.0]),
+        SurfaceTemperature(base=45.0, spots=[Spot(center=[0.0, 20.0, 760.0], radius=150.0, amplitude=75.0)]),
+    ])

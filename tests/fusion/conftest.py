@@ -59,7 +59,7 @@ def make_hot_scene(seed: int = 0) -> HotScene:
     hits = cast_rays(scene, origin, directions)
     hit = hits.surface >= 0
     points, normals = hits.points[hit], hits.normals[hit]
-    image = render_thermal(scene, temperatures, thermal, ThermalEffects(supersample=2), np.random.default_rng(seed))
+    image = render_thermal(scene, temperatures, thermal, ThermalEffects(supersample=3), np.random.default_rng(seed))
     return HotScene(scene, temperatures, camera, thermal, points, normals,
                     surface_temperature(temperatures, points, hits.surface[hit]),
                     seen_by(scene, thermal, points), image)
@@ -67,7 +67,7 @@ def make_hot_scene(seed: int = 0) -> HotScene:
 
 def rerender(hot: HotScene, seed: int) -> np.ndarray:
     """Another thermal frame of the same scene with different noise."""
-    return render_thermal(hot.scene, hot.temperatures, hot.thermal, ThermalEffects(supersample=2),
+    return render_thermal(hot.scene, hot.temperatures, hot.thermal, ThermalEffects(supersample=3),
                           np.random.default_rng(seed))
 
 
