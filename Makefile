@@ -4,7 +4,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 DEMO_DIR ?= demo-output
 
-.PHONY: install install-test demo test clean
+.PHONY: install install-test demo test clean docker-compose
 
 install: $(VENV)/.installed
 
@@ -25,8 +25,12 @@ $(VENV)/.installed-test: pyproject.toml
 demo: install
 	$(BIN)/python -m services.cli.demo --out $(DEMO_DIR)
 
-test: install-test
+test: install-test docker-compose
 	$(BIN)/python -m pytest
+
+# tests/docker validates docker/compose.yaml with Debian's docker-compose (no Docker engine needed).
+docker-compose:
+	command -v docker-compose >/dev/null || { apt-get update -qq && apt-get install -y -qq --no-install-recommends docker-compose; }
 
 clean:
 	rm -rf $(VENV) $(DEMO_DIR)

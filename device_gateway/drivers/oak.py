@@ -18,7 +18,7 @@ from device_gateway.devices import Camera, DeviceInfo, DeviceLost, DeviceUnavail
 
 
 def find_device(device_id: str | None, role: str) -> dai.DeviceInfo:
-    """The connected OAK with ``device_id`` (serial/MxId, IP address or name), or the only one when None.
+    """The connected OAK with ``device_id`` (serial/MxId, IP address or name), or the only one when None or empty.
 
     Raises
     ------
@@ -27,7 +27,7 @@ def find_device(device_id: str | None, role: str) -> dai.DeviceInfo:
     """
     found = dai.Device.getAllAvailableDevices()
     described = ", ".join(f"{info.getDeviceId()} ({info.name})" for info in found) or "none"
-    if device_id is not None:
+    if device_id:
         for info in found:
             if device_id in (info.getDeviceId(), info.name):
                 return info

@@ -1,0 +1,58 @@
+"""``thermofield gateway`` as a process: with no OAK attached it still serves, and says why it cannot capture."""
+
+from __future__ import annotations
+
+import os
+import socket
+import subprocess
+import sys
+import time
+
+import httpx
+
+from services.cli.main import main
+
+
+def _free_port() -> int:
+    with socket.socket() as probe:
+        probe.bind(("127.0.0.1", 0))
+        return probe.getsockname()[1]
+
+
+def test_gateway_without_hardware_reports_degraded_health_and_refuses_captures(tmp_path):
+    port = _free_port()
+    environment = {key: value for key, value in os.environ.items() if key not in ("DISPLAY", "WAYLAND_DISPLAY")}
+    process = subprocess.Popen(
+        [sys.executable, "-m", "services.cli.main", "gateway", "--driver", "oak", "--host", "127.0.0.1",
+         "--port", str(port)],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=environment,
+    )
+    try:
+        deadline = time.monotonic() + 60
+        while True:
+            assert process.poll() is None, process.stderr.read()
+            try:
+                health = httpx.get(f"http://127.0.0.1:{port}/healthz", timeout=2)
+                break
+            except httpx.HTTPError:
+                assert time.monotonic() < deadline, "the gateway did not start"
+                time.sleep(0.2)
+        assert health.status_code == 503
+        assert health.json()["status"] == "degraded"
+        assert set(health.json()["devices"]) == {"camera", "thermal", "projector"}
+        capture = httpx.post(f"http://127.0.0.1:{port}/v1/captures", json={}, timeout=30)
+        assert capture.status_code == 503
+        assert capture.headers["content-type"] == "application/problem+json"
+        assert "no OAK device is connected" in capture.json()["detail"]
+    finally:
+        process.terminate()
+        output, _ = process.communicate(timeout=20)
+    assert f"http://127.0.0.1:{port}" in output
+
+
+def test_unknown_driver_is_refused(capsys):
+    try:
+        main(["gateway", "--driver", "webcam"])
+    except SystemExit as exit_:
+        assert exit_.code == 2
+    assert "invalid choice: 'webcam'" in capsys.readouterr().err

@@ -1,0 +1,63 @@
+"""OAK drivers without hardware: fail fast and clearly; frames converted exactly (host-made depthai frames)."""
+
+from __future__ import annotations
+
+import datetime
+import time
+
+import depthai as dai
+import numpy as np
+import pytest
+
+from device_gateway.devices import DeviceLost, DeviceUnavailable
+from device_gateway.drivers.oak import OakCamera, OakThermal, frame_metadata, host_time_of, thermal_image
+
+
+@pytest.mark.parametrize("driver", [OakCamera, OakThermal])
+def test_a_missing_device_fails_fast_naming_it(driver):
+    device = driver(device_id="19443010A1B2C3D4E5")
+    started = time.monotonic()
+    with pytest.raises(DeviceUnavailable, match="'19443010A1B2C3D4E5' is not connected"):
+        device.open()
+    assert time.monotonic() - started < 5, "one bounded search, not depthai's implicit device wait"
+    assert not device.is_open
+
+
+def test_grab_before_open_is_a_lost_device():
+    with pytest.raises(DeviceLost, match="not open"):
+        OakCamera().grab(timeout_s=0.1)
+
+
+def test_unknown_board_socket_is_refused():
+    with pytest.raises(ValueError, match="CAM_Z"):
+        OakCamera(socket="CAM_Z")
+
+
+def _frame(image: np.ndarray, kind: dai.ImgFrame.Type, age_s: float = 0.0) -> dai.ImgFrame:
+    frame = dai.ImgFrame()
+    frame.setType(kind)
+    frame.setWidth(image.shape[1])
+    frame.setHeight(image.shape[0])
+    frame.setStride(image.shape[1] * image.itemsize)
+    frame.setData(image.view(np.uint8).ravel())
+    frame.setTimestamp(dai.Clock.now() - datetime.timedelta(seconds=age_s))
+    frame.setSequenceNum(17)
+    return frame
+
+
+def test_thermal_frames_are_float32_celsius():
+    temperatures = (np.linspace(20, 1100, 12 * 16).reshape(12, 16)).astype(np.float16)
+    image = thermal_image(_frame(temperatures, dai.ImgFrame.Type.GRAYF16))
+    assert image.dtype == np.float32
+    np.testing.assert_array_equal(image, temperatures.astype(np.float32))
+
+
+def test_a_thermal_frame_of_another_type_is_refused():
+    with pytest.raises(DeviceLost, match="GRAYF16"):
+        thermal_image(_frame(np.zeros((4, 4), np.uint8), dai.ImgFrame.Type.GRAY8))
+
+
+def test_frame_time_and_metadata():
+    frame = _frame(np.zeros((4, 4), np.uint8), dai.ImgFrame.Type.GRAY8, age_s=1.5)
+    assert host_time_of(frame) == pytest.approx(time.time() - 1.5, abs=0.05)
+    assert frame_metadata(frame)["sequence"] == 17
