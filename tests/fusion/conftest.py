@@ -1,19 +1,35 @@
-"""A small simulated hot scene with known temperatures: a hot plate behind a hotter bar that hides part of it."""
+"""Simulated hot scenes with known temperatures for the fusion tests.
+
+``hot_scene``: a hot plate behind a hotter bar that hides part of it, with the exact cloud.
+``forging_capture``: the forging station (presets) as files: rig, structured-light capture and thermal frame.
+"""
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 import pytest
 
-from services.formats.rig import Device
+from services.formats.images import write_png
+from services.formats.rig import Device, Rig, save_rig
+from services.formats.sequence import save_sequence
+from services.formats.thermal import write_thermal_frame
 from services.geometry.camera import pixel_grid, pixel_rays
+from services.simulation.presets import forging_rig, forging_scene
 from services.simulation.raycast import cast_rays
+from services.simulation.render import CameraEffects, GroundTruth, render_frames, render_view
 from services.simulation.scene import Cylinder, Plane, Scene
 from services.simulation.thermal import (
-    Spot, SurfaceTemperature, TemperatureScene, ThermalEffects, render_thermal, seen_by, surface_temperature,
+    Spot, SurfaceTemperature, TemperatureScene, ThermalEffects, forging_temperatures, render_thermal, seen_by,
+    surface_temperature,
 )
+from services.structured_light.patterns import generate_sequence
+
+# The forging rig's camera and projector are simulated at half their 1280x800 resolution to keep
+# the tests fast; the thermal camera keeps its 320x256 (experiments/field_accuracy.py runs full size).
+_FORGING_SCALE = 2
 
 
 def look_at(kind: str, centre, target, focal: float, width: int, height: int, dist=()) -> Device:
@@ -74,3 +90,54 @@ def rerender(hot: HotScene, seed: int) -> np.ndarray:
 @pytest.fixture(scope="session")
 def hot_scene() -> HotScene:
     return make_hot_scene()
+
+
+def _downscaled(device: Device, factor: int) -> Device:
+    """The same device with ``factor`` times fewer pixels per side (distortion is in normalised units)."""
+    K = device.K_array.copy()
+    K[:2, :2] /= factor
+    K[:2, 2] = (K[:2, 2] + 0.5) / factor - 0.5
+    return device.model_copy(update={"width": device.width // factor, "height": device.height // factor,
+                                     "K": K.tolist()})
+
+
+@dataclass
+class ForgingCapture:
+    rig_path: Path
+    captures: Path
+    thermal_path: Path
+    rig: Rig
+    truth: GroundTruth
+    seen_by_thermal: np.ndarray
+    true_temperature: np.ndarray
+
+
+@pytest.fixture(scope="session")
+def forging_capture(tmp_path_factory) -> ForgingCapture:
+    directory = tmp_path_factory.mktemp("forging")
+    full = forging_rig()
+    rig = Rig(devices={name: device if device.kind == "thermal" else _downscaled(device, _FORGING_SCALE)
+                       for name, device in full.devices.items()})
+    scene, temperatures = forging_scene(), forging_temperatures()
+    camera, projector, thermal = rig.devices["camera"], rig.devices["projector"], rig.devices["thermal"]
+    rng = np.random.default_rng(7)
+    sequence, patterns = generate_sequence(projector.width, projector.height, period=8)
+    view = render_view(scene, camera, projector, supersample=1)
+    frames = render_frames(view, patterns, rng, CameraEffects(noise_sigma=1.0))
+    captures = directory / "capture"
+    captures.mkdir()
+    for frame, image in zip(sequence.frames, frames):
+        write_png(captures / frame.file, image)
+    save_sequence(sequence, captures)
+    save_rig(rig, directory / "rig.json")
+    write_thermal_frame(directory / "thermal.tif",
+                        render_thermal(scene, temperatures, thermal, ThermalEffects(netd=0.05), rng))
+    truth = view.truth
+    on_surface = truth.surface >= 0
+    seen = np.zeros(truth.surface.shape, dtype=bool)
+    seen[on_surface] = seen_by(scene, thermal, truth.points[on_surface])
+    true_temperature = np.full(truth.surface.shape, np.nan)
+    true_temperature[on_surface] = surface_temperature(temperatures, truth.points[on_surface],
+                                                       truth.surface[on_surface])
+    return ForgingCapture(directory / "rig.json", captures, directory / "thermal.tif", rig, truth, seen,
+                          true_temperature)
