@@ -1,0 +1,87 @@
+import numpy as np
+import pytest
+
+from services.calibration.camera import calibrate_camera
+from services.calibration.corners import detect_board
+from services.formats.images import read_frame
+from services.simulation.boards import render_board
+
+from .conftest import THERMAL_DIST, THERMAL_K, THERMAL_SIZE, board_poses, project
+
+OPENCV_PUBLISHED_RMS = 0.196
+
+
+@pytest.fixture(scope="module")
+def opencv_left_detections(opencv_left_images, opencv_board):
+    return [detect_board(read_frame(path), opencv_board) for path in opencv_left_images]
+
+
+def test_opencv_left_images_beat_opencvs_published_rms(opencv_left_detections, opencv_board):
+    assert all(d is not None for d in opencv_left_detections)
+    result = calibrate_camera([opencv_board.object_points()] * 13, [d.image_points for d in opencv_left_detections],
+                              (640, 480))
+    assert result.rms <= OPENCV_PUBLISHED_RMS
+    assert result.rejected == []
+    # OpenCV's published intrinsics for these images, within three of our standard deviations
+    for name, value, index in (("fx", 532.81, (0, 0)), ("fy", 532.93, (1, 1)), ("cx", 342.50, (0, 2)),
+                               ("cy", 233.89, (1, 2))):
+        assert abs(result.K[index] - value) < 3 * result.std[name], name
+
+
+def test_predicted_standard_deviations_match_a_monte_carlo_spread(chessboard_9x6):
+    K = np.array([[800.0, 0.0, 330.0], [0.0, 790.0, 235.0], [0.0, 0.0, 1.0]])
+    dist = np.array([-0.15, 0.08, 0.0005, -0.0003, 0.0])
+    poses = board_poses(chessboard_9x6, 8, 450.0, 30.0)
+    truth = [project(chessboard_9x6, K, dist, R, t) for R, t in poses]
+    objects = [chessboard_9x6.object_points()] * len(poses)
+    rng = np.random.default_rng(7)
+    estimates, predicted = [], []
+    for _ in range(60):
+        noisy = [points + rng.normal(0.0, 0.2, points.shape) for points in truth]
+        result = calibrate_camera(objects, noisy, (640, 480), distortion="radial", reject_outliers=False)
+        estimates.append([result.K[0, 0], result.K[1, 1], result.K[0, 2], result.K[1, 2], *result.dist[:2]])
+        predicted.append([result.std[name] for name in ("fx", "fy", "cx", "cy", "k1", "k2")])
+    spread = np.std(estimates, axis=0, ddof=1)
+    ratio = np.mean(predicted, axis=0) / spread
+    assert np.all(np.abs(ratio - 1) <= 0.3), ratio
+
+
+def test_a_gross_outlier_view_is_rejected_with_a_reason(chessboard_9x6):
+    K = np.array([[800.0, 0.0, 320.0], [0.0, 800.0, 240.0], [0.0, 0.0, 1.0]])
+    poses = board_poses(chessboard_9x6, 9, 450.0, 30.0)
+    rng = np.random.default_rng(1)
+    points = [project(chessboard_9x6, K, np.zeros(5), R, t) + rng.normal(0, 0.1, (54, 2)) for R, t in poses]
+    points[4] = points[4] + rng.normal(0, 3.0, points[4].shape)  # a bent board, a wrong detection
+    result = calibrate_camera([chessboard_9x6.object_points()] * 9, points, (640, 480))
+    assert [index for index, _ in result.rejected] == [4]
+    assert "exceeds the outlier limit" in result.rejected[0][1]
+    assert list(result.views) == [0, 1, 2, 3, 5, 6, 7, 8]
+    assert result.rms < 0.15
+    assert abs(result.K[0, 0] - 800) < 1.0
+
+
+def test_simulated_infrared_hollow_board_calibration_meets_the_targets(chessboard_9x6):
+    rng = np.random.default_rng(5)
+    poses = board_poses(chessboard_9x6, 10, 370.0, 35.0)
+    detections = []
+    for R, t in poses:
+        image = render_board(chessboard_9x6, THERMAL_K, THERMAL_DIST, R, t, THERMAL_SIZE, modality="infrared",
+                             blur_sigma=1.0, noise_sigma=2.0, supersample=2, rng=rng)
+        detections.append(detect_board(image, chessboard_9x6))
+    assert all(d is not None for d in detections), "every usable frame must be detected"
+    result = calibrate_camera([chessboard_9x6.object_points()] * len(poses), [d.image_points for d in detections],
+                              THERMAL_SIZE, distortion="radial")
+    focal_error = np.abs(np.diag(result.K)[:2] / np.diag(THERMAL_K)[:2] - 1)
+    assert focal_error.max() <= 1e-3
+    assert np.abs(result.K[:2, 2] - THERMAL_K[:2, 2]).max() <= 0.5
+
+
+def test_fewer_than_three_views_are_refused(chessboard_9x6):
+    points = [np.zeros((54, 2))] * 2
+    with pytest.raises(ValueError, match="at least 3 views"):
+        calibrate_camera([chessboard_9x6.object_points()] * 2, points, (640, 480))
+
+
+def test_mismatched_view_lists_are_refused(chessboard_9x6):
+    with pytest.raises(ValueError, match="same views"):
+        calibrate_camera([chessboard_9x6.object_points()] * 3, [np.zeros((54, 2))] * 4, (640, 480))
