@@ -70,7 +70,7 @@ def cast_rays(scene: Scene, origins: np.ndarray, directions: np.ndarray, t_min: 
     directions = np.asarray(directions, dtype=np.float64)
     if directions.ndim != 2 or directions.shape[1] != 3:
         raise ValueError(f"directions must have shape (N, 3); got {directions.shape}.")
-    norms = np.linalg.norm(directions, axis=1, keepdims=True)
+    norms = np.sqrt(np.einsum("ij,ij->i", directions, directions))[:, None]
     if not np.all(np.isfinite(norms)) or np.any(norms == 0):
         raise ValueError("Every ray direction must be finite and non-zero.")
     directions = directions / norms

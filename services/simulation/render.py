@@ -162,12 +162,15 @@ def subsample_rays(device: Device, supersample: int) -> tuple[np.ndarray, np.nda
     edge_order = 2 if min(width, height) > 2 else 1
     d_du = np.gradient(centres, axis=1, edge_order=edge_order) if width > 1 else np.zeros_like(centres)
     d_dv = np.gradient(centres, axis=0, edge_order=edge_order) if height > 1 else np.zeros_like(centres)
-    normalized = (centres[:, None, :, None, :] + offsets[None, :, None, None, None] * d_dv[:, None, :, None, :]
-                  + offsets[None, None, None, :, None] * d_du[:, None, :, None, :])
-    rays = np.concatenate([normalized.reshape(-1, 2), np.ones((normalized.size // 2, 1))], axis=1)
-    directions = rays @ device.R_array  # R^T applied to each row
-    directions /= np.linalg.norm(directions, axis=1, keepdims=True)
-    return camera_center(device.R_array, device.t_array), directions
+    row_offsets, column_offsets = offsets[None, :, None, None], offsets[None, None, None, :]
+    x, y = ((centres[:, None, :, None, axis] + row_offsets * d_dv[:, None, :, None, axis]
+             + column_offsets * d_du[:, None, :, None, axis]).ravel() for axis in (0, 1))
+    inverse_length = 1 / np.sqrt(x * x + y * y + 1)  # rotating the device ray (x, y, 1) keeps its length
+    R = device.R_array
+    directions = np.empty((x.size, 3))
+    for axis in range(3):  # world direction R^T (x, y, 1), one component at a time to spare memory
+        directions[:, axis] = (x * R[0, axis] + y * R[1, axis] + R[2, axis]) * inverse_length
+    return camera_center(R, device.t_array), directions
 
 
 def integrate_pixels(samples: np.ndarray, supersample: int) -> np.ndarray:
@@ -231,7 +234,7 @@ def render_view(scene: Scene, camera: Device, projector: Device, supersample: in
     hit = hits.surface >= 0
     projector_centre = camera_center(projector.R_array, projector.t_array)
     to_projector = projector_centre - hits.points
-    distance_to_projector = np.linalg.norm(to_projector, axis=1)
+    distance_to_projector = np.sqrt(np.einsum("ij,ij->i", to_projector, to_projector))
     with np.errstate(invalid="ignore", divide="ignore"):
         cosine = np.einsum("ij,ij->i", hits.normals, to_projector) / distance_to_projector
     candidate = hit & (cosine > 0)
