@@ -81,8 +81,8 @@ def _read_sidecar(path: Path) -> ThermalSidecar | None:
         return ThermalSidecar.model_validate_json(path.read_text())
     except ValidationError as error:
         details = "; ".join(
-            f"{'.'.join(str(part) for part in item['loc']) or '(top level)'}: "
-            f"{item['msg'].removeprefix('Value error, ')}" for item in error.errors()
+            (f"{'.'.join(str(part) for part in item['loc'])}: " if item["loc"] else "")
+            + item["msg"].removeprefix("Value error, ") for item in error.errors()
         )
         raise InputError(f"{path}: invalid thermal sidecar ({details})") from None
     except OSError as error:
@@ -97,15 +97,18 @@ def _read_array(path: Path) -> np.ndarray:
         raise InputError(f"{path}: thermal frame file is missing")
     try:
         if suffix == ".npy":
-            return np.load(path, allow_pickle=False)
-        if suffix == ".png":
-            image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-            if image is None:
+            array = np.load(path, allow_pickle=False)
+        elif suffix == ".png":
+            array = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+            if array is None:
                 raise ValueError("OpenCV cannot decode it")
-            return image
-        return tifffile.imread(path)
+        else:
+            array = tifffile.imread(path)
     except Exception as error:  # numpy, OpenCV and tifffile raise many types for corrupt files
         raise InputError(f"{path}: cannot read the thermal frame ({error})") from None
+    if np.asarray(array).size == 0:
+        raise InputError(f"{path}: cannot read the thermal frame (no image data; corrupt or empty file)")
+    return np.asarray(array)
 
 
 def _default_unit(path: Path, array: np.ndarray) -> str:
