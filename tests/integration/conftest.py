@@ -1,0 +1,185 @@
+"""Helpers for the end-to-end tests: real processes (the same commands the compose file runs),
+real PostgreSQL, RabbitMQ and Mosquitto, and the simulator's ground truth to check the field."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import httpx
+import numpy as np
+import paho.mqtt.client as mqtt
+import pytest
+
+from services.formats.ply import read_cloud
+from services.geometry.camera import pixel_rays, project_points
+from services.simulation.presets import forging_rig, forging_scene
+from services.simulation.raycast import cast_rays
+from services.simulation.thermal import forging_temperatures, seen_by, surface_temperature
+
+THERMOFIELD = [sys.executable, "-m", "services.cli.main"]
+
+
+def free_port() -> int:
+    with socket.socket() as probe:
+        probe.bind(("127.0.0.1", 0))
+        return probe.getsockname()[1]
+
+
+class Processes:
+    """Started child processes, stopped (SIGTERM, then SIGKILL) at the end of the test."""
+
+    def __init__(self, log_dir: Path) -> None:
+        self.log_dir = log_dir
+        self.running: list[tuple[str, subprocess.Popen]] = []
+
+    def start(self, name: str, arguments: list[str], env: dict[str, str]) -> subprocess.Popen:
+        log = open(self.log_dir / f"{name}.log", "wb")
+        process = subprocess.Popen(THERMOFIELD + arguments, env=os.environ | env, stdout=log, stderr=subprocess.STDOUT,
+                                   stdin=subprocess.DEVNULL, start_new_session=True)
+        self.running.append((name, process))
+        return process
+
+    def log(self, name: str) -> str:
+        return (self.log_dir / f"{name}.log").read_text(errors="replace")
+
+    def stop(self, process: subprocess.Popen, sig: int = signal.SIGTERM) -> None:
+        if process.poll() is None:
+            os.killpg(process.pid, sig)
+            try:
+                process.wait(timeout=20)
+            except subprocess.TimeoutExpired:
+                os.killpg(process.pid, signal.SIGKILL)
+                process.wait()
+
+    def stop_all(self) -> None:
+        for _, process in reversed(self.running):
+            self.stop(process)
+
+
+@pytest.fixture
+def processes(tmp_path):
+    started = Processes(tmp_path)
+    yield started
+    started.stop_all()
+
+
+def wait_until_healthy(url: str, process: subprocess.Popen, processes: Processes, name: str,
+                       timeout_s: float = 120.0) -> None:
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        if process.poll() is not None:
+            raise AssertionError(f"{name} exited with {process.returncode}:\n{processes.log(name)[-3000:]}")
+        try:
+            if httpx.get(url, timeout=2.0).status_code == 200:
+                return
+        except httpx.HTTPError:
+            pass
+        time.sleep(0.25)
+    raise AssertionError(f"{name} did not become healthy at {url}:\n{processes.log(name)[-3000:]}")
+
+
+def create_key(env: dict[str, str], scopes: list[str]) -> str:
+    result = subprocess.run(THERMOFIELD + ["apikey", "create", "--scopes", *scopes], env=os.environ | env,
+                            capture_output=True, text=True, timeout=120, check=True)
+    return result.stdout.strip()
+
+
+class MqttRecorder:
+    """Subscribes to a topic prefix and keeps every message; clears retained ones at the end."""
+
+    def __init__(self, prefix: str) -> None:
+        self.messages: list[tuple[str, dict, bool]] = []
+        self._lock = threading.Lock()
+        self._client = mqtt.Client(mqtt.CallbackAPIVersion.VERSION2)
+        self._client.on_message = self._on_message
+        self._client.connect("127.0.0.1", 1883)
+        self._client.subscribe(f"{prefix}/#", qos=1)
+        self._client.loop_start()
+
+    def _on_message(self, client, userdata, message) -> None:
+        if message.payload:
+            with self._lock:
+                self.messages.append((message.topic, json.loads(message.payload), bool(message.retain)))
+
+    def states(self, topic: str) -> list[dict]:
+        with self._lock:
+            return [state for name, state, _ in self.messages if name == topic]
+
+    def close(self) -> None:
+        with self._lock:
+            topics = {name for name, _, _ in self.messages}
+        for topic in topics:
+            self._client.publish(topic, b"", qos=1, retain=True).wait_for_publish(5)
+        self._client.loop_stop()
+        self._client.disconnect()
+
+
+@pytest.fixture
+def mqtt_recorder():
+    recorders = []
+
+    def start(prefix: str) -> MqttRecorder:
+        recorders.append(MqttRecorder(prefix))
+        return recorders[-1]
+
+    yield start
+    for recorder in recorders:
+        recorder.close()
+
+
+def follow_events(client: httpx.Client, job_id: str, timeout_s: float = 300.0) -> list[tuple[str, dict]]:
+    """Read the job's server-sent events until ``done``; returns (event, state) pairs."""
+    events, name = [], None
+    with client.stream("GET", f"/v1/jobs/{job_id}/events", timeout=timeout_s) as response:
+        assert response.status_code == 200 and response.headers["content-type"].startswith("text/event-stream")
+        for line in response.iter_lines():
+            if line.startswith("event:"):
+                name = line.split(":", 1)[1].strip()
+            elif line.startswith("data:"):
+                events.append((name, json.loads(line.split(":", 1)[1])))
+                if name == "done":
+                    break
+    return events
+
+
+def field_errors(path: Path) -> dict[str, float]:
+    """Geometry and temperature errors of a field.ply against the simulated station's ground truth.
+
+    Each point's camera pixel (u, v) is traced through the true rig into the true scene:
+    the geometric error is the distance from the point to that true surface point, the
+    temperature error the difference from the true surface temperature there, over the
+    points that got a temperature and whose true point the thermal camera sees.
+    """
+    field = read_cloud(path)
+    rig, scene = forging_rig(), forging_scene()
+    camera, thermal = rig.devices["camera"], rig.devices["thermal"]
+    pixels = np.column_stack([field["u"], field["v"]]).astype(np.float64)
+    origin, directions = pixel_rays(pixels, camera.K_array, camera.dist_array, camera.R_array, camera.t_array)
+    hits = cast_rays(scene, origin, directions)
+    points = np.column_stack([field["x"], field["y"], field["z"]]).astype(np.float64)
+    on_surface = hits.surface >= 0
+    distance = np.linalg.norm(points[on_surface] - hits.points[on_surface], axis=1)
+    temperature = np.asarray(field["temperature"], dtype=np.float64)
+    truth = surface_temperature(forging_temperatures(), hits.points[on_surface], hits.surface[on_surface])
+    measured = temperature[on_surface]
+    in_frame = project_points(hits.points[on_surface], thermal.K_array, thermal.dist_array, thermal.R_array,
+                              thermal.t_array)
+    inside = ((in_frame >= 0) & (in_frame <= [thermal.width - 1, thermal.height - 1])).all(axis=1)
+    visible = seen_by(scene, thermal, hits.points[on_surface]) & inside
+    compared = np.isfinite(measured) & visible
+    hidden = ~visible
+    return {
+        "points": float(len(points)),
+        "median_distance_mm": float(np.median(distance)),
+        "median_temperature_error_k": float(np.median(np.abs(measured[compared] - truth[compared]))),
+        "temperature_coverage": float(compared.sum() / max(visible.sum(), 1)),
+        "hidden_points_nan": float(np.mean(~np.isfinite(measured[hidden]))) if hidden.any() else 1.0,
+    }

@@ -1,0 +1,61 @@
+"""End to end over HTTP, embedded: `thermofield serve` (SQLite, in-process worker, simulated gateway,
+Rerun proxy) as one process; keys from `thermofield apikey create`; events over SSE and MQTT."""
+
+import uuid
+
+import cv2
+import httpx
+import numpy as np
+
+from conftest import create_key, field_errors, follow_events, free_port, wait_until_healthy
+from services.formats.rig import rig_to_json
+from services.simulation.presets import forging_rig
+
+
+def test_embedded_scan_from_http_to_an_accurate_field(processes, mqtt_recorder, tmp_path):
+    site = f"it-{uuid.uuid4().hex[:8]}"
+    env = {"THERMOFIELD_DATA_DIR": str(tmp_path / "data"), "THERMOFIELD_SITE": site}
+    port = free_port()
+    serve = processes.start("serve", ["serve", "--port", str(port), "--gateway-port", str(free_port()),
+                                      "--rerun-port", str(free_port())], env)
+    wait_until_healthy(f"http://127.0.0.1:{port}/readyz", serve, processes, "serve")
+    assert f"http://127.0.0.1:{port}" in processes.log("serve")
+    admin = create_key(env, ["admin"])
+    events = mqtt_recorder(f"{site}/station1")
+
+    with httpx.Client(base_url=f"http://127.0.0.1:{port}", headers={"Authorization": f"Bearer {admin}"},
+                      timeout=30) as client:
+        assert client.get("/v1/calibration-sets").json()[0]["source"] == "simulator"  # active out of the box
+        assert {d["name"] for d in client.get("/v1/devices").json()} == {"camera", "thermal", "projector"}
+        created = client.post("/v1/calibration-sets", files={"rig": ("rig.json", rig_to_json(forging_rig()))},
+                              data={"name": "uploaded true rig", "activate": "true"})
+        assert created.status_code == 201, created.text
+
+        accepted = client.post("/v1/scans", json={"part_id": "billet-1"}, headers={"Idempotency-Key": "k1"})
+        assert accepted.status_code == 202, accepted.text
+        scan_id, job_id = accepted.json()["scan_id"], accepted.json()["job_id"]
+        progress = follow_events(client, job_id)
+        assert progress[-1][0] == "done" and progress[-1][1]["status"] == "succeeded", progress[-1]
+        stages = [state["stage"] for _, state in progress]
+        assert [s for s in ("capture", "reconstruct", "fuse", "store", "stream") if s in stages], stages
+
+        scan = client.get(f"/v1/scans/{scan_id}").json()
+        assert scan["calibration_set_id"] == created.json()["calibration_set_id"]
+        summary = scan["summary"]
+        assert summary["point_count"] > 100_000 and summary["points_with_temperature"] > 50_000
+        assert 900 < summary["temperature"]["max"] < 1200  # the simulated part is up to ~1100 C
+        (tmp_path / "field.ply").write_bytes(client.get(scan["links"]["field.ply"]).content)
+        assert client.get(scan["links"]["field.rrd"]).content[:4] == b"RRF2"
+        frame = cv2.imdecode(np.frombuffer(client.get(scan["links"]["frames/0"]).content, np.uint8),
+                             cv2.IMREAD_UNCHANGED)
+        assert frame.shape == (800, 1280)
+
+    errors = field_errors(tmp_path / "field.ply")
+    assert errors["median_distance_mm"] < 0.5, errors
+    assert errors["median_temperature_error_k"] < 2.0, errors
+    assert errors["hidden_points_nan"] > 0.95, errors
+
+    scan_states = events.states(f"{site}/station1/scans/{scan_id}")
+    assert scan_states[-1]["status"] == "succeeded"
+    assert scan_states[-1]["summary"]["point_count"] == summary["point_count"]
+    assert [state["status"] for state in events.states(f"{site}/station1/jobs/{job_id}")][0] == "queued"
