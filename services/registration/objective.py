@@ -12,7 +12,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from services.registration.mutual_information import quantized_joint_histogram, information_from_histogram
+from services.registration.mutual_information import quantized_information
 
 METRICS = ("mi", "nmi")
 OUTSIDE = -1.0e4  # far below 0, so any bilinear sample touching the outside comes out negative (invalid)
@@ -35,9 +35,7 @@ def information(
     fixed_samples: np.ndarray, moving: np.ndarray, bins: int, log_base: float
 ) -> tuple[float, float, float]:
     """MI, NMI and the number of valid samples of two quantised, equally shaped images."""
-    histogram = quantized_joint_histogram(fixed_samples.ravel(), moving.ravel(), bins)
-    mi, nmi = information_from_histogram(histogram, log_base)
-    return mi, nmi, float(histogram.sum())
+    return quantized_information(fixed_samples, moving, bins, log_base)
 
 
 def score(

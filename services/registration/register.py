@@ -27,8 +27,9 @@ from services.registration.search import coarse_search
 
 _COARSEST_SIZE = 48  # the coarsest level keeps at least this many moving pixels across
 _SEARCH_STEP = 2.0  # coarse-search grid step, in coarse moving pixels of corner motion
-_CANDIDATES = 4
+_CANDIDATES = 3
 _POWELL_TOLERANCE = 0.01  # moving pixels at the level being refined
+_POWELL_FTOL = 1e-6  # relative change of the objective that ends a Powell iteration
 
 
 @dataclass(frozen=True)
@@ -106,7 +107,7 @@ def _refine(
         return -value if np.isfinite(value) else 1.0e6
 
     result = minimize(negative_score, np.zeros(PARAMETER_COUNTS[model]), method="Powell",
-                      options={"xtol": _POWELL_TOLERANCE, "ftol": 1e-9})
+                      options={"xtol": _POWELL_TOLERANCE, "ftol": _POWELL_FTOL})
     return start @ update_matrix(model, result.x, width, height), -float(result.fun)
 
 
@@ -121,7 +122,7 @@ def register(
     moving: np.ndarray,
     model: str = "similarity",
     *,
-    preprocessing: str = "paper",
+    preprocessing: str = "gradient",
     bins: int = DEFAULT_BINS,
     log_base: float = DEFAULT_LOG_BASE,
     metric: str = "nmi",
@@ -186,6 +187,10 @@ def register(
     _check_inputs(fixed, moving, model, preprocessing, metric)
     if bins < 4:
         raise ValueError(f"Registration needs at least 4 histogram bins; got {bins}.")
+    if log_base <= 0.0 or log_base == 1.0:
+        raise ValueError(f"The log base must be positive and not 1; got {log_base}.")
+    if max_angle < 0.0 or max_scale_change < 0.0 or (max_shift is not None and max_shift < 0.0):
+        raise ValueError("The search ranges (max_shift, max_angle, max_scale_change) must be non-negative.")
     if not 0.0 < min_overlap <= 1.0:
         raise ValueError(f"The minimum overlap must be a fraction in (0, 1]; got {min_overlap}.")
     moving_height, moving_width = np.shape(moving)

@@ -11,10 +11,12 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import numba
 import numpy as np
 
 from services.registration.models import corner_error, similarity_about_centres
-from services.registration.objective import sample_fixed, score
+from services.registration.mutual_information import quantized_information
+from services.registration.objective import sample_fixed
 
 
 @dataclass(frozen=True)
@@ -23,6 +25,23 @@ class Candidate:
 
     matrix: np.ndarray
     value: float
+
+
+# Hand-written with numba: the inner loop over tens of thousands of shifts
+# would otherwise be dominated by Python call overhead.
+@numba.njit(cache=True, nogil=True)
+def _scan_shifts(
+    canvas: np.ndarray, moving: np.ndarray, margin: int, bins: int, log_base: float, use_nmi: bool, min_weight: float
+) -> np.ndarray:
+    """Objective for every integer shift (dy, dx) in [-margin, margin]^2; -inf below the overlap minimum."""
+    height, width = moving.shape
+    values = np.full((2 * margin + 1, 2 * margin + 1), -np.inf)
+    for dy in range(2 * margin + 1):
+        for dx in range(2 * margin + 1):
+            mi, nmi, weight = quantized_information(canvas[dy:dy + height, dx:dx + width], moving, bins, log_base)
+            if weight >= min_weight:
+                values[dy, dx] = nmi if use_nmi else mi
+    return values
 
 
 def _distinct_best(candidates: list[Candidate], count: int, width: int, height: int, spacing: float) -> list[Candidate]:
@@ -96,11 +115,8 @@ def coarse_search(
         for factor in scale_factors:
             base = similarity_about_centres(moving_centre, fixed_centre, scale * factor, angle, np.zeros(2))
             canvas = sample_fixed(fixed, base @ canvas_to_moving, width + 2 * margin, height + 2 * margin)
-            for dy in range(-margin, margin + 1):
-                for dx in range(-margin, margin + 1):
-                    window = canvas[margin + dy: margin + dy + height, margin + dx: margin + dx + width]
-                    value = score(window, moving, bins, log_base, metric, min_overlap)
-                    if np.isfinite(value):
-                        shift = np.array([[1.0, 0.0, dx], [0.0, 1.0, dy], [0.0, 0.0, 1.0]])
-                        candidates.append(Candidate(base @ shift, value))
+            values = _scan_shifts(canvas, moving, margin, bins, log_base, metric == "nmi", min_overlap * moving.size)
+            for row, column in zip(*np.nonzero(np.isfinite(values))):
+                shift = np.array([[1.0, 0.0, column - margin], [0.0, 1.0, row - margin], [0.0, 0.0, 1.0]])
+                candidates.append(Candidate(base @ shift, float(values[row, column])))
     return _distinct_best(candidates, count, width, height, spacing=1.5)
