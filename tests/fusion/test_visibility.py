@@ -1,0 +1,48 @@
+import numpy as np
+import pytest
+
+from services.fusion.visibility import depth_buffer, depth_gradient, nearest_depth_around, seen_mask
+
+
+def test_buffer_keeps_the_nearest_depth_per_pixel_and_fills_isolated_holes():
+    pixels = np.array([[1.2, 1.4], [0.8, 0.6], [3.0, 3.0], [10.0, 1.0], [np.nan, 0.0]])
+    depth = np.array([500.0, 400.0, 600.0, 100.0, 50.0])
+    buffer = depth_buffer(pixels, depth, width=6, height=5)
+    assert buffer[1, 1] == 400.0
+    assert buffer[3, 3] == 600.0
+    assert buffer[2, 2] == 400.0  # empty, takes its nearest 3x3 neighbour
+    assert np.isinf(buffer[4, 0])  # far from every point
+    assert np.all(buffer[:, 5] >= 400.0)  # the point outside the image is not drawn
+
+
+def test_hidden_points_fail_the_depth_test_and_seen_ones_pass():
+    pixels = np.array([[2.0, 2.0], [2.1, 1.9], [4.0, 4.0]])
+    depth = np.array([300.0, 500.0, 500.0])
+    buffer = depth_buffer(pixels, depth, 8, 8)
+    np.testing.assert_array_equal(seen_mask(pixels, depth, buffer, np.full(3, 2.0)), [True, False, True])
+
+
+def test_depth_gradient_of_a_tilted_plane_matches_finite_differences():
+    focal = 400.0
+    normal = np.array([np.sin(0.6), 0.0, -np.cos(0.6)])
+    point = np.array([30.0, -20.0, 600.0])
+    gradient = depth_gradient(point[None], normal[None], focal, np.deg2rad(80))[0]
+    # depth along the plane through ``point`` at the pixel one step to the right
+    x, y = point[0] / point[2], point[1] / point[2]
+    ray = np.array([x + 1 / focal, y, 1.0])
+    depth_next = (normal @ point) / (normal @ ray)
+    assert gradient == pytest.approx(abs(depth_next - point[2]), rel=2e-3)
+
+
+def test_unknown_normals_use_the_angle_limit_and_window_minimum():
+    gradient = depth_gradient(np.array([[0.0, 0.0, 380.0]]), np.full((1, 3), np.nan), 380.0, np.deg2rad(45))
+    assert gradient[0] == pytest.approx(1.0)
+    buffer = np.full((5, 5), 10.0)
+    buffer[0, 0] = 1.0
+    around = nearest_depth_around(buffer, 1)
+    assert around[1, 1] == 1.0 and around[2, 2] == 10.0
+
+
+def test_bad_shapes_are_refused():
+    with pytest.raises(ValueError, match=r"\(N, 2\)"):
+        depth_buffer(np.zeros((3, 3)), np.zeros(3), 4, 4)
