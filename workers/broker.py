@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import importlib
+import logging
 
 import dramatiq
 from dramatiq.brokers.rabbitmq import RabbitmqBroker
@@ -10,6 +11,13 @@ from dramatiq.brokers.stub import StubBroker
 
 from services.settings import Settings
 from workers.middleware import ComputeThreads, JobBookkeeping
+
+
+class _ResultsGoToTheJobsTable(logging.Filter):
+    """Drops Dramatiq's warning that an actor's return value is discarded: JobBookkeeping stores it as the job's result."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        return "Results middleware" not in record.getMessage()
 
 
 def setup_broker(settings: Settings) -> dramatiq.Broker:
@@ -24,6 +32,7 @@ def setup_broker(settings: Settings) -> dramatiq.Broker:
     if not settings.broker_url:
         broker.emit_after("process_boot")  # the dramatiq CLI does this for its processes; it starts TimeLimit's timer
     dramatiq.set_broker(broker)
+    logging.getLogger("dramatiq.worker.WorkerThread").addFilter(_ResultsGoToTheJobsTable())
     actors = importlib.import_module("workers.actors")
     for actor in actors.ACTORS.values():
         actor.broker, actor.queue_name = broker, settings.job_queue

@@ -21,7 +21,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     serve.add_argument("--host", help="address to bind the API to (default 127.0.0.1)")
     serve.add_argument("--port", type=int, help="API port (default 8000)")
     serve.add_argument("--data-dir", type=Path, help="database and artifacts (default ./thermofield-data)")
-    serve.add_argument("--gateway-port", type=int, default=8001, help="port of the simulated gateway (default 8001)")
+    serve.add_argument("--gateway-port", type=int, help="port of the simulated gateway (default 8001)")
     serve.add_argument("--rerun-port", type=int, help="port of the Rerun gRPC proxy (default 9876)")
     serve.set_defaults(handler=_serve)
 
@@ -58,13 +58,14 @@ def _serve(args: argparse.Namespace) -> int:
     from workers.runtime import build_runtime, use_runtime
 
     settings = _settings(api_host=args.host, api_port=args.port, data_dir=args.data_dir, rerun_port=args.rerun_port,
-                         gateway_url=f"http://127.0.0.1:{args.gateway_port}", broker_url="")
+                         gateway_port=args.gateway_port, broker_url="")
+    settings = settings.model_copy(update={"gateway_url": f"http://127.0.0.1:{settings.gateway_port}"})
     runtime = build_runtime(settings)
     use_runtime(runtime)
     _ensure_simulator_calibration(runtime)
     broker = setup_broker(settings)
     worker = dramatiq.Worker(broker, worker_threads=settings.worker_threads)
-    with RerunProxy(settings.rerun_host, settings.rerun_port) as proxy, _gateway_process(args.gateway_port):
+    with RerunProxy(settings.rerun_host, settings.rerun_port) as proxy, _gateway_process(settings.gateway_port):
         worker.start()
         for job in runtime.tracker.recover():
             send_job(job.kind, job.id)

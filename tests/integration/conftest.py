@@ -64,26 +64,19 @@ class Processes:
             self.stop(process)
 
 
-@pytest.fixture
-def processes(tmp_path):
-    started = Processes(tmp_path)
-    yield started
-    started.stop_all()
-
-
-def wait_until_healthy(url: str, process: subprocess.Popen, processes: Processes, name: str,
-                       timeout_s: float = 120.0) -> None:
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        if process.poll() is not None:
-            raise AssertionError(f"{name} exited with {process.returncode}:\n{processes.log(name)[-3000:]}")
-        try:
-            if httpx.get(url, timeout=2.0).status_code == 200:
-                return
-        except httpx.HTTPError:
-            pass
-        time.sleep(0.25)
-    raise AssertionError(f"{name} did not become healthy at {url}:\n{processes.log(name)[-3000:]}")
+    def wait_until_healthy(self, url: str, name: str, timeout_s: float = 180.0) -> None:
+        process = dict(self.running)[name]
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline:
+            if process.poll() is not None:
+                raise AssertionError(f"{name} exited with {process.returncode}:\n{self.log(name)[-3000:]}")
+            try:
+                if httpx.get(url, timeout=2.0).status_code == 200:
+                    return
+            except httpx.HTTPError:
+                pass
+            time.sleep(0.25)
+        raise AssertionError(f"{name} did not become healthy at {url}:\n{self.log(name)[-3000:]}")
 
 
 def create_key(env: dict[str, str], scopes: list[str]) -> str:
@@ -122,17 +115,6 @@ class MqttRecorder:
         self._client.disconnect()
 
 
-@pytest.fixture
-def mqtt_recorder():
-    recorders = []
-
-    def start(prefix: str) -> MqttRecorder:
-        recorders.append(MqttRecorder(prefix))
-        return recorders[-1]
-
-    yield start
-    for recorder in recorders:
-        recorder.close()
 
 
 def follow_events(client: httpx.Client, job_id: str, timeout_s: float = 300.0) -> list[tuple[str, dict]]:
@@ -183,3 +165,32 @@ def field_errors(path: Path) -> dict[str, float]:
         "temperature_coverage": float(compared.sum() / max(visible.sum(), 1)),
         "hidden_points_nan": float(np.mean(~np.isfinite(measured[hidden]))) if hidden.any() else 1.0,
     }
+
+
+class EndToEnd:
+    """What an end-to-end test uses: processes, ports, keys, MQTT, SSE and ground truth."""
+
+    free_port = staticmethod(free_port)
+    create_key = staticmethod(create_key)
+    follow_events = staticmethod(follow_events)
+    field_errors = staticmethod(field_errors)
+
+    def __init__(self, directory: Path) -> None:
+        self.processes = Processes(directory)
+        self.recorders: list[MqttRecorder] = []
+
+    def mqtt(self, prefix: str) -> MqttRecorder:
+        self.recorders.append(MqttRecorder(prefix))
+        return self.recorders[-1]
+
+    def close(self) -> None:
+        self.processes.stop_all()
+        for recorder in self.recorders:
+            recorder.close()
+
+
+@pytest.fixture
+def e2e(tmp_path):
+    harness = EndToEnd(tmp_path)
+    yield harness
+    harness.close()

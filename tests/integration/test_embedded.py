@@ -7,21 +7,20 @@ import cv2
 import httpx
 import numpy as np
 
-from conftest import create_key, field_errors, follow_events, free_port, wait_until_healthy
 from services.formats.rig import rig_to_json
 from services.simulation.presets import forging_rig
 
 
-def test_embedded_scan_from_http_to_an_accurate_field(processes, mqtt_recorder, tmp_path):
+def test_embedded_scan_from_http_to_an_accurate_field(e2e, tmp_path):
     site = f"it-{uuid.uuid4().hex[:8]}"
     env = {"THERMOFIELD_DATA_DIR": str(tmp_path / "data"), "THERMOFIELD_SITE": site}
-    port = free_port()
-    serve = processes.start("serve", ["serve", "--port", str(port), "--gateway-port", str(free_port()),
-                                      "--rerun-port", str(free_port())], env)
-    wait_until_healthy(f"http://127.0.0.1:{port}/readyz", serve, processes, "serve")
-    assert f"http://127.0.0.1:{port}" in processes.log("serve")
-    admin = create_key(env, ["admin"])
-    events = mqtt_recorder(f"{site}/station1")
+    port = e2e.free_port()
+    e2e.processes.start("serve", ["serve", "--port", str(port), "--gateway-port", str(e2e.free_port()),
+                                  "--rerun-port", str(e2e.free_port())], env)
+    e2e.processes.wait_until_healthy(f"http://127.0.0.1:{port}/readyz", "serve")
+    assert f"http://127.0.0.1:{port}" in e2e.processes.log("serve")
+    admin = e2e.create_key(env, ["admin"])
+    events = e2e.mqtt(f"{site}/station1")
 
     with httpx.Client(base_url=f"http://127.0.0.1:{port}", headers={"Authorization": f"Bearer {admin}"},
                       timeout=30) as client:
@@ -34,7 +33,7 @@ def test_embedded_scan_from_http_to_an_accurate_field(processes, mqtt_recorder, 
         accepted = client.post("/v1/scans", json={"part_id": "billet-1"}, headers={"Idempotency-Key": "k1"})
         assert accepted.status_code == 202, accepted.text
         scan_id, job_id = accepted.json()["scan_id"], accepted.json()["job_id"]
-        progress = follow_events(client, job_id)
+        progress = e2e.follow_events(client, job_id)
         assert progress[-1][0] == "done" and progress[-1][1]["status"] == "succeeded", progress[-1]
         stages = [state["stage"] for _, state in progress]
         assert [s for s in ("capture", "reconstruct", "fuse", "store", "stream") if s in stages], stages
@@ -50,7 +49,7 @@ def test_embedded_scan_from_http_to_an_accurate_field(processes, mqtt_recorder, 
                              cv2.IMREAD_UNCHANGED)
         assert frame.shape == (800, 1280)
 
-    errors = field_errors(tmp_path / "field.ply")
+    errors = e2e.field_errors(tmp_path / "field.ply")
     assert errors["median_distance_mm"] < 0.5, errors
     assert errors["median_temperature_error_k"] < 2.0, errors
     assert errors["hidden_points_nan"] > 0.95, errors
