@@ -15,6 +15,7 @@ from services.formats.board import BoardSpec, CharucoSpec, ChessboardSpec, Circl
 _WINDOW_FRACTION = 0.25
 _MIN_HALF_WINDOW = 2
 _SUBPIX_CRITERIA = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 100, 1e-6)
+_WEAKEST_CORNER = 0.3  # every detected corner must be an X-junction this strong relative to the median
 _UPSAMPLE_BELOW = 480  # frames smaller than this (shorter side) are also searched at twice the size
 _CLASSIC_FLAGS = cv2.CALIB_CB_ADAPTIVE_THRESH | cv2.CALIB_CB_NORMALIZE_IMAGE
 _SECTOR_FLAGS = cv2.CALIB_CB_NORMALIZE_IMAGE
@@ -110,24 +111,41 @@ def _detect_chessboard(grey: np.ndarray, board: ChessboardSpec, polarities: tupl
         for locate in (_locate_by_sectors, _locate_by_quads):
             for polarity in polarities:
                 corners = locate(frame if polarity == "normal" else 255 - frame, size)
-                if corners is not None:
-                    corners = refine_corners(grey, (corners + 0.5) / scale - 0.5)
-                    if _grid_continues(grey, corners.reshape(size[1], size[0], 2)):
-                        return None
-                    corners = _canonical_chessboard_order(grey, corners, size)
-                    return BoardDetection(corners, np.arange(len(corners)), polarity)
+                if corners is None:
+                    continue
+                corners = refine_corners(grey, (corners + 0.5) / scale - 0.5)
+                grid = corners.reshape(size[1], size[0], 2)
+                strength = _saddle_strength(grey, corners, grid)
+                if strength.min() < _WEAKEST_CORNER * np.median(strength):
+                    continue  # a misplaced corner: an outer corner of a board without a light frame
+                if _grid_continues(grey, grid):
+                    return None
+                corners = _canonical_chessboard_order(grey, corners, size)
+                return BoardDetection(corners, np.arange(len(corners)), polarity)
     return None
 
 
 def _grid_continues(grey: np.ndarray, grid: np.ndarray) -> bool:
     """Whether the board has more corners than specified on some side (a spec/board mismatch).
 
-    The corner row or column beyond each side is extrapolated; a side continues when most of
-    those points are X-junctions about as strong as the detected corners.
+    The corner row or column beyond each side is extrapolated and refined; a side continues
+    when most of those points are X-junctions at least half as strong as the detected corners.
     """
     strength = np.median(_saddle_strength(grey, grid.reshape(-1, 2), grid))
     beyond = (2 * grid[0] - grid[1], 2 * grid[-1] - grid[-2], 2 * grid[:, 0] - grid[:, 1], 2 * grid[:, -1] - grid[:, -2])
-    return any(np.mean(_saddle_strength(grey, side, grid) > 0.5 * strength) > 0.5 for side in beyond)
+    return any(np.mean(_saddle_strength(grey, _refine_inside(grey, side), grid) > 0.5 * strength) > 0.5
+               for side in beyond)
+
+
+def _refine_inside(grey: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """Refine the points that lie inside the image; leave the others where they are."""
+    height, width = grey.shape
+    inside = (points[:, 0] >= 0) & (points[:, 0] <= width - 1) & (points[:, 1] >= 0) & (points[:, 1] <= height - 1)
+    if inside.sum() < 2:
+        return points
+    refined = points.copy()
+    refined[inside] = refine_corners(grey, points[inside])
+    return refined
 
 
 def _saddle_strength(grey: np.ndarray, points: np.ndarray, grid: np.ndarray) -> np.ndarray:

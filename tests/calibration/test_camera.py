@@ -6,7 +6,7 @@ from services.calibration.corners import detect_board
 from services.formats.images import read_frame
 from services.simulation.boards import render_board
 
-from .conftest import THERMAL_DIST, THERMAL_K, THERMAL_SIZE, board_poses, project
+from .simulated_rig import THERMAL_DIST, THERMAL_K, THERMAL_SIZE, board_poses, project
 
 OPENCV_PUBLISHED_RMS = 0.196
 

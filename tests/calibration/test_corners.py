@@ -7,7 +7,7 @@ from services.formats.board import parse_board
 from services.formats.images import read_frame
 from services.simulation.boards import render_board
 
-from .conftest import THERMAL_DIST, THERMAL_K, THERMAL_SIZE, project
+from .simulated_rig import THERMAL_DIST, THERMAL_K, THERMAL_SIZE, project
 
 VISIBLE_K = np.array([[700.0, 0.0, 320.0], [0.0, 700.0, 240.0], [0.0, 0.0, 1.0]])
 VISIBLE_DIST = np.array([-0.1, 0.05, 0.0, 0.0, 0.0])
