@@ -1,0 +1,85 @@
+"""Registration accuracy against the known matrices of synthetic and real-photograph pairs.
+
+The statistics over many pairs (median, share under 1 px) are in
+experiments/registration_accuracy.py; here each pair must be accurate.
+"""
+
+import numpy as np
+import pytest
+
+from services.registration.models import corner_error, similarity_about_centres
+from services.registration.register import register
+from services.registration.synthetic_pairs import render_scene_pair
+from tests.registration.conftest import INFRARED_SIZE, chessboard_pair, scene_pair
+
+
+@pytest.mark.parametrize(("seed", "index"), [(11, 1), (12, 6)])
+def test_similarity_on_real_photographs_is_subpixel(seed, index):
+    visible, infrared, truth = chessboard_pair(seed, index)
+    result = register(visible, infrared, "similarity", scale=1.8)
+    assert corner_error(truth, result.matrix, *INFRARED_SIZE) < 0.3
+    assert result.model == "similarity" and result.bins == 32 and result.log_base == 2.0
+    assert result.mi > 0.5 and 1.0 < result.nmi < 2.0
+
+
+@pytest.mark.parametrize("seed", [21, 22])
+def test_similarity_on_rendered_scenes_of_different_resolution_is_subpixel(seed):
+    visible, infrared, truth = scene_pair(seed)
+    result = register(visible, infrared, "similarity")
+    assert corner_error(truth, result.matrix, *INFRARED_SIZE) < 0.5
+
+
+def test_paper_preprocessing_also_registers_real_photographs():
+    visible, infrared, truth = chessboard_pair(13, 3)
+    result = register(visible, infrared, "similarity", preprocessing="paper", metric="mi", scale=1.8)
+    assert corner_error(truth, result.matrix, *INFRARED_SIZE) < 0.5
+
+
+def test_translation_and_rigid_keep_the_nominal_scale():
+    visible, infrared, truth = chessboard_pair(14, 4, max_angle=0.0, max_scale_change=0.0)
+    translation = register(visible, infrared, "translation", scale=1.8)
+    assert corner_error(truth, translation.matrix, *INFRARED_SIZE) < 0.3
+    np.testing.assert_allclose(translation.matrix[:2, :2], 1.8 * np.eye(2))
+    visible, infrared, truth = chessboard_pair(15, 5, max_scale_change=0.0)
+    rigid = register(visible, infrared, "rigid", scale=1.8)
+    assert corner_error(truth, rigid.matrix, *INFRARED_SIZE) < 0.3
+    assert np.linalg.det(rigid.matrix[:2, :2]) == pytest.approx(1.8**2)
+
+
+@pytest.mark.parametrize("model", ["affine", "homography"])
+def test_affine_and_homography_recover_a_similarity(model):
+    visible, infrared, truth = chessboard_pair(16, 2)
+    result = register(visible, infrared, model, scale=1.8)
+    assert corner_error(truth, result.matrix, *INFRARED_SIZE) < 0.6
+
+
+def test_partial_overlap_far_off_centre():
+    rng = np.random.default_rng(31)
+    centre = (np.array(INFRARED_SIZE) - 1) / 2
+    truth = similarity_about_centres(centre, np.array([511.5, 383.5]), 3.0, 0.03, np.array([150.0, -90.0]))
+    visible, infrared = render_scene_pair(rng, truth)
+    result = register(visible, infrared, "similarity", max_shift=200.0)
+    assert corner_error(truth, result.matrix, *INFRARED_SIZE) < 0.5
+
+
+@pytest.mark.parametrize(
+    ("arguments", "message"),
+    [
+        ({"model": "elastic"}, "Unknown registration model"),
+        ({"preprocessing": "sharpen"}, "Unknown preprocessing"),
+        ({"metric": "ssd"}, "Unknown metric"),
+        ({"bins": 2}, "at least 4"),
+        ({"log_base": 1.0}, "log base"),
+        ({"max_angle": -1.0}, "non-negative"),
+        ({"scale": -2.0}, "positive"),
+    ],
+)
+def test_bad_arguments_are_refused_with_a_sentence(arguments, message):
+    visible, infrared, _ = scene_pair(40)
+    with pytest.raises(ValueError, match=message):
+        register(visible, infrared, **arguments)
+
+
+def test_images_too_small_are_refused():
+    with pytest.raises(ValueError, match="too small"):
+        register(np.zeros((400, 400)), np.zeros((40, 400)))
