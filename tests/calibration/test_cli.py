@@ -1,0 +1,135 @@
+import json
+import shutil
+
+import cv2
+import numpy as np
+import pytest
+
+from services.cli.main import main
+from services.formats.board import parse_board
+from services.formats.calibration import CameraCalibrationFile, save_camera_calibration
+from services.formats.images import write_png
+from services.formats.rig import Device, Rig, load_rig, save_rig
+
+from .simulated_rig import CAMERA_DIST, CAMERA_K, CAMERA_SIZE, THERMAL_DIST, THERMAL_FROM_CAMERA, THERMAL_K, THERMAL_SIZE
+
+REPORT_SUFFIXES = ("_residual_bars.png", "_residual_vectors.png", "_coverage.png")
+
+
+@pytest.fixture()
+def opencv_board_file(tmp_path):
+    path = tmp_path / "board.json"
+    path.write_text('{"type": "chessboard", "inner_corners": [9, 6], "square_mm": 1.0}')
+    return path
+
+
+@pytest.fixture()
+def left_dir(tmp_path, opencv_left_images):
+    directory = tmp_path / "left"
+    directory.mkdir()
+    for path in opencv_left_images:
+        shutil.copy(path, directory / path.name)
+    return directory
+
+
+def test_calibrate_camera_on_opencv_images_writes_the_file_and_its_report(tmp_path, opencv_board_file, left_dir):
+    out = tmp_path / "out" / "left.json"
+    assert main(["calibrate", "camera", "--board", str(opencv_board_file), "--images", str(left_dir),
+                 "--out", str(out)]) == 0
+    result = json.loads(out.read_text())
+    assert (result["width"], result["height"]) == (640, 480)
+    assert result["rms_px"] <= 0.196
+    assert len(result["views"]) == 13 and result["rejected"] == []
+    assert set(result["std"]) == {"fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3"}
+    assert all(len(view["pose_std"]) == 6 for view in result["views"])
+    for suffix in REPORT_SUFFIXES:
+        figure = cv2.imread(str(out.parent / f"left{suffix}"))
+        assert figure is not None and figure.shape[0] > 200
+
+
+def _expect_error(capsys, argv, *fragments):
+    assert main(argv) == 2
+    message = capsys.readouterr().err
+    for fragment in fragments:
+        assert fragment in message
+    assert "Traceback" not in message
+    return message
+
+
+def test_images_without_a_board_are_each_listed(tmp_path, capsys, opencv_board_file):
+    images = tmp_path / "blank"
+    images.mkdir()
+    rng = np.random.default_rng(0)
+    for index in range(3):
+        write_png(images / f"noise{index}.png", rng.integers(0, 255, (120, 160), dtype=np.uint8))
+    out = tmp_path / "cam.json"
+    _expect_error(capsys, ["calibrate", "camera", "--board", str(opencv_board_file), "--images", str(images),
+                           "--out", str(out)], "3 of 3 images", "noise0.png: no chessboard", "noise2.png")
+    assert not out.exists() and list(tmp_path.glob("cam*")) == []
+
+
+def test_a_board_spec_that_does_not_match_is_reported(tmp_path, capsys, left_dir):
+    board = tmp_path / "board.json"
+    board.write_text('{"type": "chessboard", "inner_corners": [8, 6], "square_mm": 1.0}')
+    for path in sorted(left_dir.iterdir())[3:]:
+        path.unlink()
+    _expect_error(capsys, ["calibrate", "camera", "--board", str(board), "--images", str(left_dir),
+                           "--out", str(tmp_path / "cam.json")], "8x6", "left01.jpg", "left03.jpg")
+
+
+def test_corrupt_and_mixed_size_images_are_reported(tmp_path, capsys, opencv_board_file, left_dir):
+    (left_dir / "zz_corrupt.png").write_bytes(b"not a png")
+    write_png(left_dir / "zz_small.png", np.zeros((100, 100), np.uint8))
+    _expect_error(capsys, ["calibrate", "camera", "--board", str(opencv_board_file), "--images", str(left_dir),
+                           "--out", str(tmp_path / "cam.json")],
+                  "2 of 15 images", "zz_corrupt.png: cannot read", "zz_small.png: image is 100x100")
+
+
+def test_fewer_than_three_images_are_refused(tmp_path, capsys, opencv_board_file, left_dir):
+    for path in sorted(left_dir.iterdir())[2:]:
+        path.unlink()
+    _expect_error(capsys, ["calibrate", "camera", "--board", str(opencv_board_file), "--images", str(left_dir),
+                           "--out", str(tmp_path / "cam.json")], "2 images", "at least 3")
+
+
+def test_a_bad_board_file_is_named(tmp_path, capsys, left_dir):
+    board = tmp_path / "board.json"
+    board.write_text('{"type": "chessboard", "inner_corners": [9, 6]}')
+    _expect_error(capsys, ["calibrate", "camera", "--board", str(board), "--images", str(left_dir),
+                           "--out", str(tmp_path / "cam.json")], "board.json", "square_mm")
+
+
+def test_calibrate_stereo_places_the_thermal_camera_in_the_rig(tmp_path, visible_infrared_pairs):
+    board = parse_board('{"type": "chessboard", "inner_corners": [9, 6], "square_mm": 20.0}')
+    board_file = tmp_path / "board.json"
+    board_file.write_text(board.model_dump_json())
+    for name in ("visible", "thermal"):
+        (tmp_path / "pairs" / name).mkdir(parents=True)
+    for index, (visible, infrared) in enumerate(visible_infrared_pairs):
+        write_png(tmp_path / "pairs" / "visible" / f"pair{index:02d}.png", visible)
+        write_png(tmp_path / "pairs" / "thermal" / f"pair{index:02d}.png", infrared)
+    camera_R, camera_t = cv2.Rodrigues(np.array([0.0, 0.35, 0.0]))[0], np.array([-140.0, 0.0, 50.0])
+    rig = Rig(devices={"visible": Device(kind="camera", width=CAMERA_SIZE[0], height=CAMERA_SIZE[1],
+                                         K=CAMERA_K.tolist(), dist=CAMERA_DIST.tolist(), R=camera_R.tolist(),
+                                         t=camera_t.tolist())})
+    save_rig(rig, tmp_path / "rig.json")
+    intrinsics = CameraCalibrationFile(name="thermal", kind="thermal", width=THERMAL_SIZE[0], height=THERMAL_SIZE[1],
+                                       K=THERMAL_K.tolist(), dist=THERMAL_DIST.tolist(), distortion_model="radial",
+                                       rms_px=0.05, std={}, board=board, views=[], rejected=[])
+    save_camera_calibration(intrinsics, tmp_path / "thermal.json")
+    assert main(["calibrate", "stereo", "--board", str(board_file), "--pairs", str(tmp_path / "pairs"),
+                 "--rig", str(tmp_path / "rig.json"), "--device", "thermal", "--intrinsics",
+                 str(tmp_path / "thermal.json"), "--out", str(tmp_path / "rig2.json")]) == 0
+    thermal = load_rig(tmp_path / "rig2.json").devices["thermal"]
+    R_rel, t_rel = THERMAL_FROM_CAMERA
+    np.testing.assert_allclose(thermal.R_array, R_rel @ camera_R, atol=1e-3)
+    np.testing.assert_allclose(thermal.t_array, R_rel @ camera_t + t_rel, atol=0.5)
+    assert thermal.kind == "thermal" and thermal.K == THERMAL_K.tolist()
+
+
+def test_calibrate_stereo_needs_the_device_intrinsics(tmp_path, capsys, opencv_board_file):
+    save_rig(Rig(devices={"visible": Device(kind="camera", width=640, height=480,
+                                            K=CAMERA_K.tolist())}), tmp_path / "rig.json")
+    _expect_error(capsys, ["calibrate", "stereo", "--board", str(opencv_board_file), "--pairs", str(tmp_path),
+                           "--rig", str(tmp_path / "rig.json"), "--device", "thermal", "--out",
+                           str(tmp_path / "out.json")], "no device 'thermal'", "--intrinsics")
