@@ -5,11 +5,16 @@ screen; SDL can, on a chosen display of a multi-monitor desktop. When no display
 reachable SDL silently falls back to an off-screen driver: that is refused with a
 clear error, unless the off-screen driver was asked for explicitly through
 ``SDL_VIDEODRIVER`` (useful for headless checks).
+
+SDL wants its window driven from the thread that created it, while the gateway calls
+drivers from whichever HTTP worker thread runs the capture: every SDL call therefore
+runs on one thread of the projector's own.
 """
 
 from __future__ import annotations
 
 import os
+from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 
@@ -31,6 +36,7 @@ class DisplayProjector(Projector):
         self.display = display
         self._settle_s = settle_s
         self._surface: pygame.Surface | None = None
+        self._sdl = ThreadPoolExecutor(max_workers=1, thread_name_prefix=f"projector-{name}")
 
     @property
     def info(self) -> DeviceInfo:
@@ -45,6 +51,21 @@ class DisplayProjector(Projector):
         return self._surface is not None and pygame.display.get_init()
 
     def open(self) -> None:
+        self._sdl.submit(self._open).result()
+
+    def close(self) -> None:
+        self._sdl.submit(self._close).result()
+
+    def show(self, pattern: np.ndarray) -> None:
+        if self._surface is None:
+            raise DeviceUnavailable(f"projector {self.name!r} is not open")
+        grey = np.asarray(pattern)
+        if grey.shape != (self.height, self.width) or grey.dtype != np.uint8:
+            raise ValueError(f"Projector {self.name!r} shows ({self.height}, {self.width}) uint8 patterns; "
+                             f"got {grey.shape} {grey.dtype}.")
+        self._sdl.submit(self._show, grey).result()
+
+    def _open(self) -> None:
         try:
             pygame.display.init()
         except pygame.error as error:
@@ -73,14 +94,11 @@ class DisplayProjector(Projector):
         pygame.mouse.set_visible(False)
         self._surface = surface
 
-    def close(self) -> None:
+    def _close(self) -> None:
         self._surface = None
         pygame.display.quit()
 
-    def show(self, pattern: np.ndarray) -> None:
-        if self._surface is None:
-            raise DeviceUnavailable(f"projector {self.name!r} is not open")
-        grey = np.asarray(pattern, dtype=np.uint8)
+    def _show(self, grey: np.ndarray) -> None:
         # pygame surfaces are indexed (x, y): transpose the (row, column) image, grey to RGB.
         pygame.surfarray.blit_array(self._surface, np.repeat(grey.T[:, :, None], 3, axis=2))
         pygame.display.flip()

@@ -32,6 +32,8 @@ def test_pattern_is_shown_pixel_for_pixel(offscreen):
         for channel in range(3):
             np.testing.assert_array_equal(shown[:, :, channel].T, pattern)
         assert projector.is_open
+        with pytest.raises(ValueError, match="uint8 patterns"):
+            projector.show(np.zeros((200, 321), np.uint8))
     finally:
         projector.close()
     assert not projector.is_open
