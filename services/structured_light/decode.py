@@ -27,6 +27,7 @@ class Rejection(enum.IntEnum):
     LOW_MODULATION = 3  #: the projected signal is below ``min_modulation``: projector shadow, glare, dark surface
     POOR_FIT = 4  #: ``quality`` below ``min_quality``: the samples are not one sinusoid (mixed or moving surface)
     INCONSISTENT = 5  #: Gray code and phase (or two phase periods) disagree, or the code is out of range
+    EDGE = 6  #: next to a rejected pixel or across a coordinate jump: a camera pixel mixing two surfaces
 
 
 @dataclass(frozen=True)
@@ -261,6 +262,39 @@ def _decode_kernel(frames, saturation_frames, saturation_level, white, black, me
             rejection[row, col] = reason
 
 
+@njit(parallel=True, cache=True, fastmath=False)
+def _edge_kernel(coordinates, rejection, margin, max_jump):
+    """Mark valid pixels within ``margin`` pixels of a rejected one, or beside a jump above ``max_jump``."""
+    height, width = rejection.shape
+    rejected = rejection != 0
+    for row in prange(height):
+        for col in range(width):
+            if rejected[row, col]:
+                continue
+            edge = False
+            for r in range(max(0, row - margin), min(height, row + margin + 1)):
+                for c in range(max(0, col - margin), min(width, col + margin + 1)):
+                    if rejected[r, c]:
+                        edge = True
+            for a in range(2):
+                here = coordinates[a, row, col]
+                if row > 0 and abs(coordinates[a, row - 1, col] - here) > max_jump:
+                    edge = True
+                if row + 1 < height and abs(coordinates[a, row + 1, col] - here) > max_jump:
+                    edge = True
+                if col > 0 and abs(coordinates[a, row, col - 1] - here) > max_jump:
+                    edge = True
+                if col + 1 < width and abs(coordinates[a, row, col + 1] - here) > max_jump:
+                    edge = True
+            if edge:
+                rejection[row, col] = 6
+    for row in prange(height):
+        for col in range(width):
+            if rejection[row, col] == 6:
+                coordinates[0, row, col] = np.nan
+                coordinates[1, row, col] = np.nan
+
+
 def decode(
     frames: np.ndarray,
     sequence: Sequence,
@@ -270,6 +304,8 @@ def decode(
     min_modulation: float | None = None,
     min_quality: float = 0.5,
     consistency: float = 0.25,
+    edge_margin: int = 2,
+    max_jump: float = np.inf,
 ) -> DecodedCapture:
     """Decode camera frames of a structured-light sequence into projector coordinates.
 
@@ -287,13 +323,23 @@ def decode(
         Pixels darker than this are ``DARK``; default 2 % of full scale.
     min_modulation : float, optional
         Pixels whose signal amplitude is below this are ``LOW_MODULATION``;
-        default 2 % of full scale (5 grey levels at 8 bits).
+        default 1.2 % of full scale (3 grey levels at 8 bits).
     min_quality : float
         Pixels with a sinusoid-fit quality below this are ``POOR_FIT``.
     consistency : float
         Fraction of the unwrapping margin by which the unwrapped phase may
         disagree with the Gray code (or the coarser period) before the pixel is
         ``INCONSISTENT``.
+    edge_margin : int
+        Valid pixels within this many pixels (a square neighbourhood) of a
+        rejected pixel are ``EDGE``: at an object's outline a camera pixel, and
+        its blur, mix the object with what lies beyond it. About twice the
+        camera's blur sigma; 0 keeps them.
+    max_jump : float
+        Valid pixels whose projector coordinate differs from a 4-neighbour's by
+        more than this many projector pixels are ``EDGE`` (both sides of a depth
+        step, where mixed pixels fly between the surfaces). Infinite by default,
+        since the expected gradient depends on the rig and the surface slant.
 
     Returns
     -------
@@ -338,9 +384,11 @@ def decode(
         raise ValueError(f"The sequence has {len(sequence.frames)} frames but {frames.shape[0]} were given.")
     if not 0 <= consistency <= 1:
         raise ValueError(f"consistency must be between 0 and 1; got {consistency}.")
+    if edge_margin < 0:
+        raise ValueError(f"edge_margin must be a non-negative number of pixels; got {edge_margin}.")
     full_scale = float(np.iinfo(frames.dtype).max if saturation_level is None else saturation_level)
     min_intensity = 0.02 * full_scale if min_intensity is None else min_intensity
-    min_modulation = 0.02 * full_scale if min_modulation is None else min_modulation
+    min_modulation = 0.012 * full_scale if min_modulation is None else min_modulation
     tables = _sequence_tables(sequence)
     height, width = frames.shape[1:]
     coordinates = np.empty((2, height, width), np.float32)
@@ -355,6 +403,8 @@ def decode(
         tables.group_period, float(min_intensity), float(min_modulation), float(min_quality), float(consistency),
         coordinates, modulation, intensity, quality, rejection,
     )
+    if edge_margin > 0 or np.isfinite(max_jump):
+        _edge_kernel(coordinates, rejection, int(edge_margin), float(max_jump))
     return DecodedCapture(
         projector_x=coordinates[0],
         projector_y=coordinates[1],

@@ -214,3 +214,20 @@ def test_bad_frames_are_refused(frames, message):
     sequence, _ = generate_sequence(1280, 800)
     with pytest.raises(ValueError, match=message.replace("(", r"\(").replace(")", r"\)")):
         decode(frames, sequence)
+
+
+def test_pixels_beside_rejected_ones_or_a_jump_are_edges():
+    sequence, patterns = generate_sequence(200, 12)
+    frames = _camera(patterns)
+    frames[:, :, 100:110] = 2  # a shadow
+    decoded = decode(frames, sequence, edge_margin=1)
+    assert np.all(decoded.rejection[:, [99, 110]] == Rejection.EDGE)
+    assert np.all(decoded.rejection[:, [98, 111]] == Rejection.VALID)
+    assert np.all(decode(frames, sequence).rejection[:, [98, 99, 110, 111]] == Rejection.EDGE)  # default margin 2
+    assert np.all(np.isnan(decoded.projector_x[:, [99, 110]]))
+    assert np.all(decode(frames, sequence, edge_margin=0).rejection[:, [99, 110]] == Rejection.VALID)
+
+    stepped = np.concatenate([frames[:, :, :50], frames[:, :, 150:]], axis=2)  # a depth step at column 50
+    jumps = decode(stepped, sequence, edge_margin=0, max_jump=10)
+    assert np.all(jumps.rejection[:, [49, 50]] == Rejection.EDGE)
+    assert np.all(jumps.rejection[:, [48, 51]] == Rejection.VALID)
