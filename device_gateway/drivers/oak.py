@@ -7,6 +7,7 @@ is reported at once by name instead of blocking in depthai's implicit search.
 
 from __future__ import annotations
 
+import abc
 import datetime
 import time
 from typing import Any
@@ -57,7 +58,7 @@ def frame_metadata(message: dai.ImgFrame) -> dict[str, Any]:
     }
 
 
-class _OakDevice:
+class _OakDevice(abc.ABC):
     """Connection, pipeline and output queue shared by the OAK drivers."""
 
     role: str
@@ -75,8 +76,9 @@ class _OakDevice:
         self._serial = ""
         self._model = ""
 
+    @abc.abstractmethod
     def _build(self, pipeline: dai.Pipeline) -> dai.Node.Output:
-        raise NotImplementedError
+        """Create the device's node in ``pipeline`` and return the output to read frames from."""
 
     @property
     def info(self) -> DeviceInfo:
@@ -101,12 +103,13 @@ class _OakDevice:
             raise DeviceUnavailable(f"{self.role} {self.name!r}: cannot start OAK {found.getDeviceId()}: {error}") from None
 
     def close(self) -> None:
-        for release in (self._pipeline and self._pipeline.stop, self._device and self._device.close):
-            if release is not None:
-                try:
-                    release()
-                except RuntimeError:
-                    pass  # already gone: closing a lost device must not fail
+        releases = [self._pipeline.stop] if self._pipeline is not None else []
+        releases += [self._device.close] if self._device is not None else []
+        for release in releases:
+            try:
+                release()
+            except RuntimeError:
+                pass  # already gone: closing a lost device must not fail
         self._device = self._pipeline = self._queue = None
 
     def _next_message(self, timeout_s: float) -> dai.ImgFrame:
