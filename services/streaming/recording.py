@@ -38,7 +38,7 @@ def scan_recording(
     ``captured_at`` (seconds since the epoch) stamps the ``capture_time`` timeline;
     default now.
     """
-    recording = rr.RecordingStream(APPLICATION_ID, recording_id=scan_id, send_properties=True)
+    recording = rr.RecordingStream(APPLICATION_ID, recording_id=scan_id)
     memory = recording.memory_recording()
     recording.send_recording_name(f"scan {scan_id}")
     _set_scan_time(recording, 0, captured_at)

@@ -9,6 +9,7 @@ import sys
 import time
 
 import httpx
+import pytest
 
 from services.cli.main import main
 
@@ -51,8 +52,7 @@ def test_gateway_without_hardware_reports_degraded_health_and_refuses_captures(t
 
 
 def test_unknown_driver_is_refused(capsys):
-    try:
+    with pytest.raises(SystemExit) as exit_:
         main(["gateway", "--driver", "webcam"])
-    except SystemExit as exit_:
-        assert exit_.code == 2
+    assert exit_.value.code == 2
     assert "invalid choice: 'webcam'" in capsys.readouterr().err

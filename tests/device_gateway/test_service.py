@@ -1,0 +1,43 @@
+"""The gateway as configured: settings choose the drivers and their options."""
+
+from __future__ import annotations
+
+from device_gateway.drivers.display import DisplayProjector
+from device_gateway.drivers.oak import OakCamera, OakThermal
+from device_gateway.service import build_station, create_gateway
+from services.settings import Settings
+
+
+def test_simulated_driver_is_the_forging_station():
+    station = build_station(Settings(gateway_driver="simulated"))
+    infos = [device.info for device in station.devices]
+    assert [(info.name, info.kind, info.driver) for info in infos] == [
+        ("camera", "camera", "simulated"), ("thermal", "thermal", "simulated"), ("projector", "projector", "simulated")]
+    assert [(info.width, info.height) for info in infos] == [(1280, 800), (320, 256), (1280, 800)]
+    assert station.settle_s == 0.0
+
+
+def test_oak_driver_takes_its_options_from_the_settings():
+    settings = Settings(gateway_driver="oak", oak_camera_id="14442C10D13EABCE00", oak_thermal_id="10.0.0.7",
+                        camera_exposure_us=4000, camera_iso=200, camera_width=1920, camera_height=1200,
+                        projector_display=1, projector_width=1920, projector_height=1080, projector_settle_ms=250)
+    station = build_station(settings)
+    assert isinstance(station.camera, OakCamera) and isinstance(station.thermal, OakThermal)
+    assert isinstance(station.projector, DisplayProjector)
+    assert (station.camera.device_id, station.camera.exposure_us, station.camera.iso) == ("14442C10D13EABCE00", 4000, 200)
+    assert (station.camera.info.width, station.camera.info.height) == (1920, 1200)
+    assert station.thermal.device_id == "10.0.0.7"
+    assert (station.projector.display, station.projector.info.width, station.projector.info.height) == (1, 1920, 1080)
+    assert station.settle_s == 0.25
+
+
+def test_gateway_projects_the_default_sequence_at_the_projector_size(station, small_rig):
+    app = create_gateway(Settings(), station=station)
+    paths = {route.path for route in app.routes}
+    assert {"/healthz", "/v1/devices", "/v1/sequence", "/v1/captures"} <= paths
+    operations = {route.operation_id for route in app.routes if getattr(route, "operation_id", None)}
+    assert operations == {"health", "listDevices", "getSequence", "capture"}
+    sequence_route = next(route for route in app.routes if route.path == "/v1/sequence")
+    sequence = sequence_route.endpoint()
+    projector = small_rig.devices["projector"]
+    assert (sequence.projector.width, sequence.projector.height) == (projector.width, projector.height)
