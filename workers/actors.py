@@ -14,10 +14,8 @@ from functools import lru_cache
 from pathlib import Path
 from typing import Any
 
-import cv2
 import dramatiq
 import numpy as np
-import tifffile
 
 from device_gateway.client import GatewayClient
 from services.db.models import CalibrationSet, Job, Scan
@@ -35,7 +33,6 @@ from workers.runtime import Runtime, current_runtime
 from workers.summary import field_summary
 
 _NOT_RETRIED = (ValueError,)
-_PNG_FAST = [cv2.IMWRITE_PNG_COMPRESSION, 1]
 
 
 def _options(max_retries: int, time_limit_s: float) -> dict[str, Any]:
@@ -67,8 +64,8 @@ def scan(job_id: str) -> dict[str, Any]:
     artifacts = {
         "cloud.ply": _store_cloud(store, cloud),
         "field.ply": _store_cloud(store, field),
-        "frames": [store.put_bytes(_png(frame)) for frame in capture.frames],
-        "thermal": [store.put_bytes(_tiff(frame)) for frame in capture.thermal],
+        "frames.npy": store.put_bytes(_npy(capture.frames)),
+        "thermal.npy": store.put_bytes(_npy(capture.thermal.astype(np.float32))),
     }
     tracker.progress(job_id, "stream", 0.85)
     captured_at = float(capture.frame_timestamps[0]) if len(capture.frame_timestamps) else None
@@ -80,8 +77,7 @@ def scan(job_id: str) -> dict[str, Any]:
     with runtime.sessions.begin() as session:
         row = session.get(Scan, params["scan_id"])
         row.artifacts, row.summary = artifacts, summary
-    return {"scan_id": params["scan_id"], "artifacts": {k: v for k, v in artifacts.items() if isinstance(v, str)},
-            "thermal_device": thermal_name}
+    return {"scan_id": params["scan_id"], "artifacts": artifacts, "thermal_device": thermal_name}
 
 
 ACTORS = {"scan": scan}
@@ -123,14 +119,8 @@ def _store_cloud(store: ArtifactStore, cloud: dict[str, np.ndarray]) -> str:
         return store.put_file(path)
 
 
-def _png(frame: np.ndarray) -> bytes:
-    ok, encoded = cv2.imencode(".png", frame, _PNG_FAST)
-    if not ok:
-        raise RuntimeError("OpenCV could not encode a camera frame as PNG.")
-    return encoded.tobytes()
-
-
-def _tiff(frame: np.ndarray) -> bytes:
+def _npy(stack: np.ndarray) -> bytes:
+    """Raw frames as one ``.npy`` (no compression: storing must not slow the scan; the API encodes on request)."""
     buffer = io.BytesIO()
-    tifffile.imwrite(buffer, np.asarray(frame, dtype=np.float32))
+    np.save(buffer, stack, allow_pickle=False)
     return buffer.getvalue()

@@ -2,10 +2,15 @@
 
 from __future__ import annotations
 
+import io
+import re
 from typing import Annotated
 
+import cv2
+import numpy as np
+import tifffile
 from fastapi import APIRouter, Depends, Path, Request
-from fastapi.responses import FileResponse
+from fastapi.responses import FileResponse, Response
 from sqlalchemy import select
 
 from api.deps import OperatorKey, ReaderKey, RuntimeDep, SessionDep
@@ -18,7 +23,9 @@ from workers.broker import send_job
 router = APIRouter(prefix="/scans", tags=["scans"])
 
 ARTIFACT_MEDIA_TYPES = {"cloud.ply": "application/octet-stream", "field.ply": "application/octet-stream",
-                        "field.rrd": "application/octet-stream"}
+                        "field.rrd": "application/octet-stream", "frames.npy": "application/octet-stream",
+                        "thermal.npy": "application/octet-stream"}
+ARTIFACT_NAME_PATTERN = "^(" + "|".join(re.escape(name) for name in ARTIFACT_MEDIA_TYPES) + ")$"
 FRAME_KINDS = {"frames": ("image/png", "png"), "thermal": ("image/tiff", "tiff")}
 
 
@@ -29,8 +36,8 @@ def scan_links(scan: Scan) -> dict[str, str]:
         if name in scan.artifacts:
             links[name] = f"/v1/scans/{scan.id}/{name}"
     for kind, (_, suffix) in FRAME_KINDS.items():
-        for index in range(len(scan.artifacts.get(kind, []))):
-            links[f"{kind}/{index}"] = f"/v1/scans/{scan.id}/{kind}/{index}.{suffix}"
+        if f"{kind}.npy" in scan.artifacts:
+            links[kind] = f"/v1/scans/{scan.id}/{kind}/{{index}}.{suffix}"
     return links
 
 
@@ -111,8 +118,10 @@ def get_scan(scan: ExistingScan, session: SessionDep) -> ScanOut:
 @router.get("/{scan_id}/{artifact}", name="download_scan_artifact",
             responses={200: {"content": {"application/octet-stream": {}}}})
 def download_scan_artifact(scan: ExistingScan, runtime: RuntimeDep,
-                           artifact: Annotated[str, Path(pattern="^(cloud\\.ply|field\\.ply|field\\.rrd)$")]):
-    """The point cloud (``cloud.ply``), the temperature field (``field.ply``) or its Rerun recording."""
+                           artifact: Annotated[str, Path(pattern=ARTIFACT_NAME_PATTERN)]):
+    """The point cloud (``cloud.ply``), the temperature field (``field.ply``), its Rerun recording
+    (``field.rrd``), or all raw frames as one NumPy array (``frames.npy`` uint8/uint16, ``thermal.npy``
+    float32 degrees C)."""
     return _artifact_file(runtime, scan, scan.artifacts.get(artifact), f"{scan.id}-{artifact}",
                           ARTIFACT_MEDIA_TYPES[artifact])
 
@@ -121,13 +130,28 @@ def download_scan_artifact(scan: ExistingScan, runtime: RuntimeDep,
             responses={200: {"content": {"image/png": {}, "image/tiff": {}}}})
 def download_scan_frame(scan: ExistingScan, runtime: RuntimeDep,
                         kind: Annotated[str, Path(pattern="^(frames|thermal)$")], index: int,
-                        suffix: Annotated[str, Path(pattern="^(png|tiff)$")]):
-    """A raw frame of the capture: camera ``frames/<i>.png`` or thermal ``thermal/<i>.tiff`` (float32 °C)."""
+                        suffix: Annotated[str, Path(pattern="^(png|tiff)$")]) -> Response:
+    """One raw frame of the capture: camera ``frames/<i>.png`` or thermal ``thermal/<i>.tiff`` (float32 °C)."""
     media_type, expected_suffix = FRAME_KINDS[kind]
-    digests = scan.artifacts.get(kind, [])
-    if suffix != expected_suffix or not 0 <= index < len(digests):
-        raise Problem(404, "not-found", f"Scan {scan.id} has no {kind}/{index}.{suffix}.")
-    return _artifact_file(runtime, scan, digests[index], f"{scan.id}-{kind}-{index}.{suffix}", media_type)
+    digest = scan.artifacts.get(f"{kind}.npy")
+    if digest is None:
+        raise Problem(404, "not-ready", f"Scan {scan.id} has no {kind} (yet); see its job.")
+    frames = np.load(runtime.store.path(digest), mmap_mode="r", allow_pickle=False)
+    if suffix != expected_suffix or not 0 <= index < len(frames):
+        raise Problem(404, "not-found", f"Scan {scan.id} has no {kind}/{index}.{suffix} "
+                                        f"({len(frames)} {kind}, numbered from 0, as .{expected_suffix}).")
+    return Response(_encode(np.asarray(frames[index]), expected_suffix), media_type=media_type)
+
+
+def _encode(frame: np.ndarray, suffix: str) -> bytes:
+    if suffix == "png":
+        ok, encoded = cv2.imencode(".png", frame)
+        if not ok:
+            raise RuntimeError("OpenCV could not encode the frame as PNG.")
+        return encoded.tobytes()
+    buffer = io.BytesIO()
+    tifffile.imwrite(buffer, frame.astype(np.float32))
+    return buffer.getvalue()
 
 
 def _artifact_file(runtime, scan: Scan, digest: str | None, filename: str, media_type: str) -> FileResponse:

@@ -1,4 +1,8 @@
+import io
 import json
+
+import cv2
+import numpy as np
 
 from services.db.models import Job, Scan
 from services.formats.rig import rig_to_json
@@ -115,17 +119,24 @@ def test_scan_artifacts_and_summary_are_served_from_the_store(client, auth, runt
     upload_rig(client, auth["admin"])
     accepted = client.post("/v1/scans", headers=auth["operate"]).json()
     digest = runtime.store.put_bytes(b"ply bytes")
+    buffer = io.BytesIO()
+    np.save(buffer, np.arange(2 * 4 * 6, dtype=np.uint8).reshape(2, 4, 6))
+    frames = runtime.store.put_bytes(buffer.getvalue())
     summary = {"point_count": 3, "points_with_temperature": 2, "bbox_min": [0, 0, 0], "bbox_max": [1, 1, 1],
                "temperature": {"min": 1, "max": 2, "mean": 1.5, "percentiles": {"p50": 1.5}}}
     with runtime.sessions.begin() as session:
         scan = session.get(Scan, accepted["scan_id"])
-        scan.artifacts, scan.summary = {"field.ply": digest, "frames": [digest]}, summary
+        scan.artifacts, scan.summary = {"field.ply": digest, "frames.npy": frames}, summary
     got = client.get(f"/v1/scans/{accepted['scan_id']}", headers=auth["read"]).json()
     assert got["summary"]["temperature"]["mean"] == 1.5
-    assert set(got["links"]) >= {"field.ply", "frames/0"} and "cloud.ply" not in got["links"]
+    assert set(got["links"]) >= {"field.ply", "frames", "frames.npy"} and "cloud.ply" not in got["links"]
     assert client.get(got["links"]["field.ply"], headers=auth["read"]).content == b"ply bytes"
-    assert client.get(got["links"]["frames/0"], headers=auth["read"]).status_code == 200
-    assert client.get(f"/v1/scans/{accepted['scan_id']}/frames/1.png", headers=auth["read"]).status_code == 404
+    png = client.get(got["links"]["frames"].format(index=1), headers=auth["read"])
+    assert png.headers["content-type"] == "image/png"
+    decoded = cv2.imdecode(np.frombuffer(png.content, np.uint8), cv2.IMREAD_UNCHANGED)
+    np.testing.assert_array_equal(decoded, np.arange(24, 48, dtype=np.uint8).reshape(4, 6))
+    assert client.get(f"/v1/scans/{accepted['scan_id']}/frames/2.png", headers=auth["read"]).status_code == 404
+    assert client.get(f"/v1/scans/{accepted['scan_id']}/thermal/0.tiff", headers=auth["read"]).status_code == 404
 
 
 def test_job_events_stream_until_the_job_is_done(client, auth, runtime):

@@ -1,11 +1,13 @@
 """End to end over HTTP, embedded: `thermofield serve` (SQLite, in-process worker, simulated gateway,
 Rerun proxy) as one process; keys from `thermofield apikey create`; events over SSE and MQTT."""
 
+import io
 import uuid
 
 import cv2
 import httpx
 import numpy as np
+import tifffile
 
 from services.formats.rig import rig_to_json
 from services.simulation.presets import forging_rig
@@ -45,9 +47,11 @@ def test_embedded_scan_from_http_to_an_accurate_field(e2e, tmp_path):
         assert 900 < summary["temperature"]["max"] < 1200  # the simulated part is up to ~1100 C
         (tmp_path / "field.ply").write_bytes(client.get(scan["links"]["field.ply"]).content)
         assert client.get(scan["links"]["field.rrd"]).content[:4] == b"RRF2"
-        frame = cv2.imdecode(np.frombuffer(client.get(scan["links"]["frames/0"]).content, np.uint8),
+        frame = cv2.imdecode(np.frombuffer(client.get(scan["links"]["frames"].format(index=0)).content, np.uint8),
                              cv2.IMREAD_UNCHANGED)
         assert frame.shape == (800, 1280)
+        thermal = tifffile.imread(io.BytesIO(client.get(scan["links"]["thermal"].format(index=0)).content))
+        assert thermal.shape == (256, 320) and thermal.dtype == np.float32 and np.nanmax(thermal) > 900
 
     errors = e2e.field_errors(tmp_path / "field.ply")
     assert errors["median_distance_mm"] < 0.5, errors
