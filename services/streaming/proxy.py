@@ -40,7 +40,7 @@ class RerunProxy:
                  start_timeout_s: float = 15.0) -> None:
         self.host, self.port = host, port
         self.url = proxy_url(host, port)
-        if _accepts_connections(host, port):
+        if accepts_connections(host, port):
             raise InputError(f"Rerun port {port} on {host} is already in use; choose another (THERMOFIELD_RERUN_PORT)")
         self._log = tempfile.TemporaryFile()
         self._process = subprocess.Popen(
@@ -49,7 +49,7 @@ class RerunProxy:
             stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=self._log,
         )
         deadline = time.monotonic() + start_timeout_s
-        while not _accepts_connections(host, port):
+        while not accepts_connections(host, port):
             if self._process.poll() is not None or time.monotonic() > deadline:
                 self.stop()
                 self._log.seek(0)
@@ -78,7 +78,8 @@ class RerunProxy:
         self._log.close()
 
 
-def _accepts_connections(host: str, port: int) -> bool:
+def accepts_connections(host: str, port: int) -> bool:
+    """Whether something listens on ``host:port`` (a 0.2 s TCP probe)."""
     try:
         with socket.create_connection((host, port), timeout=0.2):
             return True

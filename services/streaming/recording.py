@@ -11,12 +11,14 @@ from __future__ import annotations
 
 import threading
 import time
+from urllib.parse import urlsplit
 
 import numpy as np
 import rerun as rr
 
 from services.formats.rig import Rig
 from services.streaming.field import log_field
+from services.streaming.proxy import accepts_connections
 
 APPLICATION_ID = "thermofield"
 
@@ -52,28 +54,52 @@ def scan_recording(
 class StationView:
     """The live view of a station: every new field streamed to the Rerun proxy at ``url``.
 
-    ``url`` is the proxy's address, ``rerun+http://HOST:PORT/proxy``. Logging never
-    blocks a scan: Rerun buffers and sends in the background, and a proxy that is down
-    only loses the live picture (each scan's ``.rrd`` is kept regardless).
+    ``url`` is the proxy's address, ``rerun+http://HOST:PORT/proxy``. The view never
+    holds up a scan: connecting to a proxy that is down would block for seconds inside
+    Rerun, so the proxy is probed first (0.2 s) and the view connects on the first
+    publish that finds it up. Once connected, Rerun buffers and sends in the
+    background. A proxy that is down costs only the live picture; each scan's ``.rrd``
+    is kept regardless.
     """
 
     def __init__(self, url: str, station: str) -> None:
+        address = urlsplit(url.removeprefix("rerun+"))
+        if address.hostname is None or address.port is None:
+            raise ValueError(f"The Rerun proxy URL must look like rerun+http://HOST:PORT/proxy; got {url!r}.")
         self.url = url
-        self._recording = rr.RecordingStream(APPLICATION_ID, recording_id=f"station-{station}")
-        self._recording.send_recording_name(f"station {station} (live)")
-        self._recording.connect_grpc(url)
+        self.station = station
+        self._address = (address.hostname, address.port)
+        self._recording: rr.RecordingStream | None = None
         self._scans = 0
         self._lock = threading.Lock()
 
+    def _connected(self) -> rr.RecordingStream | None:
+        if self._recording is None and accepts_connections(*self._address):
+            recording = rr.RecordingStream(APPLICATION_ID, recording_id=f"station-{self.station}")
+            recording.connect_grpc(self.url)
+            recording.send_recording_name(f"station {self.station} (live)")
+            self._recording = recording
+        return self._recording
+
     def publish(self, field: dict[str, np.ndarray], rig: Rig, thermal_image: np.ndarray | None = None,
-                captured_at: float | None = None) -> int:
-        """Show a new field; returns its step on the ``scan`` timeline."""
+                captured_at: float | None = None) -> int | None:
+        """Show a new field; returns its step on the ``scan`` timeline, None when the proxy is unreachable."""
         with self._lock:
             self._scans += 1
-            _set_scan_time(self._recording, self._scans, captured_at)
-            log_field(self._recording, field, rig, thermal_image)
+            recording = self._connected()
+            if recording is None:
+                return None
+            _set_scan_time(recording, self._scans, captured_at)
+            log_field(recording, field, rig, thermal_image)
             return self._scans
 
     def close(self) -> None:
-        self._recording.flush()
-        self._recording.disconnect()
+        """Send what is buffered (waiting at most a few seconds) and disconnect."""
+        with self._lock:
+            if self._recording is not None:
+                try:
+                    self._recording.flush(timeout_sec=5.0)
+                except RuntimeError:
+                    pass  # the proxy went away: the live picture is lost, nothing else
+                self._recording.disconnect()
+                self._recording = None

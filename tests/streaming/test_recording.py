@@ -19,6 +19,9 @@ from services.fusion.colormap import temperature_colors
 from services.streaming.proxy import RerunProxy, rerun_executable
 from services.streaming.recording import StationView, scan_recording
 
+# A file a viewer is still saving has no footer yet; reading it is the point of the live tests.
+pytestmark = pytest.mark.filterwarnings("ignore:RRD file has no footer")
+
 
 def _rotation_about_y(degrees: float) -> list[list[float]]:
     angle = np.radians(degrees)
@@ -137,6 +140,20 @@ def _listening_addresses(port: int) -> set[str]:
     return addresses
 
 
+def _wait_for_rows(path: Path, entity: str, rows: int, timeout_s: float = 20.0) -> list[int]:
+    """The ``scan`` steps logged to ``entity`` in a file a viewer is saving, once ``rows`` have arrived."""
+    deadline = time.monotonic() + timeout_s
+    steps: list[int] = []
+    while len(steps) < rows and time.monotonic() < deadline:
+        time.sleep(0.2)
+        if path.exists() and path.stat().st_size:
+            try:
+                steps = sorted(_read_rrd(path)[entity]["scan"])
+            except (OSError, ValueError):
+                steps = []  # caught mid-write: read again
+    return steps
+
+
 def test_proxy_listens_on_loopback_only():
     port = _free_port()
     with RerunProxy("127.0.0.1", port) as proxy:
@@ -155,7 +172,6 @@ def test_proxy_refuses_a_port_in_use():
             RerunProxy("127.0.0.1", busy.getsockname()[1])
 
 
-@pytest.mark.filterwarnings("ignore:RRD file has no footer")  # a file still being streamed to has none yet
 def test_live_view_delivers_each_field_to_a_connected_viewer(tmp_path, rig, field):
     saved = tmp_path / "live.rrd"
     with RerunProxy("127.0.0.1", _free_port()) as proxy:
@@ -166,20 +182,33 @@ def test_live_view_delivers_each_field_to_a_connected_viewer(tmp_path, rig, fiel
         viewer = subprocess.Popen([rerun_executable(), proxy.url, "--save", str(saved)],
                                   stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
         try:
-            deadline = time.monotonic() + 20
-            rows = 0
-            while rows < 2 and time.monotonic() < deadline:
-                time.sleep(0.2)
-                if saved.exists() and saved.stat().st_size:
-                    try:
-                        rows = len(_read_rrd(saved)["/world/field"]["scan"])
-                    except (OSError, ValueError):
-                        rows = 0  # caught mid-write: read again
+            assert _wait_for_rows(saved, "/world/field", 2) == [1, 2]
         finally:
             viewer.terminate()
             viewer.wait(timeout=10)
     assert steps == [1, 2]
     logged = _read_rrd(saved)
-    assert sorted(logged["/world/field"]["scan"]) == [1, 2]
     np.testing.assert_array_equal(np.array(logged["/world/field"]["Points3D:positions"][-1]),
                                   np.column_stack([field["x"], field["y"], field["z"]]))
+
+
+def test_live_view_waits_for_a_proxy_that_is_down_without_holding_up_scans(tmp_path, rig, field):
+    port = _free_port()
+    view = StationView(f"rerun+http://127.0.0.1:{port}/proxy", "press-3")
+    assert view.publish(field, rig) is None, "no proxy: the field is not shown, the scan goes on"
+    saved = tmp_path / "live.rrd"
+    with RerunProxy("127.0.0.1", port) as proxy:
+        assert view.publish(field, rig) == 2, "connects as soon as the proxy is up"
+        view.close()
+        viewer = subprocess.Popen([rerun_executable(), proxy.url, "--save", str(saved)],
+                                  stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        try:
+            assert _wait_for_rows(saved, "/world/field", 1) == [2]
+        finally:
+            viewer.terminate()
+            viewer.wait(timeout=10)
+
+
+def test_live_view_needs_a_proxy_url():
+    with pytest.raises(ValueError, match="rerun\\+http://HOST:PORT/proxy"):
+        StationView("localhost", "press-3")
