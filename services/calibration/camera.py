@@ -190,3 +190,42 @@ def _worst_outlier(per_view_rms: np.ndarray) -> tuple[int | None, str]:
         return None, ""
     return worst, (f"reprojection RMS {per_view_rms[worst]:.3f} px exceeds the outlier limit {limit:.3f} px "
                    f"(median {median:.3f} px of the views)")
+
+
+def locate_camera(world_points: np.ndarray, image_points: np.ndarray, K: np.ndarray,
+                  dist: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Pose of a calibrated camera in the world from features at known world positions.
+
+    Parameters
+    ----------
+    world_points : (N, 3) array
+        Feature positions in world millimetres, e.g. a board placed at several known stage
+        positions (non-coplanar points decouple rotation from translation far better than
+        one plane).
+    image_points : (N, 2) array
+        Their observed pixel positions.
+    K, dist : arrays
+        The camera's calibrated intrinsics.
+
+    Returns
+    -------
+    R, t : (3, 3) and (3,) arrays
+        World-to-camera pose, x_cam = R x_world + t.
+
+    Notes
+    -----
+    Minimises sum ||m_j - proj(K, dist, R, t, X_j)||^2 by Levenberg-Marquardt from the
+    closed-form start of ``cv2.solvePnP`` (perspective-n-point).
+    """
+    world_points = np.asarray(world_points, np.float64).reshape(-1, 3)
+    image_points = np.asarray(image_points, np.float64).reshape(-1, 2)
+    if len(world_points) != len(image_points) or len(world_points) < 6:
+        raise ValueError(f"locate_camera needs at least 6 matching world and image points; got "
+                         f"{len(world_points)} and {len(image_points)}.")
+    found, rvec, tvec = cv2.solvePnP(world_points, image_points, np.asarray(K, np.float64),
+                                     np.asarray(dist, np.float64), flags=cv2.SOLVEPNP_ITERATIVE)
+    if not found:
+        raise ValueError("The camera pose could not be estimated from these points.")
+    rvec, tvec = cv2.solvePnPRefineLM(world_points, image_points, np.asarray(K, np.float64),
+                                      np.asarray(dist, np.float64), rvec, tvec, criteria=_CRITERIA)
+    return cv2.Rodrigues(rvec)[0], tvec.ravel()
