@@ -29,7 +29,8 @@ class Capture:
 
     ``frames`` is (F, H, W) camera frames, one per frame of ``sequence`` in order;
     ``thermal`` is (T, h, w) float32 temperatures in degrees Celsius. Timestamps are
-    wall-clock seconds since the epoch; metadata lists hold one dict per frame.
+    wall-clock seconds since the epoch; metadata lists hold one dict per frame (a camera
+    frame's ``file`` is its name in the manifest).
     """
 
     sequence: Sequence
@@ -124,7 +125,8 @@ class Station:
             sequence=sequence,
             frames=np.stack([frame.image for frame in camera_frames]),
             frame_timestamps=np.array([frame.timestamp for frame in camera_frames]),
-            frame_metadata=[frame.metadata for frame in camera_frames],
+            frame_metadata=[{**frame.metadata, "file": entry.file}
+                            for frame, entry in zip(camera_frames, sequence.frames)],
             thermal=np.stack([frame.image for frame in thermal]).astype(np.float32, copy=False),
             thermal_timestamps=np.array([frame.timestamp for frame in thermal]),
             thermal_metadata=[frame.metadata for frame in thermal],

@@ -21,7 +21,8 @@ def test_capture_films_every_pattern_then_the_thermal_frames(station, simulated,
     assert capture.thermal.dtype == np.float32
     timestamps = np.concatenate([capture.frame_timestamps, capture.thermal_timestamps])
     assert np.all(np.diff(timestamps) >= 0), "thermal frames are grabbed after the last pattern"
-    assert len(capture.frame_metadata) == len(patterns) and len(capture.thermal_metadata) == 3
+    assert [metadata["file"] for metadata in capture.frame_metadata] == [frame.file for frame in sequence.frames]
+    assert len(capture.thermal_metadata) == 3
     assert [info.name for info in capture.devices] == ["camera", "thermal", "projector"]
 
 
