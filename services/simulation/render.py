@@ -193,8 +193,11 @@ def _projector_pixels(points: np.ndarray, projector: Device) -> np.ndarray:
     margin = _IDEAL_MARGIN * size
     near_image = (device_points[:, 2] > 0) & np.all((ideal >= -margin) & (ideal <= size + margin), axis=1)
     pixels = np.full((len(points), 2), np.nan)
-    pixels[near_image] = project_points(points[near_image], projector.K_array, projector.dist_array,
-                                        projector.R_array, projector.t_array)
+    if projector.dist_array.any():
+        pixels[near_image] = project_points(points[near_image], projector.K_array, projector.dist_array,
+                                            projector.R_array, projector.t_array)
+    else:
+        pixels[near_image] = ideal[near_image]
     inside = np.all((pixels >= -0.5) & (pixels <= size - 0.5), axis=1)
     pixels[~inside] = np.nan
     return pixels
