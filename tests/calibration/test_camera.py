@@ -1,9 +1,11 @@
+import cv2
 import numpy as np
 import pytest
 
-from services.calibration.camera import calibrate_camera
+from services.calibration.camera import calibrate_camera, locate_camera
 from services.calibration.corners import detect_board
 from services.formats.images import read_frame
+from services.geometry.camera import project_points
 from services.simulation.boards import render_board
 
 from .simulated_rig import THERMAL_DIST, THERMAL_K, THERMAL_SIZE, board_poses, project
@@ -85,3 +87,20 @@ def test_fewer_than_three_views_are_refused(chessboard_9x6):
 def test_mismatched_view_lists_are_refused(chessboard_9x6):
     with pytest.raises(ValueError, match="same views"):
         calibrate_camera([chessboard_9x6.object_points()] * 3, [np.zeros((54, 2))] * 4, (640, 480))
+
+
+def test_locate_camera_recovers_a_pose_from_non_coplanar_points():
+    rng = np.random.default_rng(2)
+    K = np.array([[800.0, 0.0, 511.5], [0.0, 800.0, 383.5], [0.0, 0.0, 1.0]])
+    R = cv2.Rodrigues(np.array([0.0, np.radians(20.0), 0.0]))[0]
+    t = -R @ np.array([400.0, 0.0, 0.0])
+    world = np.column_stack([rng.uniform(50, 350, 300), rng.uniform(-100, 100, 300), rng.uniform(430, 570, 300)])
+    pixels = project_points(world, K, np.zeros(5), R, t) + rng.normal(0, 0.1, (300, 2))
+    R_est, t_est = locate_camera(world, pixels, K, np.zeros(5))
+    assert np.abs(R_est - R).max() < 1e-3
+    assert np.linalg.norm(t_est - t) < 1.0
+
+
+def test_locate_camera_needs_six_points():
+    with pytest.raises(ValueError, match="at least 6"):
+        locate_camera(np.zeros((5, 3)), np.zeros((5, 2)), np.eye(3), np.zeros(5))
