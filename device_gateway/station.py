@@ -102,7 +102,9 @@ class Station:
                 f"got {patterns.shape} {patterns.dtype}."
             )
         if len(patterns) != len(sequence.frames):
-            raise ValueError(f"The manifest lists {len(sequence.frames)} frames but {len(patterns)} patterns were given.")
+            raise ValueError(
+                f"The manifest lists {len(sequence.frames)} frames but {len(patterns)} patterns were given."
+            )
         if thermal_frames < 1:
             raise ValueError(f"At least one thermal frame is needed; got {thermal_frames}.")
         with self._lock:

@@ -88,7 +88,8 @@ class DisplayProjector(Projector):
         if surface.get_size() != (self.width, self.height):
             pygame.display.quit()
             raise DeviceUnavailable(
-                f"projector {self.name!r}: display {self.display} runs at {surface.get_width()}x{surface.get_height()}, "
+                f"projector {self.name!r}: display {self.display} runs at "
+                f"{surface.get_width()}x{surface.get_height()}, "
                 f"not the projector's {self.width}x{self.height}; set the display to the projector's native mode"
             )
         pygame.mouse.set_visible(False)

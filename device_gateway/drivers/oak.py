@@ -100,7 +100,9 @@ class _OakDevice(abc.ABC):
             self._pipeline.start()
         except RuntimeError as error:
             self.close()
-            raise DeviceUnavailable(f"{self.role} {self.name!r}: cannot start OAK {found.getDeviceId()}: {error}") from None
+            raise DeviceUnavailable(
+                f"{self.role} {self.name!r}: cannot start OAK {found.getDeviceId()}: {error}"
+            ) from None
 
     def close(self) -> None:
         releases = [self._pipeline.stop] if self._pipeline is not None else []

@@ -54,7 +54,8 @@ class RerunProxy:
                 self.stop()
                 self._log.seek(0)
                 error = self._log.read().decode(errors="replace").strip().splitlines()
-                raise RuntimeError(f"the Rerun proxy did not start on {host}:{port}: {error[-1] if error else 'timeout'}")
+                reason = error[-1] if error else "timeout"
+                raise RuntimeError(f"the Rerun proxy did not start on {host}:{port}: {reason}")
             time.sleep(0.05)
 
     def __enter__(self) -> RerunProxy:

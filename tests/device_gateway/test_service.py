@@ -24,7 +24,8 @@ def test_oak_driver_takes_its_options_from_the_settings():
     station = build_station(settings)
     assert isinstance(station.camera, OakCamera) and isinstance(station.thermal, OakThermal)
     assert isinstance(station.projector, DisplayProjector)
-    assert (station.camera.device_id, station.camera.exposure_us, station.camera.iso) == ("14442C10D13EABCE00", 4000, 200)
+    camera = station.camera
+    assert (camera.device_id, camera.exposure_us, camera.iso) == ("14442C10D13EABCE00", 4000, 200)
     assert (station.camera.info.width, station.camera.info.height) == (1920, 1200)
     assert station.thermal.device_id == "10.0.0.7"
     assert (station.projector.display, station.projector.info.width, station.projector.info.height) == (1, 1920, 1080)
