@@ -14,13 +14,14 @@ from services.registration.preprocess import to_uint8
 
 
 def _warped_moving(fixed: np.ndarray, moving: np.ndarray, matrix: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The fixed image as uint8, the moving one warped onto its grid as uint8, and where the latter is defined."""
+    """The fixed image as uint8, the equalised moving one warped onto its grid, and where the latter is defined."""
     matrix = np.asarray(matrix, dtype=np.float64)
     if matrix.shape != (3, 3) or not np.all(np.isfinite(matrix)) or abs(np.linalg.det(matrix)) < 1e-12:
         raise ValueError("The registration matrix must be a finite, invertible 3x3 matrix.")
     fixed8 = to_uint8(fixed)
     size = (fixed8.shape[1], fixed8.shape[0])
-    warped = cv2.warpPerspective(to_uint8(moving), matrix, size, flags=cv2.INTER_LINEAR)
+    equalised = cv2.equalizeHist(to_uint8(moving))  # a hot part would otherwise leave the rest black
+    warped = cv2.warpPerspective(equalised, matrix, size, flags=cv2.INTER_LINEAR)
     coverage = cv2.warpPerspective(np.full(np.shape(moving), 255, np.uint8), matrix, size, flags=cv2.INTER_NEAREST)
     return fixed8, warped, coverage > 0
 

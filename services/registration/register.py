@@ -27,9 +27,12 @@ from services.registration.search import coarse_search
 
 _COARSEST_SIZE = 48  # the coarsest level keeps at least this many moving pixels across
 _SEARCH_STEP = 2.0  # coarse-search grid step, in coarse moving pixels of corner motion
+_DEFAULT_SHIFT_RANGE = 0.12  # of the moving image's smaller side
+_SEARCH_BINS = 16  # fewer bins at the coarse level: a few thousand samples fill 16 x 16 cells, not 32 x 32
 _CANDIDATES = 3
-_POWELL_TOLERANCE = 0.01  # moving pixels at the level being refined
-_POWELL_FTOL = 1e-6  # relative change of the objective that ends a Powell iteration
+_FINE_STEP = 0.5  # first Powell step below the coarsest level, where the start is within about a pixel
+_POWELL_TOLERANCE = 0.02  # moving pixels at the level being refined
+_POWELL_FTOL = 1e-5  # relative change of the objective that ends a Powell iteration
 
 
 @dataclass(frozen=True)
@@ -80,12 +83,12 @@ def _reduce(image: np.ndarray, factor: float) -> np.ndarray:
     return cv2.warpAffine(blurred, _scaling(factor)[:2], size, flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
 
 
-def _pyramid(image: np.ndarray, levels: int, bins: int) -> list[np.ndarray]:
-    """Quantised Gaussian pyramid, finest first; level l has pixel coordinates x / 2**l."""
+def _pyramid(image: np.ndarray, levels: int) -> list[np.ndarray]:
+    """Gaussian pyramid, finest first; level l has pixel coordinates x / 2**l."""
     images = [image]
     for _ in range(levels):
         images.append(cv2.pyrDown(images[-1]))
-    return [quantize(level, bins) for level in images]
+    return images
 
 
 def _level_matrix(matrix: np.ndarray, level: int) -> np.ndarray:
@@ -96,9 +99,12 @@ def _level_matrix(matrix: np.ndarray, level: int) -> np.ndarray:
 
 def _refine(
     fixed: np.ndarray, moving: np.ndarray, start: np.ndarray, model: str,
-    bins: int, log_base: float, metric: str, min_overlap: float,
+    bins: int, log_base: float, metric: str, min_overlap: float, step: float = 1.0,
 ) -> tuple[np.ndarray, float]:
-    """Maximise the objective over ``start @ G(p)`` with Powell's method; return the matrix and its value."""
+    """Maximise the objective over ``start @ G(p)`` with Powell's method; return the matrix and its value.
+
+    ``step`` is the first step along each parameter, in pixels of corner motion.
+    """
     height, width = moving.shape
 
     def negative_score(parameters: np.ndarray) -> float:
@@ -106,10 +112,10 @@ def _refine(
         value = score(sample_fixed(fixed, matrix, width, height), moving, bins, log_base, metric, min_overlap)
         return -value if np.isfinite(value) else 1.0e6
 
-    result = minimize(negative_score, np.zeros(PARAMETER_COUNTS[model]), method="Powell",
-                      options={"xtol": _POWELL_TOLERANCE, "ftol": _POWELL_FTOL})
+    count = PARAMETER_COUNTS[model]
+    result = minimize(negative_score, np.zeros(count), method="Powell",
+                      options={"xtol": _POWELL_TOLERANCE, "ftol": _POWELL_FTOL, "direc": step * np.eye(count)})
     return start @ update_matrix(model, result.x, width, height), -float(result.fun)
-
 
 
 def _coarse_model(model: str) -> str:
@@ -158,7 +164,7 @@ def register(
         the moving image inside the fixed one, min(W_f / W_m, H_f / H_m).
     max_shift : float, optional
         Search range of the shift of the image centres, in fixed pixels;
-        by default 20 % of the moving image's smaller side, in fixed pixels.
+        by default 12 % of the moving image's smaller side, in fixed pixels.
     max_angle : float
         Search range of the rotation, degrees (ignored by translation).
     max_scale_change : float
@@ -202,8 +208,11 @@ def register(
     fixed_pre = preprocess(fixed_reduced, preprocessing, invert=True)
     moving_pre = preprocess(moving, preprocessing)
     levels = int(max(0, np.floor(np.log2(min(moving_height, moving_width) / _COARSEST_SIZE))))
-    fixed_pyramid = _pyramid(fixed_pre, levels, bins)
-    moving_pyramid = _pyramid(moving_pre, levels, bins)
+    fixed_levels, moving_levels = _pyramid(fixed_pre, levels), _pyramid(moving_pre, levels)
+    fixed_pyramid = [quantize(level, bins) for level in fixed_levels]
+    moving_pyramid = [quantize(level, bins) for level in moving_levels]
+    search_bins = min(bins, _SEARCH_BINS)
+    search_fixed, search_moving = quantize(fixed_levels[-1], search_bins), quantize(moving_levels[-1], search_bins)
 
     coarse_fixed, coarse_moving = fixed_pyramid[levels], moving_pyramid[levels]
     radius = 0.5 * float(np.hypot(*coarse_moving.shape))
@@ -212,11 +221,11 @@ def register(
     log_scale_range = np.log1p(max_scale_change) if model not in ("translation", "rigid") else 0.0
     angles = np.arange(-angle_range, angle_range + 0.5 * step, step) if angle_range else np.zeros(1)
     factors = np.exp(np.arange(-log_scale_range, log_scale_range + 0.5 * step, step)) if log_scale_range else np.ones(1)
-    shift_range = max_shift if max_shift is not None else 0.2 * min(moving_height, moving_width) * nominal
+    shift_range = max_shift if max_shift is not None else _DEFAULT_SHIFT_RANGE * min(moving_height, moving_width) * nominal
     reduced_scale = nominal * reduction
     coarse_shift = int(np.ceil(shift_range / (nominal * 2**levels)))
-    candidates = coarse_search(coarse_fixed, coarse_moving, reduced_scale, angles, factors, coarse_shift,
-                               bins, log_base, metric, min_overlap, _CANDIDATES)
+    candidates = coarse_search(search_fixed, search_moving, reduced_scale, angles, factors, coarse_shift,
+                               search_bins, log_base, metric, min_overlap, _CANDIDATES)
     if not candidates:
         raise ValueError("The images do not overlap enough anywhere in the search range; "
                          "check the nominal scale and the search range.")
@@ -228,7 +237,7 @@ def register(
     for level in range(levels - 1, -1, -1):
         level_start = _level_matrix(matrix, level)
         level_matrix, _ = _refine(fixed_pyramid[level], moving_pyramid[level], level_start, model,
-                                  bins, log_base, metric, min_overlap)
+                                  bins, log_base, metric, min_overlap, _FINE_STEP)
         matrix = _level_matrix(level_matrix, -level)
     if levels == 0 and coarse_model != model:
         matrix, _ = _refine(fixed_pyramid[0], moving_pyramid[0], matrix, model, bins, log_base, metric, min_overlap)

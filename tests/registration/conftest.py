@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from functools import lru_cache
 from pathlib import Path
 
 import cv2
@@ -14,8 +15,9 @@ CHESSBOARD_DIR = Path("/work/shared/data/opencv-chessboard")
 INFRARED_SIZE = (320, 256)
 
 
+@lru_cache(maxsize=None)
 def chessboard_pair(seed: int, index: int, **transform_ranges: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """A real visible photograph, an infrared-like view of it and the true matrix."""
+    """A real visible photograph, an infrared-like view of it and the true matrix (cached: do not modify)."""
     visible = cv2.imread(str(CHESSBOARD_DIR / f"left{index:02d}.jpg"), cv2.IMREAD_GRAYSCALE)
     if visible is None:
         pytest.fail(f"the shared chessboard image left{index:02d}.jpg is missing from {CHESSBOARD_DIR}")
@@ -24,8 +26,9 @@ def chessboard_pair(seed: int, index: int, **transform_ranges: float) -> tuple[n
     return visible, infrared_from_visible(rng, visible, matrix, INFRARED_SIZE), matrix
 
 
+@lru_cache(maxsize=None)
 def scene_pair(seed: int, **transform_ranges: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """A rendered 1024x768 visible and 320x256 infrared view of one scene and the true matrix."""
+    """A rendered 1024x768 visible and 320x256 infrared view of one scene and the true matrix (cached)."""
     rng = np.random.default_rng(seed)
     matrix = random_transform(rng, INFRARED_SIZE, (1024, 768), 3.0, **transform_ranges)
     visible, infrared = render_scene_pair(rng, matrix)

@@ -1,0 +1,74 @@
+import json
+
+import cv2
+import numpy as np
+import pytest
+import tifffile
+
+from services.cli.main import main
+from services.registration.models import corner_error
+from tests.registration.conftest import INFRARED_SIZE, scene_pair
+
+
+@pytest.fixture(scope="module")
+def pair_files(tmp_path_factory):
+    directory = tmp_path_factory.mktemp("pair")
+    visible, infrared, truth = scene_pair(51)
+    cv2.imwrite(str(directory / "visible.png"), visible)
+    cv2.imwrite(str(directory / "infrared.png"), infrared)
+    return directory, truth
+
+
+def test_register_writes_the_registration_and_both_pictures(pair_files, capsys):
+    directory, truth = pair_files
+    out = directory / "REG.json"
+    code = main(["register", "--fixed", str(directory / "visible.png"), "--moving", str(directory / "infrared.png"),
+                 "--model", "similarity", "--out", str(out), "--overlay", str(directory / "overlay.png"),
+                 "--checkerboard", str(directory / "board.png")])
+    assert code == 0
+    document = json.loads(out.read_text())
+    assert set(document) == {"model", "matrix", "mi", "nmi", "bins", "log_base"}
+    assert document["model"] == "similarity" and document["bins"] == 32 and document["log_base"] == 2.0
+    assert corner_error(truth, np.array(document["matrix"]), *INFRARED_SIZE) < 0.5
+    for picture in ("overlay.png", "board.png"):
+        image = cv2.imread(str(directory / picture), cv2.IMREAD_UNCHANGED)
+        assert image.shape == (768, 1024) and image.dtype == np.uint8
+    assert "MI" in capsys.readouterr().out
+    assert not list(directory.glob("*.part*"))
+
+
+def test_register_reads_a_float_tiff_infrared_image(pair_files, tmp_path):
+    directory, truth = pair_files
+    infrared = cv2.imread(str(directory / "infrared.png"), cv2.IMREAD_UNCHANGED).astype(np.float32) * 0.07
+    tifffile.imwrite(tmp_path / "infrared.tif", infrared)
+    out = tmp_path / "REG.json"
+    code = main(["register", "--fixed", str(directory / "visible.png"), "--moving", str(tmp_path / "infrared.tif"),
+                 "--model", "translation", "--max-shift", "10", "--bins", "24", "--log-base", "2.718281828459045",
+                 "--out", str(out)])
+    assert code == 0
+    document = json.loads(out.read_text())
+    assert document["model"] == "translation" and document["bins"] == 24
+
+
+@pytest.mark.parametrize(
+    ("change", "message"),
+    [
+        ({"--moving": "missing.png"}, "missing.png: frame file is missing"),
+        ({"--moving": "bad.npy"}, "bad.npy: the image must be a 2-D numeric array"),
+        ({"--overlay": "overlay.jpg"}, "--overlay"),
+        ({"--bins": "2"}, "at least 4 histogram bins"),
+        ({"--scale": "-1"}, "nominal scale must be positive"),
+    ],
+)
+def test_bad_input_exits_2_with_a_message_and_no_traceback(pair_files, tmp_path, capsys, change, message):
+    directory, _ = pair_files
+    np.save(tmp_path / "bad.npy", np.zeros((2, 3, 4)))
+    options = {"--fixed": str(directory / "visible.png"), "--moving": str(directory / "infrared.png"),
+               "--out": str(tmp_path / "REG.json")}
+    for key, value in change.items():
+        options[key] = str(tmp_path / value) if value.endswith((".png", ".npy", ".jpg")) else value
+    code = main(["register"] + [item for pair in options.items() for item in pair])
+    error = capsys.readouterr().err
+    assert code == 2
+    assert message in error and "Traceback" not in error
+    assert not (tmp_path / "REG.json").exists()
