@@ -1,10 +1,13 @@
-"""A quarter-resolution forging station, so that tracing the simulated view takes a fraction of a second."""
+"""A quarter-resolution forging station (tracing its view takes a fraction of a second), and device faults."""
 
 from __future__ import annotations
+
+import socket
 
 import numpy as np
 import pytest
 
+from device_gateway.devices import Camera, DeviceInfo, DeviceLost, DeviceUnavailable, Frame
 from device_gateway.drivers.simulated import SimulatedStation
 from device_gateway.station import Station
 from services.formats.rig import Device, Rig
@@ -51,3 +54,49 @@ def sequence_and_patterns(small_rig):
 def lit(simulated) -> np.ndarray:
     """Camera pixels the projector lights, from the simulator's ground truth."""
     return simulated.view().truth.lit
+
+
+@pytest.fixture
+def free_port() -> int:
+    with socket.socket() as probe:
+        probe.bind(("127.0.0.1", 0))
+        return probe.getsockname()[1]
+
+
+class Unplugged(Camera):
+    """A camera lost at its ``fail_at``-th grab, which then stays away for ``away`` openings."""
+
+    def __init__(self, camera: Camera, fail_at: int, away: int = 0) -> None:
+        self.camera, self.fail_at, self.away = camera, fail_at, away
+        self.grabs = self.opens = 0
+
+    @property
+    def info(self) -> DeviceInfo:
+        return self.camera.info
+
+    @property
+    def is_open(self) -> bool:
+        return self.camera.is_open
+
+    def open(self) -> None:
+        self.opens += 1
+        if self.grabs >= self.fail_at and self.away > 0:
+            self.away -= 1
+            raise DeviceUnavailable("camera 'camera': not connected")
+        self.camera.open()
+
+    def close(self) -> None:
+        self.camera.close()
+
+    def grab(self, timeout_s: float) -> Frame:
+        self.grabs += 1
+        if self.grabs == self.fail_at:
+            self.camera.close()
+            raise DeviceLost("camera 'camera': connection lost")
+        return self.camera.grab(timeout_s)
+
+
+@pytest.fixture
+def unplugged(simulated):
+    """Wraps the simulated camera: ``unplugged(fail_at, away)`` is lost at that grab."""
+    return lambda fail_at, away=0: Unplugged(simulated.camera, fail_at, away)

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import socket
 import threading
 import time
 from collections.abc import Iterator
@@ -15,20 +14,12 @@ import uvicorn
 
 from device_gateway.app import create_app
 from device_gateway.client import GatewayClient, GatewayError
-from device_gateway.devices import Camera, DeviceInfo, DeviceLost, Frame
 from device_gateway.station import Station
 from device_gateway.transfer import MEDIA_TYPE
 
 
-def _free_port() -> int:
-    with socket.socket() as probe:
-        probe.bind(("127.0.0.1", 0))
-        return probe.getsockname()[1]
-
-
 @contextmanager
-def _serving(app) -> Iterator[str]:
-    port = _free_port()
+def _serving(app, port: int) -> Iterator[str]:
     server = uvicorn.Server(uvicorn.Config(app, host="127.0.0.1", port=port, log_level="warning"))
     thread = threading.Thread(target=server.run, daemon=True)
     thread.start()
@@ -44,8 +35,8 @@ def _serving(app) -> Iterator[str]:
 
 
 @pytest.fixture
-def gateway(station, sequence_and_patterns) -> Iterator[GatewayClient]:
-    with _serving(create_app(station, *sequence_and_patterns)) as url, GatewayClient(url) as client:
+def gateway(station, sequence_and_patterns, free_port) -> Iterator[GatewayClient]:
+    with _serving(create_app(station, *sequence_and_patterns), free_port) as url, GatewayClient(url) as client:
         yield client
 
 
@@ -93,44 +84,18 @@ def test_empty_capture_request_takes_the_defaults(gateway, small_rig):
     assert response.headers["content-type"] == MEDIA_TYPE
 
 
-class _LosesItsThirdFrame(Camera):
-    def __init__(self, camera: Camera) -> None:
-        self.camera = camera
-        self.grabs = 0
-
-    @property
-    def info(self) -> DeviceInfo:
-        return self.camera.info
-
-    @property
-    def is_open(self) -> bool:
-        return self.camera.is_open
-
-    def open(self) -> None:
-        self.camera.open()
-
-    def close(self) -> None:
-        self.camera.close()
-
-    def grab(self, timeout_s: float) -> Frame:
-        self.grabs += 1
-        if self.grabs == 3:
-            raise DeviceLost("camera 'camera': no frame within 2 s")
-        return self.camera.grab(timeout_s)
-
-
-def test_lost_device_answers_503_and_the_next_capture_works(simulated, sequence_and_patterns):
-    station = Station(_LosesItsThirdFrame(simulated.camera), simulated.thermal, simulated.projector)
-    with _serving(create_app(station, *sequence_and_patterns)) as url, GatewayClient(url) as client:
+def test_lost_device_answers_503_and_the_next_capture_works(simulated, unplugged, sequence_and_patterns, free_port):
+    station = Station(unplugged(fail_at=3), simulated.thermal, simulated.projector)
+    with _serving(create_app(station, *sequence_and_patterns), free_port) as url, GatewayClient(url) as client:
         response = httpx.post(f"{url}/v1/captures", json={})
         assert response.status_code == 503
         assert response.headers["content-type"] == "application/problem+json"
-        assert "no frame within 2 s" in response.json()["detail"]
+        assert "camera 'camera': connection lost" in response.json()["detail"]
         assert client.health()["status"] == "ok", "the camera was re-opened"
         assert client.capture().frames.shape[0] == len(sequence_and_patterns[1])
 
 
-def test_unreachable_gateway_is_a_gateway_error():
-    with GatewayClient(f"http://127.0.0.1:{_free_port()}", timeout_s=2) as client:
+def test_unreachable_gateway_is_a_gateway_error(free_port):
+    with GatewayClient(f"http://127.0.0.1:{free_port}", timeout_s=2) as client:
         with pytest.raises(GatewayError, match="unreachable"):
             client.health()

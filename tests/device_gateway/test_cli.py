@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import os
-import socket
 import subprocess
 import sys
 import time
@@ -14,14 +13,8 @@ import pytest
 from services.cli.main import main
 
 
-def _free_port() -> int:
-    with socket.socket() as probe:
-        probe.bind(("127.0.0.1", 0))
-        return probe.getsockname()[1]
-
-
-def test_gateway_without_hardware_reports_degraded_health_and_refuses_captures(tmp_path):
-    port = _free_port()
+def test_gateway_without_hardware_reports_degraded_health_and_refuses_captures(free_port):
+    port = free_port
     environment = {key: value for key, value in os.environ.items() if key not in ("DISPLAY", "WAYLAND_DISPLAY")}
     process = subprocess.Popen(
         [sys.executable, "-m", "services.cli.main", "gateway", "--driver", "oak", "--host", "127.0.0.1",

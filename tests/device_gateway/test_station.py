@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from device_gateway.devices import Camera, DeviceInfo, DeviceLost, DeviceUnavailable, Frame
+from device_gateway.devices import DeviceLost, DeviceUnavailable
 from device_gateway.station import Station
 
 
@@ -64,42 +64,9 @@ def test_at_least_one_thermal_frame(station, sequence_and_patterns):
         station.capture(*sequence_and_patterns, thermal_frames=0)
 
 
-class _Unplugged(Camera):
-    """A camera that is lost at its ``fail_at``-th grab and then stays away for ``away`` openings."""
-
-    def __init__(self, camera: Camera, fail_at: int, away: int = 0) -> None:
-        self.camera, self.fail_at, self.away = camera, fail_at, away
-        self.grabs = self.opens = 0
-
-    @property
-    def info(self) -> DeviceInfo:
-        return self.camera.info
-
-    @property
-    def is_open(self) -> bool:
-        return self.camera.is_open
-
-    def open(self) -> None:
-        self.opens += 1
-        if self.grabs >= self.fail_at and self.away > 0:
-            self.away -= 1
-            raise DeviceUnavailable("camera 'camera': not connected")
-        self.camera.open()
-
-    def close(self) -> None:
-        self.camera.close()
-
-    def grab(self, timeout_s: float) -> Frame:
-        self.grabs += 1
-        if self.grabs == self.fail_at:
-            self.camera.close()
-            raise DeviceLost("camera 'camera': connection lost")
-        return self.camera.grab(timeout_s)
-
-
-def test_a_device_lost_mid_capture_fails_that_capture_and_is_reopened(simulated, sequence_and_patterns):
+def test_a_device_lost_mid_capture_fails_that_capture_and_is_reopened(simulated, unplugged, sequence_and_patterns):
     sequence, patterns = sequence_and_patterns
-    camera = _Unplugged(simulated.camera, fail_at=4)
+    camera = unplugged(fail_at=4)
     station = Station(camera, simulated.thermal, simulated.projector)
 
     with pytest.raises(DeviceLost, match="connection lost"):
@@ -112,9 +79,10 @@ def test_a_device_lost_mid_capture_fails_that_capture_and_is_reopened(simulated,
     station.close()
 
 
-def test_a_device_still_away_after_a_loss_is_retried_on_the_next_capture(simulated, sequence_and_patterns):
+def test_a_device_still_away_after_a_loss_is_retried_on_the_next_capture(simulated, unplugged,
+                                                                        sequence_and_patterns):
     sequence, patterns = sequence_and_patterns
-    camera = _Unplugged(simulated.camera, fail_at=2, away=2)
+    camera = unplugged(fail_at=2, away=2)
     station = Station(camera, simulated.thermal, simulated.projector)
 
     with pytest.raises(DeviceLost):
