@@ -55,15 +55,13 @@ def view_angles(points: np.ndarray, normals: np.ndarray, centre: np.ndarray) -> 
     return np.arccos(cosine)
 
 
-def _project(points: np.ndarray, device: Device) -> tuple[np.ndarray, np.ndarray]:
-    """Distorted pixel coordinates in the device and depth along its optical axis."""
-    R, t = device.R_array, device.t_array
-    pixels = np.concatenate([
-        project_points(points[start:start + _PROJECTION_CHUNK], device.K_array, device.dist_array, R, t)
+def _project(points: np.ndarray, device: Device) -> np.ndarray:
+    """Distorted pixel coordinates of world points in the device."""
+    return np.concatenate([
+        project_points(points[start:start + _PROJECTION_CHUNK], device.K_array, device.dist_array,
+                       device.R_array, device.t_array)
         for start in range(0, max(len(points), 1), _PROJECTION_CHUNK)
     ])
-    depth = points @ R[2] + t[2]
-    return pixels, depth
 
 
 def _bilinear_samples(
@@ -125,10 +123,12 @@ def sample_view(
     """
     device = view.device
     max_angle = np.deg2rad(max_view_angle_deg)
-    pixels, depth = _project(points, device)
+    pixels = _project(points, device)
+    points_device = points @ device.R_array.T + device.t_array
+    depth = points_device[:, 2]
     angle = view_angles(points, normals, camera_center(device.R_array, device.t_array))
     focal = 0.5 * (device.K_array[0, 0] + device.K_array[1, 1])
-    gradient = depth_gradient(points @ device.R_array.T + device.t_array, normals @ device.R_array.T, focal, max_angle)
+    gradient = depth_gradient(points_device, normals @ device.R_array.T, focal, max_angle)
     tolerance = depth_tolerance(gradient, depth_tolerance_mm)
     buffer = depth_buffer(pixels, depth, device.width, device.height)
     seen = seen_mask(pixels, depth, buffer, tolerance)
@@ -142,9 +142,8 @@ def sample_view(
     if usable.any():
         samples = _bilinear_samples(view.frames, pixels[usable], depth[usable], buffer, tolerance[usable])
         frames_seen = np.isfinite(samples).sum(axis=0)
-        with np.errstate(invalid="ignore"):
-            temperature[usable] = np.nanmean(np.where(frames_seen > 0, samples, 0.0), axis=0)
-        temperature[usable] = np.where(frames_seen > 0, temperature[usable], np.nan)
+        mean = np.nansum(samples, axis=0) / np.maximum(frames_seen, 1)
+        temperature[usable] = np.where(frames_seen > 0, mean, np.nan)
         weight[usable] = np.cos(angle[usable]) * frames_seen
     return temperature, np.where(seen, angle, np.nan), weight
 
