@@ -47,6 +47,7 @@ class RerunProxy:
             [rerun_executable(), "--serve-grpc", "--bind", host, "--port", str(port),
              "--server-memory-limit", memory_limit],
             stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=self._log,
+            env={"RUST_LOG": "warn", **os.environ},  # its log is kept only to explain a failed start
         )
         deadline = time.monotonic() + start_timeout_s
         while not accepts_connections(host, port):
