@@ -18,6 +18,7 @@ from services.simulation.render import CameraEffects, ProjectorEffects, render_f
 from services.simulation.scene import Scene, load_scene
 
 RIG_PRESETS = {"paper": paper_rig, "forging": forging_rig}
+SIXTEEN_BIT_SUFFIXES = (".png", ".tif", ".tiff")
 _SCENE_PRESET = re.compile(r"(paper-plane|paper-sphere):(\d+(?:\.\d+)?)|forging")
 
 
@@ -88,13 +89,8 @@ def _effects(args: argparse.Namespace) -> tuple[CameraEffects, ProjectorEffects]
 def _write_image(path: Path, image: np.ndarray) -> None:
     """Write a frame in the format its name says, atomically (temporary name, then rename)."""
     temporary = path.with_name(f"{path.stem}.part{path.suffix}")
-    try:
-        written = cv2.imwrite(str(temporary), image)
-    except cv2.error:
-        written = False
-    if not written:
-        temporary.unlink(missing_ok=True)
-        raise InputError(f"{path}: cannot write a {image.dtype} frame in this format (16-bit needs PNG or TIFF)")
+    if not cv2.imwrite(str(temporary), image):
+        raise OSError(f"{path}: could not write the image")
     temporary.replace(path)
 
 
@@ -121,6 +117,11 @@ def _run(args: argparse.Namespace) -> int:
     if patterns.shape[1:] != (projector.height, projector.width):
         raise InputError(f"{args.patterns}: pattern images are {patterns.shape[2]}x{patterns.shape[1]} but the "
                          f"projector is {projector.width}x{projector.height}")
+    if args.bit_depth == 16:
+        for frame in sequence.frames:
+            if Path(frame.file).suffix.lower() not in SIXTEEN_BIT_SUFFIXES:
+                raise InputError(f"{args.patterns / 'sequence.json'}: frame {frame.file!r} cannot hold 16-bit "
+                                 f"images; --bit-depth 16 needs PNG or TIFF frame names")
     if args.out.resolve() == args.patterns.resolve():
         raise InputError(f"--out {args.out}: must differ from --patterns, whose images would be overwritten")
     args.out.mkdir(parents=True, exist_ok=True)

@@ -106,3 +106,16 @@ def test_simulate_refuses_to_overwrite_its_patterns(capture_inputs, capsys):
                  "--patterns", str(patterns), "--out", str(patterns)]) == 2
     assert "must differ from --patterns" in capsys.readouterr().err
     assert {path.name: path.read_bytes() for path in patterns.iterdir()} == before
+
+
+def test_simulate_refuses_16_bit_frames_named_bmp(capture_inputs, capsys):
+    manifest = capture_inputs / "patterns" / "sequence.json"
+    sequence = json.loads(manifest.read_text())
+    first = sequence["frames"][0]["file"]
+    (capture_inputs / "patterns" / first).rename(capture_inputs / "patterns" / "white.bmp")
+    sequence["frames"][0]["file"] = "white.bmp"
+    manifest.write_text(json.dumps(sequence))
+    assert _simulate(capture_inputs, "--bit-depth", "16") == 2
+    assert "'white.bmp' cannot hold 16-bit images" in capsys.readouterr().err
+    assert _simulate(capture_inputs, "--supersample", "1") == 0
+    assert read_frame(capture_inputs / "out" / "white.bmp").dtype == np.uint8
