@@ -1,7 +1,10 @@
 """End to end over HTTP, embedded: `thermofield serve` (SQLite, in-process worker, simulated gateway,
-Rerun proxy) as one process; keys from `thermofield apikey create`; events over SSE and MQTT."""
+Rerun proxy) as one process; keys from `thermofield apikey create`; events over SSE and MQTT; recovery
+of the job a crash interrupted."""
 
 import io
+import signal
+import time
 import uuid
 
 import cv2
@@ -17,8 +20,9 @@ def test_embedded_scan_from_http_to_an_accurate_field(e2e, tmp_path):
     site = f"it-{uuid.uuid4().hex[:8]}"
     env = {"THERMOFIELD_DATA_DIR": str(tmp_path / "data"), "THERMOFIELD_SITE": site}
     port = e2e.free_port()
-    e2e.processes.start("serve", ["serve", "--port", str(port), "--gateway-port", str(e2e.free_port()),
-                                  "--rerun-port", str(e2e.free_port())], env)
+    restart_arguments = ["serve", "--port", str(port), "--gateway-port", str(e2e.free_port()),
+                         "--rerun-port", str(e2e.free_port())]
+    e2e.processes.start("serve", restart_arguments, env)
     e2e.processes.wait_until_healthy(f"http://127.0.0.1:{port}/readyz", "serve")
     assert f"http://127.0.0.1:{port}" in e2e.processes.log("serve")
     admin = e2e.create_key(env, ["admin"])
@@ -52,6 +56,23 @@ def test_embedded_scan_from_http_to_an_accurate_field(e2e, tmp_path):
         assert frame.shape == (800, 1280)
         thermal = tifffile.imread(io.BytesIO(client.get(scan["links"]["thermal"].format(index=0)).content))
         assert thermal.shape == (256, 320) and thermal.dtype == np.float32 and np.nanmax(thermal) > 900
+
+    # Crash recovery: the serve process is killed in the middle of a scan; on restart the job that was
+    # running is queued again and runs to success as its second attempt.
+    serve_command = e2e.processes.running[0][1]
+    with httpx.Client(base_url=f"http://127.0.0.1:{port}", headers={"Authorization": f"Bearer {admin}"},
+                      timeout=30) as client:
+        interrupted = client.post("/v1/scans").json()["job_id"]
+        deadline = time.monotonic() + 120
+        while client.get(f"/v1/jobs/{interrupted}").json()["status"] != "running" and time.monotonic() < deadline:
+            time.sleep(0.05)
+    e2e.processes.stop(serve_command, signal.SIGKILL)
+    e2e.processes.start("serve-restarted", restart_arguments, env)
+    e2e.processes.wait_until_healthy(f"http://127.0.0.1:{port}/readyz", "serve-restarted")
+    with httpx.Client(base_url=f"http://127.0.0.1:{port}", headers={"Authorization": f"Bearer {admin}"},
+                      timeout=30) as client:
+        final = e2e.follow_events(client, interrupted)[-1][1]
+    assert (final["status"], final["attempts"]) == ("succeeded", 2), final
 
     errors = e2e.field_errors(tmp_path / "field.ply")
     assert errors["median_distance_mm"] < 0.5, errors
