@@ -145,9 +145,10 @@ def _intersect_plane(plane: Plane, o: np.ndarray, d: np.ndarray, t_min: float) -
     normal, u_axis, v_axis = plane.frame()
     center = np.asarray(plane.center)
     with np.errstate(divide="ignore", invalid="ignore"):
-        s = ((center - o) @ normal) / (d @ normal)
-        local = o + s[:, None] * d - center
-        inside = (np.abs(local @ u_axis) <= plane.size[0] / 2) & (np.abs(local @ v_axis) <= plane.size[1] / 2)
+        s = (center @ normal - o @ normal) / (d @ normal)
+        along_u = o @ u_axis - center @ u_axis + s * (d @ u_axis)
+        along_v = o @ v_axis - center @ v_axis + s * (d @ v_axis)
+        inside = (np.abs(along_u) <= plane.size[0] / 2) & (np.abs(along_v) <= plane.size[1] / 2)
     s = np.where(np.isfinite(s) & (s >= t_min) & inside, s, np.inf)
     return s, np.broadcast_to(normal, d.shape)
 

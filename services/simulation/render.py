@@ -186,20 +186,24 @@ def _projector_pixels(points: np.ndarray, projector: Device) -> np.ndarray:
     Only points whose distortion-free projection lies in front of the projector and within 25% beyond its
     image are projected through the distortion model, which wraps around far outside the calibrated field.
     """
-    device_points = points @ projector.R_array.T + projector.t_array
+    R, t, K = projector.R_array, projector.t_array, projector.K_array
+    depth = points @ R[2] + t[2]
     with np.errstate(divide="ignore", invalid="ignore"):
-        ideal = (device_points[:, :2] / device_points[:, 2:]) @ projector.K_array[:2, :2].T + projector.K_array[:2, 2]
-    size = np.array([projector.width, projector.height], dtype=np.float64)
-    margin = _IDEAL_MARGIN * size
-    near_image = (device_points[:, 2] > 0) & np.all((ideal >= -margin) & (ideal <= size + margin), axis=1)
+        x, y = (points @ R[0] + t[0]) / depth, (points @ R[1] + t[1]) / depth
+    ideal = np.column_stack([K[0, 0] * x + K[0, 1] * y + K[0, 2], K[1, 1] * y + K[1, 2]])
+    margin_u, margin_v = _IDEAL_MARGIN * projector.width, _IDEAL_MARGIN * projector.height
+    near_image = ((depth > 0) & (ideal[:, 0] >= -margin_u) & (ideal[:, 0] <= projector.width + margin_u)
+                  & (ideal[:, 1] >= -margin_v) & (ideal[:, 1] <= projector.height + margin_v))
     pixels = np.full((len(points), 2), np.nan)
     if projector.dist_array.any():
         pixels[near_image] = project_points(points[near_image], projector.K_array, projector.dist_array,
                                             projector.R_array, projector.t_array)
     else:
         pixels[near_image] = ideal[near_image]
-    inside = np.all((pixels >= -0.5) & (pixels <= size - 0.5), axis=1)
-    pixels[~inside] = np.nan
+    with np.errstate(invalid="ignore"):
+        outside = ~((pixels[:, 0] >= -0.5) & (pixels[:, 0] <= projector.width - 0.5)
+                    & (pixels[:, 1] >= -0.5) & (pixels[:, 1] <= projector.height - 0.5))
+    pixels[outside] = np.nan
     return pixels
 
 
