@@ -135,130 +135,156 @@ def _sequence_tables(sequence: Sequence) -> _Tables:
     )
 
 
-# Hand-written numba kernel: one pass over the pixels reading the uint8/uint16 stack in place is
-# what makes decoding fast and lean; vectorised numpy needs float copies of the whole stack.
+# Abramowitz and Stegun 4.4.49: atan(a) = a (1 + sum_k c_k a^2k) on [0, 1], |error| <= 2e-8 rad.
+_ATAN_COEFFICIENTS = (-0.3333314528, 0.1999355085, -0.1420889944, 0.1065626393, -0.0752896400, 0.0429096138,
+                      -0.0161657367, 0.0028662257)
+
+
+@njit(cache=True, inline="always", fastmath=False)
+def _polynomial_atan2(y, x):
+    """atan2(y, x) in (-pi, pi] to 2e-8 rad, branch-free so that the column loops vectorise.
+
+    libm's atan2 is a scalar call that costs half the decoding time; 2e-8 rad is 5e-8 px at a
+    16-pixel period.
+    """
+    ax, ay = abs(x), abs(y)
+    high, low = max(ax, ay), min(ax, ay)
+    a = low / high if high > 0 else 0.0
+    s = a * a
+    c = _ATAN_COEFFICIENTS
+    r = (((((((c[7] * s + c[6]) * s + c[5]) * s + c[4]) * s + c[3]) * s + c[2]) * s + c[1]) * s + c[0]) * s
+    r = (r + 1.0) * a
+    r = 0.5 * math.pi - r if ay > ax else r
+    r = math.pi - r if x < 0 else r
+    return -r if y < 0 else r
+
+
+# Hand-written numba kernels: one pass over the rows reading the uint8/uint16 stack in place, with
+# per-row buffers so the inner loops over columns vectorise; numpy would need float copies of the stack.
 @njit(parallel=True, cache=True, fastmath=False)
-def _decode_kernel(frames, saturation_frames, saturation_level, white, black, mean_frames, axis_size, gray_count, gray_frame,
-                   gray_complement, gray_inverted, finest_bit, group_range, group_start, group_frames, group_cos,
-                   group_sin, group_period, min_intensity, min_modulation, min_quality, consistency,
+def _decode_kernel(frames, saturation_frames, saturation_level, white, black, mean_frames, axis_size, gray_count,
+                   gray_frame, gray_complement, gray_inverted, finest_bit, group_range, group_start, group_frames,
+                   group_cos, group_sin, group_period, min_intensity, min_modulation, min_quality, consistency,
                    coordinates, modulation, intensity, quality, rejection):
-    n_frames, height, width = frames.shape
+    height, width = frames.shape[1], frames.shape[2]
     for row in prange(height):
-        for col in range(width):
-            saturated = False
-            for f in saturation_frames:
-                if frames[f, row, col] >= saturation_level:
-                    saturated = True
-            offset = 0.0
-            for f in mean_frames:
-                offset += frames[f, row, col]
-            if mean_frames.size > 0:
-                offset /= mean_frames.size
-            if white >= 0 and black >= 0:
-                threshold = 0.5 * (float(frames[white, row, col]) + float(frames[black, row, col]))
-            else:
-                threshold = offset
-            level = float(frames[white, row, col]) if white >= 0 else offset
+        saturated = np.zeros(width, np.bool_)
+        for f in saturation_frames:
+            samples = frames[f, row]
+            for col in range(width):
+                saturated[col] |= samples[col] >= saturation_level
+        offset = np.zeros(width)
+        for f in mean_frames:
+            samples = frames[f, row]
+            for col in range(width):
+                offset[col] += samples[col]
+        if mean_frames.size > 0:
+            offset /= mean_frames.size
+        threshold = offset
+        if white >= 0 and black >= 0:
+            threshold = 0.5 * (frames[white, row].astype(np.float64) + frames[black, row])
+        level = offset if white < 0 else frames[white, row].astype(np.float64)
 
-            pixel_modulation = np.inf
-            pixel_quality = 1.0
-            poor_fit = False
-            inconsistent = False
-            for a in range(2):
-                coordinates[a, row, col] = np.nan
-                first_group, end_group = group_range[a], group_range[a + 1]
-                if gray_count[a] == 0 and first_group == end_group:
-                    continue
-                reference = np.nan
+        pixel_modulation = np.full(width, np.inf)
+        pixel_quality = np.ones(width)
+        poor_fit = np.zeros(width, np.bool_)
+        inconsistent = np.zeros(width, np.bool_)
+        reference = np.empty(width)
+        axis_modulation = np.empty(width)
+        axis_quality = np.empty(width)
+        for a in range(2):
+            first_group, end_group = group_range[a], group_range[a + 1]
+            if gray_count[a] == 0 and first_group == end_group:
+                coordinates[a, row] = np.nan
+                continue
+            referenced = False
+            uncertainty = 0.0
+            if gray_count[a] > 0:
+                stripe_index = np.zeros(width, np.int64)
+                binary = np.zeros(width, np.int64)
+                margin_sum = np.zeros(width)
+                margin_min = np.full(width, np.inf)
+                for b in range(gray_count[a]):
+                    plane = frames[gray_frame[a, b], row]
+                    inverted = gray_inverted[a, b]
+                    complement = frames[max(gray_complement[a, b], 0), row]
+                    paired = gray_complement[a, b] >= 0
+                    for col in range(width):
+                        value = float(plane[col])
+                        against = float(complement[col]) if paired else threshold[col]
+                        margin = 0.5 * abs(value - against) if paired else abs(value - against)
+                        binary[col] ^= (value > against) ^ inverted
+                        stripe_index[col] = 2 * stripe_index[col] + binary[col]
+                        margin_sum[col] += margin
+                        margin_min[col] = min(margin_min[col], margin)
+                stripe = float(1 << finest_bit[a])
+                for col in range(width):
+                    inconsistent[col] |= stripe_index[col] * stripe >= axis_size[a]
+                    reference[col] = stripe_index[col] * stripe + 0.5 * (stripe - 1.0)
+                    axis_modulation[col] = margin_sum[col] / gray_count[a]
+                    axis_quality[col] = margin_min[col] / axis_modulation[col] if axis_modulation[col] > 0 else 0.0
+                referenced = True
+                uncertainty = 0.5 * stripe
+            for g in range(first_group, end_group):
+                period = group_period[g]
+                steps = group_start[g + 1] - group_start[g]
+                c_sum = np.zeros(width)
+                s_sum = np.zeros(width)
+                total = np.zeros(width)
+                squares = np.zeros(width)
+                for i in range(group_start[g], group_start[g + 1]):
+                    samples = frames[group_frames[i], row]
+                    cosine, sine = group_cos[i], group_sin[i]
+                    for col in range(width):
+                        value = float(samples[col])
+                        c_sum[col] += value * cosine
+                        s_sum[col] += value * sine
+                        total[col] += value
+                        squares[col] += value * value
+                tolerance = uncertainty + consistency * (0.5 * period - uncertainty)
+                for col in range(width):
+                    energy = c_sum[col] * c_sum[col] + s_sum[col] * s_sum[col]
+                    alternating = squares[col] - total[col] * total[col] / steps
+                    group_quality = min(1.0, 2.0 * energy / steps / alternating) if alternating > 0 else 0.0
+                    axis_quality[col] = group_quality if g == first_group else min(axis_quality[col], group_quality)
+                    axis_modulation[col] = 2.0 * math.sqrt(energy) / steps
+                    phase = _polynomial_atan2(s_sum[col], c_sum[col])
+                    wrapped = (phase / (2 * math.pi) + (1.0 if phase < 0 else 0.0)) * period
+                    if referenced:
+                        unwrapped = wrapped + period * math.floor((reference[col] - wrapped) / period + 0.5)
+                        inconsistent[col] |= abs(unwrapped - reference[col]) > tolerance
+                        reference[col] = unwrapped
+                    else:
+                        reference[col] = wrapped - period if wrapped > 0.5 * (axis_size[a] - 1 + period) else wrapped
+                referenced = True
                 uncertainty = 0.0
-                axis_modulation = 0.0
-                axis_quality = 1.0
-                if gray_count[a] > 0:
-                    stripe_index = 0
-                    binary_bit = 0
-                    margin_sum = 0.0
-                    margin_min = np.inf
-                    for b in range(gray_count[a]):
-                        value = float(frames[gray_frame[a, b], row, col])
-                        if gray_complement[a, b] >= 0:
-                            against = float(frames[gray_complement[a, b], row, col])
-                            margin = 0.5 * abs(value - against)
-                        else:
-                            against = threshold
-                            margin = abs(value - against)
-                        gray_bit = (1 if value > against else 0) ^ gray_inverted[a, b]
-                        binary_bit ^= gray_bit
-                        stripe_index = 2 * stripe_index + binary_bit
-                        margin_sum += margin
-                        margin_min = min(margin_min, margin)
-                    stripe = float(1 << finest_bit[a])
-                    if stripe_index * stripe >= axis_size[a]:
-                        inconsistent = True
-                    reference = stripe_index * stripe + 0.5 * (stripe - 1.0)
-                    uncertainty = 0.5 * stripe
-                    axis_modulation = margin_sum / gray_count[a]
-                    axis_quality = margin_min / axis_modulation if axis_modulation > 0 else 0.0
-                for g in range(first_group, end_group):
-                    period = group_period[g]
-                    steps = group_start[g + 1] - group_start[g]
-                    c_sum = 0.0
-                    s_sum = 0.0
-                    total = 0.0
-                    squares = 0.0
-                    for i in range(group_start[g], group_start[g + 1]):
-                        value = float(frames[group_frames[i], row, col])
-                        c_sum += value * group_cos[i]
-                        s_sum += value * group_sin[i]
-                        total += value
-                        squares += value * value
-                    explained = 2.0 * (c_sum * c_sum + s_sum * s_sum) / steps
-                    alternating = squares - total * total / steps
-                    group_quality = min(1.0, explained / alternating) if alternating > 0 else 0.0
-                    if g == first_group:
-                        axis_quality = group_quality
-                    else:
-                        axis_quality = min(axis_quality, group_quality)
-                    axis_modulation = 2.0 * math.sqrt(c_sum * c_sum + s_sum * s_sum) / steps
-                    phase = math.atan2(s_sum, c_sum)
-                    if phase < 0:
-                        phase += 2 * math.pi
-                    wrapped = phase / (2 * math.pi) * period
-                    if np.isnan(reference):
-                        if wrapped > 0.5 * (axis_size[a] - 1 + period):
-                            wrapped -= period
-                        reference = wrapped
-                    else:
-                        unwrapped = wrapped + period * math.floor((reference - wrapped) / period + 0.5)
-                        if abs(unwrapped - reference) > uncertainty + consistency * (0.5 * period - uncertainty):
-                            inconsistent = True
-                        reference = unwrapped
-                    uncertainty = 0.0
-                if first_group < end_group and axis_quality < min_quality:
-                    poor_fit = True
-                if reference < -0.5 or reference > axis_size[a] - 0.5:
-                    inconsistent = True
-                coordinates[a, row, col] = reference
-                pixel_modulation = min(pixel_modulation, axis_modulation)
-                pixel_quality = min(pixel_quality, axis_quality)
+            phased = first_group < end_group
+            for col in range(width):
+                poor_fit[col] |= phased and axis_quality[col] < min_quality
+                inconsistent[col] |= reference[col] < -0.5 or reference[col] > axis_size[a] - 0.5
+                coordinates[a, row, col] = reference[col]
+                pixel_modulation[col] = min(pixel_modulation[col], axis_modulation[col])
+                pixel_quality[col] = min(pixel_quality[col], axis_quality[col])
 
-            if level < min_intensity:
+        for col in range(width):
+            if level[col] < min_intensity:
                 reason = 1
-            elif saturated:
+            elif saturated[col]:
                 reason = 2
-            elif pixel_modulation < min_modulation:
+            elif pixel_modulation[col] < min_modulation:
                 reason = 3
-            elif poor_fit:
+            elif poor_fit[col]:
                 reason = 4
-            elif inconsistent:
+            elif inconsistent[col]:
                 reason = 5
             else:
                 reason = 0
             if reason != 0:
                 coordinates[0, row, col] = np.nan
                 coordinates[1, row, col] = np.nan
-            modulation[row, col] = pixel_modulation
-            intensity[row, col] = level
-            quality[row, col] = pixel_quality
+            modulation[row, col] = pixel_modulation[col]
+            intensity[row, col] = level[col]
+            quality[row, col] = pixel_quality[col]
             rejection[row, col] = reason
 
 
@@ -266,29 +292,31 @@ def _decode_kernel(frames, saturation_frames, saturation_level, white, black, me
 def _edge_kernel(coordinates, rejection, margin, max_jump):
     """Mark valid pixels within ``margin`` pixels of a rejected one, or beside a jump above ``max_jump``."""
     height, width = rejection.shape
-    rejected = rejection != 0
+    near_row = np.zeros((height, width), np.bool_)  # a rejected pixel within margin along the row
     for row in prange(height):
         for col in range(width):
-            if rejected[row, col]:
-                continue
-            edge = False
-            for r in range(max(0, row - margin), min(height, row + margin + 1)):
-                for c in range(max(0, col - margin), min(width, col + margin + 1)):
-                    if rejected[r, c]:
-                        edge = True
-            for a in range(2):
-                here = coordinates[a, row, col]
-                if row > 0 and abs(coordinates[a, row - 1, col] - here) > max_jump:
-                    edge = True
-                if row + 1 < height and abs(coordinates[a, row + 1, col] - here) > max_jump:
-                    edge = True
-                if col > 0 and abs(coordinates[a, row, col - 1] - here) > max_jump:
-                    edge = True
-                if col + 1 < width and abs(coordinates[a, row, col + 1] - here) > max_jump:
-                    edge = True
-            if edge:
-                rejection[row, col] = 6
+            if rejection[row, col] != 0:
+                near_row[row, max(0, col - margin):min(width, col + margin + 1)] = True
+    jumps = np.isfinite(max_jump)
     for row in prange(height):
+        edge = np.zeros(width, np.bool_)
+        for r in range(max(0, row - margin), min(height, row + margin + 1)):
+            edge |= near_row[r]
+        if jumps:
+            for a in range(2):
+                here = coordinates[a, row]
+                for col in range(width - 1):
+                    step = abs(here[col + 1] - here[col]) > max_jump
+                    edge[col] |= step
+                    edge[col + 1] |= step
+                if row > 0:
+                    edge |= np.abs(coordinates[a, row - 1] - here) > max_jump
+                if row + 1 < height:
+                    edge |= np.abs(coordinates[a, row + 1] - here) > max_jump
+        for col in range(width):
+            if edge[col] and rejection[row, col] == 0:
+                rejection[row, col] = 6
+    for row in prange(height):  # a pass of its own: the jump test above reads the neighbouring rows
         for col in range(width):
             if rejection[row, col] == 6:
                 coordinates[0, row, col] = np.nan

@@ -231,3 +231,12 @@ def test_pixels_beside_rejected_ones_or_a_jump_are_edges():
     jumps = decode(stepped, sequence, edge_margin=0, max_jump=10)
     assert np.all(jumps.rejection[:, [49, 50]] == Rejection.EDGE)
     assert np.all(jumps.rejection[:, [48, 51]] == Rejection.VALID)
+
+
+def test_polynomial_atan2_matches_numpy_to_2e8_rad():
+    from services.structured_light.decode import _polynomial_atan2
+
+    rng = np.random.default_rng(3)
+    samples = np.concatenate([rng.normal(size=(2, 2000)), [[0, 1, -1, 0, 1e-300], [1, 0, 0, -1, -1e-300]]], axis=1)
+    errors = [abs(_polynomial_atan2(y, x) - np.arctan2(y, x)) for y, x in samples.T]
+    assert max(errors) < 2e-8
