@@ -10,6 +10,9 @@ from __future__ import annotations
 
 import io
 import tempfile
+import time
+from collections.abc import Iterator
+from contextlib import contextmanager
 from functools import lru_cache
 from pathlib import Path
 from typing import Any
@@ -42,45 +45,64 @@ def _options(max_retries: int, time_limit_s: float) -> dict[str, Any]:
 
 @dramatiq.actor(actor_name="scan", **_options(max_retries=2, time_limit_s=120))
 def scan(job_id: str) -> dict[str, Any]:
-    """Capture with the gateway, reconstruct, fuse, store the artifacts, stream to Rerun, summarise."""
+    """Capture with the gateway, reconstruct, fuse, store the artifacts, stream to Rerun, summarise.
+
+    The result holds the artifact digests and the seconds each stage took.
+    """
     runtime = current_runtime()
-    tracker, store = runtime.tracker, runtime.store
+    store, settings = runtime.store, runtime.settings
     params = _job_params(runtime, job_id)
     rig_digest, rig = _calibration_rig(runtime, params["calibration_set_id"])
     camera_name, camera = rig.device(None, "camera")
     _, projector = rig.device(None, "projector")
     thermal_name, thermal = rig.device(None, "thermal")
+    stages = _Stages(runtime, job_id)
 
-    tracker.progress(job_id, "capture", 0.05)
-    with GatewayClient(runtime.settings.gateway_url) as gateway:
+    with stages("capture", 0.05), GatewayClient(settings.gateway_url) as gateway:
         capture = gateway.capture(thermal_frames=1)
-    tracker.progress(job_id, "reconstruct", 0.3)
-    cloud = reconstruct_points(capture.frames, capture.sequence, camera, projector,
-                               rays=_ray_table(rig_digest, camera_name, rig))
-    tracker.progress(job_id, "fuse", 0.55)
-    field = temperature_field(cloud, [ThermalView(thermal, capture.thermal)],
-                              camera_center(camera.R_array, camera.t_array))
-    tracker.progress(job_id, "store", 0.7)
-    artifacts = {
-        "cloud.ply": _store_cloud(store, cloud),
-        "field.ply": _store_cloud(store, field),
-        "frames.npy": store.put_bytes(_npy(capture.frames)),
-        "thermal.npy": store.put_bytes(_npy(capture.thermal.astype(np.float32))),
-    }
-    tracker.progress(job_id, "stream", 0.85)
-    captured_at = float(capture.frame_timestamps[0]) if len(capture.frame_timestamps) else None
-    artifacts["field.rrd"] = store.put_bytes(
-        scan_recording(params["scan_id"], field, rig, capture.thermal[0], captured_at))
-    _station_view(runtime.settings.rerun_host, runtime.settings.rerun_port, runtime.settings.station).publish(
-        field, rig, capture.thermal[0], captured_at)
+    with stages("reconstruct", 0.3):
+        cloud = reconstruct_points(capture.frames, capture.sequence, camera, projector,
+                                   rays=_ray_table(rig_digest, camera_name, rig))
+    with stages("fuse", 0.55):
+        field = temperature_field(cloud, [ThermalView(thermal, capture.thermal)],
+                                  camera_center(camera.R_array, camera.t_array))
+    with stages("store", 0.7):
+        artifacts = {
+            "cloud.ply": _store_cloud(store, cloud),
+            "field.ply": _store_cloud(store, field),
+            "frames.npy": store.put_bytes(_npy(capture.frames)),
+            "thermal.npy": store.put_bytes(_npy(capture.thermal.astype(np.float32))),
+        }
+    with stages("stream", 0.85):
+        captured_at = float(capture.frame_timestamps[0]) if len(capture.frame_timestamps) else None
+        artifacts["field.rrd"] = store.put_bytes(
+            scan_recording(params["scan_id"], field, rig, capture.thermal[0], captured_at))
+        _station_view(settings.rerun_host, settings.rerun_port, settings.station).publish(
+            field, rig, capture.thermal[0], captured_at)
     summary = field_summary(field)
     with runtime.sessions.begin() as session:
         row = session.get(Scan, params["scan_id"])
         row.artifacts, row.summary = artifacts, summary
-    return {"scan_id": params["scan_id"], "artifacts": artifacts, "thermal_device": thermal_name}
+    return {"scan_id": params["scan_id"], "artifacts": artifacts, "thermal_device": thermal_name,
+            "stage_seconds": stages.seconds}
 
 
 ACTORS = {"scan": scan}
+
+
+class _Stages:
+    """Reports each stage as the job's progress and times it."""
+
+    def __init__(self, runtime: Runtime, job_id: str) -> None:
+        self.runtime, self.job_id = runtime, job_id
+        self.seconds: dict[str, float] = {}
+
+    @contextmanager
+    def __call__(self, name: str, fraction: float) -> Iterator[None]:
+        self.runtime.tracker.progress(self.job_id, name, fraction)
+        start = time.perf_counter()
+        yield
+        self.seconds[name] = round(time.perf_counter() - start, 3)
 
 
 def _job_params(runtime: Runtime, job_id: str) -> dict[str, Any]:

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import signal
 import subprocess
 import sys
 import time
@@ -12,7 +13,7 @@ from pathlib import Path
 from services.errors import InputError
 from services.settings import Settings
 
-_GATEWAY_START_TIMEOUT_S = 60.0
+_GATEWAY_START_TIMEOUT_S = 180.0
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -50,7 +51,6 @@ def _settings(**overrides) -> Settings:
 
 def _serve(args: argparse.Namespace) -> int:
     import dramatiq
-    import uvicorn
 
     from api.app import create_app
     from services.streaming.proxy import RerunProxy
@@ -65,7 +65,8 @@ def _serve(args: argparse.Namespace) -> int:
     _ensure_simulator_calibration(runtime)
     broker = setup_broker(settings)
     worker = dramatiq.Worker(broker, worker_threads=settings.worker_threads)
-    with RerunProxy(settings.rerun_host, settings.rerun_port) as proxy, _gateway_process(settings.gateway_port):
+    with _GatewayProcess(settings.gateway_port) as gateway, RerunProxy(settings.rerun_host, settings.rerun_port) as proxy:
+        gateway.wait_until_healthy()
         worker.start()
         for job in runtime.tracker.recover():
             send_job(job.kind, job.id)
@@ -73,10 +74,23 @@ def _serve(args: argparse.Namespace) -> int:
               f"(docs at /docs), data in {settings.data_dir.resolve()}", flush=True)
         print(f"thermofield: Rerun: rerun --connect {proxy.url}", flush=True)
         try:
-            uvicorn.run(create_app(runtime), host=settings.api_host, port=settings.api_port, log_level="warning")
+            _run_uvicorn(create_app(runtime), settings)
         finally:
             worker.stop()
     return 0
+
+
+def _run_uvicorn(app, settings: Settings) -> None:
+    """Serve ``app``; a SIGTERM ends it with SystemExit (after uvicorn's graceful shutdown, which re-raises
+    the signal) so that the caller's clean-up runs: the embedded worker, gateway and Rerun proxy stop too."""
+    import uvicorn
+
+    signal.signal(signal.SIGTERM, _exit_on_terminate)
+    uvicorn.run(app, host=settings.api_host, port=settings.api_port, log_level="warning")
+
+
+def _exit_on_terminate(signum, frame) -> None:
+    raise SystemExit(0)
 
 
 def _ensure_simulator_calibration(runtime) -> None:
@@ -95,26 +109,29 @@ def _ensure_simulator_calibration(runtime) -> None:
                                    rig_sha256=digest, active=True, source="simulator"))
 
 
-class _gateway_process:
-    """``thermofield gateway`` (simulated driver) as a child process for the embedded service."""
+class _GatewayProcess:
+    """``thermofield gateway`` (simulated driver) as a child process of the embedded service."""
 
     def __init__(self, port: int) -> None:
         self.port = port
 
-    def __enter__(self) -> subprocess.Popen:
-        import httpx
-
+    def __enter__(self) -> _GatewayProcess:
         self.process = subprocess.Popen([sys.executable, "-m", "services.cli.main", "gateway", "--driver", "simulated",
                                          "--host", "127.0.0.1", "--port", str(self.port)], stdin=subprocess.DEVNULL)
+        return self
+
+    def wait_until_healthy(self) -> None:
+        """Block until the gateway answers (it traces the simulated scene first, seconds)."""
+        import httpx
+
         deadline = time.monotonic() + _GATEWAY_START_TIMEOUT_S
         while True:
             try:
                 if httpx.get(f"http://127.0.0.1:{self.port}/healthz", timeout=1.0).status_code in (200, 503):
-                    return self.process
+                    return
             except httpx.HTTPError:
                 pass
             if self.process.poll() is not None or time.monotonic() > deadline:
-                self.__exit__()
                 raise InputError(f"the simulated gateway did not start on port {self.port} "
                                  "(is the port taken? choose another with --gateway-port)")
             time.sleep(0.2)
@@ -126,8 +143,6 @@ class _gateway_process:
 
 
 def _api(args: argparse.Namespace) -> int:
-    import uvicorn
-
     from api.app import create_app
     from workers.broker import setup_broker
     from workers.runtime import build_runtime, use_runtime
@@ -138,7 +153,7 @@ def _api(args: argparse.Namespace) -> int:
     use_runtime(runtime)
     setup_broker(settings)
     print(f"thermofield: API on http://{settings.api_host}:{settings.api_port}", flush=True)
-    uvicorn.run(create_app(runtime), host=settings.api_host, port=settings.api_port, log_level="warning")
+    _run_uvicorn(create_app(runtime), settings)
     return 0
 
 
