@@ -20,7 +20,7 @@ def cloud_normals(cloud: dict[str, np.ndarray], viewpoint: np.ndarray) -> np.nda
         normals = np.column_stack([cloud["nx"], cloud["ny"], cloud["nz"]]).astype(np.float64)
         missing = ~np.isfinite(normals).all(axis=1)
         if missing.any():
-            normals[missing] = estimate_normals(points, viewpoint)[missing]
+            normals[missing] = estimate_normals(points, viewpoint, where=missing)[missing]
         return normals
     return estimate_normals(points, viewpoint)
 

@@ -6,7 +6,9 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 
-def estimate_normals(points: np.ndarray, viewpoint: np.ndarray, neighbours: int = 12) -> np.ndarray:
+def estimate_normals(
+    points: np.ndarray, viewpoint: np.ndarray, neighbours: int = 12, where: np.ndarray | None = None
+) -> np.ndarray:
     """Unit normals of a point cloud, oriented toward a viewpoint.
 
     Parameters
@@ -18,11 +20,14 @@ def estimate_normals(points: np.ndarray, viewpoint: np.ndarray, neighbours: int 
         cloud); each normal is flipped to face it.
     neighbours : int
         Neighbourhood size, including the point itself (at least 3).
+    where : (N,) bool array, optional
+        Estimate only these points' normals (neighbours still come from the
+        whole cloud); the others are NaN.
 
     Returns
     -------
     normals : (N, 3) float64 array
-        Unit normals; NaN for points with fewer than 3 distinct neighbours.
+        Unit normals; NaN for non-finite points and those not in ``where``.
 
     Notes
     -----
@@ -42,16 +47,16 @@ def estimate_normals(points: np.ndarray, viewpoint: np.ndarray, neighbours: int 
         raise ValueError(f"At least 3 neighbours are needed to fit a plane; got {neighbours}.")
     normals = np.full_like(points, np.nan)
     finite = np.isfinite(points).all(axis=1)
-    if finite.sum() < 3:
+    wanted = finite if where is None else finite & np.asarray(where, dtype=bool)
+    if finite.sum() < 3 or not wanted.any():
         return normals
     valid = points[finite]
-    k = min(neighbours, len(valid))
-    _, index = cKDTree(valid).query(valid, k=k, workers=-1)
+    _, index = cKDTree(valid).query(points[wanted], k=min(neighbours, len(valid)), workers=-1)
     neighbourhood = valid[index] - valid[index].mean(axis=1, keepdims=True)
     covariance = np.einsum("nki,nkj->nij", neighbourhood, neighbourhood)
     _, vectors = np.linalg.eigh(covariance)
     estimated = vectors[:, :, 0]
-    toward = np.asarray(viewpoint, dtype=np.float64) - valid
+    toward = np.asarray(viewpoint, dtype=np.float64) - points[wanted]
     estimated *= np.where(np.einsum("ni,ni->n", estimated, toward) < 0, -1.0, 1.0)[:, None]
-    normals[finite] = estimated
+    normals[wanted] = estimated
     return normals

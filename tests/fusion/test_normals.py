@@ -23,3 +23,14 @@ def test_nan_points_get_nan_normals_and_bad_arguments_are_refused():
     assert np.isnan(normals[4]).all()
     with pytest.raises(ValueError, match="3 neighbours"):
         estimate_normals(points, np.zeros(3), neighbours=2)
+
+
+def test_only_the_requested_normals_are_estimated_from_all_neighbours():
+    x, y = np.meshgrid(np.arange(20.0), np.arange(20.0))
+    points = np.column_stack([x.ravel(), y.ravel(), 100 + 0.5 * x.ravel()])
+    where = np.zeros(len(points), dtype=bool)
+    where[[0, 210]] = True
+    normals = estimate_normals(points, np.array([0.0, 0.0, 0.0]), where=where)
+    expected = np.array([0.5, 0.0, -1.0]) / np.hypot(0.5, 1.0)
+    np.testing.assert_allclose(normals[where], [expected, expected], atol=1e-9)
+    assert np.isnan(normals[~where]).all()
