@@ -267,14 +267,18 @@ def render_view(scene: Scene, camera: Device, projector: Device, supersample: in
 def _centre_truth(camera: Device, supersample: int, points: np.ndarray, surface: np.ndarray, lit: np.ndarray,
                   projector_pixels: np.ndarray) -> GroundTruth:
     """Per-pixel ground truth from the centre sub-samples (exactly the pixel centres, s being odd)."""
-    middle = supersample // 2
     grid = (camera.height, supersample, camera.width, supersample)
-    points = points.reshape(grid + (3,))[:, middle, :, middle]
-    depth = (points @ camera.R_array.T + camera.t_array)[..., 2]
-    centre_lit = lit.reshape(grid)[:, middle, :, middle]
-    pixels = np.where(centre_lit[..., None], projector_pixels.reshape(grid + (2,))[:, middle, :, middle], np.nan)
-    return GroundTruth(depth=depth, points=points, surface=surface.reshape(grid)[:, middle, :, middle],
+    points = _centre_samples(points, grid)
+    depth = points @ camera.R_array[2] + camera.t_array[2]
+    pixels = np.where(_centre_samples(lit, grid)[..., None], _centre_samples(projector_pixels, grid), np.nan)
+    return GroundTruth(depth=depth, points=points, surface=_centre_samples(surface, grid),
                        lit=lit.reshape(grid).all(axis=(1, 3)), projector_pixels=pixels)
+
+
+def _centre_samples(samples: np.ndarray, grid: tuple[int, int, int, int]) -> np.ndarray:
+    """The centre sub-sample of each pixel, (H * s * W * s, ...) -> (H, W, ...), copied so the rest can be freed."""
+    middle = grid[1] // 2
+    return np.ascontiguousarray(samples.reshape(grid + samples.shape[1:])[:, middle, :, middle])
 
 
 def _projector_light(pattern: np.ndarray, effects: ProjectorEffects) -> np.ndarray:
