@@ -80,13 +80,6 @@ class CalibrationSetOut(BaseModel):
     links: dict[str, str]
 
 
-class CalibrationCaptureRequest(BaseModel):
-    model_config = ConfigDict(extra="forbid")
-
-    name: str = Field(min_length=1, max_length=200)
-    activate: bool = False
-
-
 class Health(BaseModel):
     status: Literal["ok"]
 

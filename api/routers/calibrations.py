@@ -1,4 +1,4 @@
-"""Calibration sets: upload a rig file, or calibrate from a capture job; list, get, download, activate."""
+"""Calibration sets: upload a rig file; list, get, download as a rig file, activate one per station."""
 
 from __future__ import annotations
 
@@ -12,10 +12,9 @@ from sqlalchemy import select, update
 from api.deps import AdminKey, ReaderKey, RuntimeDep, SessionDep
 from api.idempotency import IdempotencyKeyHeader, Outcome, request_digest, respond_once
 from api.problems import Problem
-from api.schemas import Accepted, CalibrationCaptureRequest, CalibrationSetOut
+from api.schemas import CalibrationSetOut
 from services.db.models import CalibrationSet
 from services.formats.rig import parse_rig, rig_to_json
-from workers.broker import send_job
 
 router = APIRouter(prefix="/calibration-sets", tags=["calibration"])
 _MAX_RIG_BYTES = 1 << 20
@@ -66,26 +65,6 @@ async def create_calibration_set(request: Request, session: SessionDep, runtime:
 
     form = json.dumps({"name": name, "activate": activate}).encode() + text
     return respond_once(session, key, idempotency_key, request_digest(request, form), create)
-
-
-@router.post("/capture", name="start_calibration_capture", status_code=202, response_model=Accepted)
-async def start_calibration_capture(request: Request, body: CalibrationCaptureRequest, session: SessionDep,
-                                    runtime: RuntimeDep, key: AdminKey, idempotency_key: IdempotencyKeyHeader = None):
-    """Calibrate the station from a board capture, as a background job that creates the calibration set."""
-
-    def start() -> Outcome:
-        job = runtime.tracker.create(session, "calibrate", {"name": body.name, "activate": body.activate,
-                                                             "station": runtime.settings.station})
-
-        def dispatch() -> None:
-            runtime.tracker.announce(job)
-            send_job("calibrate", job.id)
-
-        accepted = Accepted(job_id=job.id, status="queued",
-                            links={"job": f"/v1/jobs/{job.id}", "events": f"/v1/jobs/{job.id}/events"})
-        return Outcome(202, accepted.model_dump(mode="json"), f"/v1/jobs/{job.id}", dispatch)
-
-    return respond_once(session, key, idempotency_key, request_digest(request, await request.body()), start)
 
 
 @router.get("", name="list_calibration_sets")
