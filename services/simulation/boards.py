@@ -13,11 +13,13 @@ import cv2
 import numpy as np
 
 from services.formats.board import BoardSpec, CharucoSpec, ChessboardSpec, CirclesSpec
-from services.geometry.camera import normalized_coordinates
+from services.formats.rig import Device
+from services.geometry.camera import normalized_coordinates, project_points
 
 Modality = Literal["visible", "infrared"]
 _MAX_TEXELS_PER_FEATURE = 256
 _BACKGROUND = 0.35  # visible albedo of the scene behind the board
+_PRINTED_BLACK, _PAPER_WHITE = 0.08, 0.95  # visible chessboard albedos
 
 
 def render_board(
@@ -71,8 +73,9 @@ def render_board(
     -----
     A sample at pixel p has the viewing ray (x, y, 1) with (x, y) = undistort(p); it meets the
     board plane z = 0 at the board point (X, Y) with [r1 r2 t] (X, Y, 1)^T ~ (x, y, 1)^T, r1
-    and r2 the first columns of R (the plane-to-image homography of Zhang's method). The texture has an integer number of texels per square, so square edges
-    fall on texel boundaries and bilinear lookup puts them exactly in place.
+    and r2 the first columns of R (the plane-to-image homography of Zhang's method). The
+    texture has an integer number of texels per square, so square edges fall on texel
+    boundaries and bilinear lookup puts them exactly in place.
     """
     if modality not in ("visible", "infrared"):
         raise ValueError(f"modality must be 'visible' or 'infrared'; got {modality!r}.")
@@ -83,6 +86,84 @@ def render_board(
     if supersample < 1:
         raise ValueError(f"supersample must be at least 1; got {supersample}.")
     width, height = int(image_size[0]), int(image_size[1])
+    samples, _, _ = _board_samples(board, K, dist, R, t, width, height, supersample, modality)
+    radiance = cv2.resize(samples, (width, height), interpolation=cv2.INTER_AREA)  # the mean of each pixel's samples
+    if blur_sigma > 0:
+        radiance = cv2.GaussianBlur(radiance, (0, 0), blur_sigma)
+    return _quantise(radiance, noise_sigma, bit_depth, rng or np.random.default_rng(0))
+
+
+def render_board_capture(
+    board: BoardSpec,
+    K: np.ndarray,
+    dist: np.ndarray,
+    R: np.ndarray,
+    t: np.ndarray,
+    image_size: tuple[int, int],
+    projector: Device,
+    patterns: np.ndarray,
+    *,
+    ambient: float = 0.05,
+    blur_sigma: float = 0.0,
+    noise_sigma: float = 0.0,
+    supersample: int = 2,
+    rng: np.random.Generator | None = None,
+) -> np.ndarray:
+    """Camera frames of a board lit by a projector showing each pattern (projector calibration captures).
+
+    Parameters
+    ----------
+    board, K, dist, R, t, image_size
+        As for ``render_board``; (R, t) is the board-to-camera pose.
+    projector : Device
+        The projector, its pose mapping camera coordinates to projector coordinates.
+    patterns : (F, Hp, Wp) uint8 array
+        The projector images.
+    ambient : float
+        Ambient light as a fraction of full projector light.
+    blur_sigma, noise_sigma, supersample, rng
+        As for ``render_board`` (8-bit output).
+
+    Returns
+    -------
+    frames : (F, height, width) uint8 array
+
+    Notes
+    -----
+    Each sample's board point X (see ``render_board``) has albedo rho(X) (the visible board
+    texture) and projector pixel x_p = proj(K_p, dist_p, R_p, t_p, X); its irradiance is
+    E = rho(X) (ambient + L(x_p)) with L the pattern value sampled bilinearly (0 outside the
+    projector image). The board plane casts no shadow on itself.
+    """
+    patterns = np.asarray(patterns)
+    if patterns.ndim != 3 or patterns.shape[1:] != (projector.height, projector.width):
+        raise ValueError(f"patterns must have shape (F, {projector.height}, {projector.width}); got {patterns.shape}.")
+    width, height = int(image_size[0]), int(image_size[1])
+    albedo, board_xy, valid = _board_samples(board, K, dist, R, t, width, height, supersample, "visible")
+    points = np.column_stack([board_xy.reshape(-1, 2), np.zeros(board_xy[..., 0].size)])
+    points = points @ np.asarray(R, np.float64).T + np.asarray(t, np.float64).ravel()
+    projector_pixels = np.full((len(points), 2), -1e6)
+    chosen = valid.ravel()
+    projector_pixels[chosen] = project_points(points[chosen], projector.K_array, projector.dist_array,
+                                              projector.R_array, projector.t_array)
+    projector_pixels = np.nan_to_num(projector_pixels, nan=-1e6).astype(np.float32)
+    map_x = projector_pixels[:, 0].reshape(albedo.shape)
+    map_y = projector_pixels[:, 1].reshape(albedo.shape)
+    maximum = float(np.iinfo(patterns.dtype).max) if np.issubdtype(patterns.dtype, np.integer) else 1.0
+    rng = rng or np.random.default_rng(0)
+    frames = np.empty((len(patterns), height, width), np.uint8)
+    for index, pattern in enumerate(patterns):
+        light = cv2.remap(pattern.astype(np.float32) / maximum, map_x, map_y, cv2.INTER_LINEAR,
+                          borderMode=cv2.BORDER_CONSTANT, borderValue=0.0)
+        irradiance = cv2.resize(albedo * (ambient + light), (width, height), interpolation=cv2.INTER_AREA)
+        if blur_sigma > 0:
+            irradiance = cv2.GaussianBlur(irradiance, (0, 0), blur_sigma)
+        frames[index] = _quantise(irradiance, noise_sigma, 8, rng)
+    return frames
+
+
+def _board_samples(board, K, dist, R, t, width, height, supersample, modality):
+    """Radiance (albedo when visible) of every sample, its board coordinates and whether it sees the board plane."""
     board_xy, valid = _sample_board_coordinates(K, dist, R, t, width, height, supersample)
     texels_per_mm = _texture_resolution(board, board_xy[valid])
     texture, origin = _board_texture(board, modality, texels_per_mm)
@@ -94,10 +175,7 @@ def render_board(
                         borderValue=background)
     if modality == "infrared":
         samples = _apply_heater(samples, board_xy, valid, board)
-    radiance = samples.reshape(height, supersample, width, supersample).mean(axis=(1, 3))
-    if blur_sigma > 0:
-        radiance = cv2.GaussianBlur(radiance, (0, 0), blur_sigma)
-    return _quantise(radiance, noise_sigma, bit_depth, rng or np.random.default_rng(0))
+    return samples, board_xy, valid
 
 
 def _sample_board_coordinates(K, dist, R, t, width, height, supersample):
@@ -166,8 +244,10 @@ def _board_texture(board: BoardSpec, modality: Modality, texels_per_mm: float) -
         cols, rows = board.pattern_size
         squares = np.indices((rows + 1, cols + 1)).sum(axis=0) % 2
         light = np.kron(squares, np.ones((n, n))).astype(np.float32)  # square (0, 0) dark
-        frame = 0.0 if modality == "infrared" else 1.0
-        return np.pad(light, n, constant_values=frame), np.array([-2 * pitch, -2 * pitch])
+        if modality == "infrared":  # 1 marks a hole; the frame is solid
+            return np.pad(light, n, constant_values=0.0), np.array([-2 * pitch, -2 * pitch])
+        albedo = _PRINTED_BLACK + (_PAPER_WHITE - _PRINTED_BLACK) * light
+        return np.pad(albedo, n, constant_values=_PAPER_WHITE), np.array([-2 * pitch, -2 * pitch])
     if isinstance(board, CharucoSpec):
         cols, rows = board.squares
         image = board.opencv_board().generateImage((cols * n, rows * n), marginSize=0, borderBits=1)
