@@ -122,6 +122,19 @@ def _default_unit(path: Path, array: np.ndarray) -> str:
     )
 
 
+def _object_temperature(values: np.ndarray, sidecar: ThermalSidecar, emissivity: float) -> np.ndarray:
+    """Degrees Celsius of the object from the frame's numbers in the sidecar's unit."""
+    constants = sidecar.planck.constants() if sidecar.planck else None
+    if sidecar.unit == "counts":
+        return counts_to_temperature(values, constants, emissivity, sidecar.reflected_temperature)
+    offset, scale = {"celsius": (0.0, 1.0), "kelvin": (KELVIN_OFFSET, 1.0), "centikelvin": (KELVIN_OFFSET, 0.01)}[
+        sidecar.unit]
+    apparent = values * scale - offset
+    if emissivity == 1.0:
+        return apparent
+    return correct_emissivity(apparent, emissivity, sidecar.reflected_temperature, constants)
+
+
 def read_thermal_frame(
     path: str | Path,
     size: tuple[int, int] | None = None,
@@ -158,27 +171,17 @@ def read_thermal_frame(
         raise InputError(
             f"{path}: thermal frame is {width}x{height} but the thermal camera is {size[0]}x{size[1]}"
         )
-    unit = sidecar.unit if sidecar else _default_unit(path, array)
+    sidecar = sidecar or ThermalSidecar(unit=_default_unit(path, array))
     values = array.astype(np.float64)
-    if unit == "centikelvin":
+    if sidecar.unit == "centikelvin":
         values[np.isin(array, _CENTIKELVIN_NO_DATA)] = np.nan
-        temperature = values / 100.0 - KELVIN_OFFSET
-    elif unit == "kelvin":
-        temperature = values - KELVIN_OFFSET
-    elif unit == "celsius":
-        temperature = values
     if not np.isfinite(values).any():
         raise InputError(f"{path}: thermal frame has no finite value (all NaN or no data)")
-    object_emissivity = emissivity if emissivity is not None else (sidecar.emissivity if sidecar else 1.0)
-    if not 0.0 < object_emissivity <= 1.0:
-        raise InputError(f"emissivity must be in (0, 1]; got {object_emissivity}")
-    reflected = sidecar.reflected_temperature if sidecar else 20.0
-    constants = sidecar.planck.constants() if sidecar and sidecar.planck else None
+    emissivity = sidecar.emissivity if emissivity is None else emissivity
+    if not 0.0 < emissivity <= 1.0:
+        raise InputError(f"emissivity must be in (0, 1]; got {emissivity}")
     try:
-        if unit == "counts":
-            temperature = counts_to_temperature(values, constants, object_emissivity, reflected)
-        elif object_emissivity < 1.0:
-            temperature = correct_emissivity(temperature, object_emissivity, reflected, constants)
+        temperature = _object_temperature(values, sidecar, emissivity)
     except ValueError as error:
         raise InputError(f"{path}: {error}") from None
     if not np.isfinite(temperature).any():
