@@ -162,7 +162,7 @@ def infrared_from_visible(
     sampled = cv2.warpPerspective(grey, matrix, (moving_width, moving_height),
                                   flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
                                   borderMode=cv2.BORDER_CONSTANT, borderValue=0.5)
-    infrared = (1.0 - sampled) ** 0.6
+    infrared = (1.0 - np.clip(sampled, 0.0, 1.0)) ** 0.6
     ys, xs = np.mgrid[0:moving_height, 0:moving_width].astype(np.float32)
     for _ in range(blobs):
         cx, cy = rng.uniform(0.2, 0.8) * moving_width, rng.uniform(0.2, 0.8) * moving_height
