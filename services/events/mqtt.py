@@ -14,12 +14,13 @@ from __future__ import annotations
 import json
 import logging
 import threading
+import time
 from typing import Any
 
 import paho.mqtt.client as mqtt
 
 logger = logging.getLogger(__name__)
-_PUBLISH_TIMEOUT_S = 5.0
+_FLUSH_TIMEOUT_S = 5.0
 
 
 def job_topic(prefix: str, job_id: str) -> str:
@@ -42,18 +43,29 @@ class EventPublisher:
         self._client = mqtt.Client(mqtt.CallbackAPIVersion.VERSION2, client_id=client_id)
         self._client.reconnect_delay_set(min_delay=1, max_delay=10)
         self._lock = threading.Lock()
+        self._last: mqtt.MQTTMessageInfo | None = None
         self._client.connect_async(host, port, keepalive=30)
         self._client.loop_start()
 
     def publish(self, topic: str, state: dict[str, Any]) -> None:
+        """Queue a retained QoS 1 message; the client's network thread delivers it (and re-sends it after a
+        reconnection), so a job never waits for the broker."""
         payload = json.dumps(state, default=str, separators=(",", ":"))
         with self._lock:
             info = self._client.publish(topic, payload, qos=1, retain=True)
-        try:
-            info.wait_for_publish(timeout=_PUBLISH_TIMEOUT_S)
-        except (RuntimeError, ValueError) as error:
-            logger.warning("MQTT publish to %s failed: %s", topic, error)
+        if info.rc not in (mqtt.MQTT_ERR_SUCCESS, mqtt.MQTT_ERR_NO_CONN):
+            logger.warning("MQTT publish to %s failed: %s", topic, mqtt.error_string(info.rc))
+        self._last = info
 
     def close(self) -> None:
+        """Deliver what is queued (a few seconds at most), then disconnect."""
+        deadline = time.monotonic() + _FLUSH_TIMEOUT_S
+        while self._last is not None and not self._client.is_connected() and time.monotonic() < deadline:
+            time.sleep(0.05)
+        if self._last is not None and self._client.is_connected():
+            try:
+                self._last.wait_for_publish(timeout=max(deadline - time.monotonic(), 0.1))
+            except (RuntimeError, ValueError) as error:
+                logger.warning("MQTT messages still queued at close: %s", error)
         self._client.loop_stop()
         self._client.disconnect()

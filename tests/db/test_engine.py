@@ -30,3 +30,15 @@ def test_postgres_schema_name_is_checked():
 
     with pytest.raises(ValueError, match="schema name"):
         make_engine("postgresql+psycopg://postgres@127.0.0.1:5432/test", "bad; drop")
+
+
+def test_migrations_match_the_models(engine):
+    """Every schema change has its Alembic migration: the migrated database differs in nothing from the models."""
+    from alembic.autogenerate import compare_metadata
+    from alembic.migration import MigrationContext
+
+    from services.db.models import Base
+
+    with engine.connect() as connection:
+        differences = compare_metadata(MigrationContext.configure(connection), Base.metadata)
+    assert differences == []
