@@ -9,6 +9,7 @@ import numpy as np
 
 from services.calibration.camera import MIN_VIEWS, calibrate_camera
 from services.calibration.corners import BoardDetection, detect_board
+from services.calibration.projector import calibrate_projector, projector_corners
 from services.calibration.report import coverage_map, residual_bars, residual_vectors
 from services.calibration.stereo import calibrate_stereo
 from services.errors import InputError
@@ -16,13 +17,17 @@ from services.formats.board import BoardSpec, load_board
 from services.formats.calibration import (
     CalibratedView,
     CameraCalibrationFile,
+    ProjectorCalibrationFile,
     RejectedView,
     load_camera_calibration,
     save_camera_calibration,
     save_figure,
+    save_projector_calibration,
 )
 from services.formats.images import FRAME_SUFFIXES, read_frame
 from services.formats.rig import Device, Rig, load_rig, save_rig
+from services.formats.sequence import read_capture
+from services.structured_light.decode import decode
 
 REPORT_FIGURES = ("residual_bars", "residual_vectors", "coverage")
 
@@ -40,6 +45,18 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     camera.add_argument("--distortion", choices=("none", "radial", "standard", "rational"), default="standard",
                         help="lens model: none, k1 k2, k1 k2 p1 p2 k3 (default) or rational (8 terms)")
     camera.set_defaults(handler=run_camera)
+
+    projector = topics.add_parser("projector", help="projector intrinsics and pose from structured-light board captures")
+    projector.add_argument("--board", required=True, type=Path)
+    projector.add_argument("--captures", required=True, type=Path, nargs="+",
+                           help="capture directories (sequence.json + frames, both axes coded), one per board pose")
+    projector.add_argument("--camera", required=True, type=Path, help="the camera's calibration JSON")
+    projector.add_argument("--out", required=True, type=Path,
+                           help="rig JSON to write (camera at the origin); the projector report goes beside it")
+    projector.add_argument("--name", default="projector", help="projector name in the rig")
+    projector.add_argument("--distortion", choices=("none", "radial", "standard"), default="radial",
+                           help="projector lens model (default k1 k2)")
+    projector.set_defaults(handler=run_projector)
 
     stereo = topics.add_parser("stereo", help="pose of a device relative to the rig's camera from paired views")
     stereo.add_argument("--board", required=True, type=Path)
@@ -138,6 +155,77 @@ def run_camera(args: argparse.Namespace) -> int:
 def report_path(calibration_path: Path, figure: str) -> Path:
     """Where the report figure ``figure`` of a calibration file goes: beside it, sharing its stem."""
     return calibration_path.with_name(f"{calibration_path.stem}_{figure}.png")
+
+
+def run_projector(args: argparse.Namespace) -> int:
+    board = load_board(args.board)
+    camera = load_camera_calibration(args.camera)
+    if len(args.captures) < MIN_VIEWS:
+        raise InputError(f"{len(args.captures)} captures given; projector calibration needs at least {MIN_VIEWS} "
+                         "board poses")
+    objects, camera_points, projector_points, problems, projector_size = [], [], [], [], None
+    for directory in args.captures:
+        sequence, frames = read_capture(directory)
+        size = (sequence.projector.width, sequence.projector.height)
+        if projector_size is not None and size != projector_size:
+            problems.append(f"{directory}: projector is {size[0]}x{size[1]} but {args.captures[0]} has "
+                            f"{projector_size[0]}x{projector_size[1]}")
+            continue
+        projector_size = size
+        if (frames.shape[2], frames.shape[1]) != (camera.width, camera.height):
+            problems.append(f"{directory}: frames are {frames.shape[2]}x{frames.shape[1]} but {args.camera} is "
+                            f"for {camera.width}x{camera.height}")
+            continue
+        decoded = decode(frames, sequence)
+        if set(decoded.coded_axes) != {"x", "y"}:
+            problems.append(f"{directory}: the sequence codes only {'/'.join(decoded.coded_axes)}; both axes are "
+                            "needed (thermofield patterns --axes xy)")
+            continue
+        lit = np.clip(np.round(decoded.intensity), 0, np.iinfo(frames.dtype).max).astype(frames.dtype)
+        detection = detect_board(lit, board)
+        if detection is None:
+            problems.append(f"{directory}: no {_describe(board)} found in the lit frame")
+            continue
+        half_window = max(2, int(0.5 * _corner_spacing(detection.image_points)))
+        corners, found = projector_corners(detection.image_points, decoded.projector_x, decoded.projector_y,
+                                           half_window)
+        if found.sum() < 6:
+            problems.append(f"{directory}: only {found.sum()} board corners were decoded (is the board lit?)")
+            continue
+        objects.append(board.object_points()[detection.ids[found]])
+        camera_points.append(detection.image_points[found])
+        projector_points.append(corners[found])
+    if problems:
+        raise InputError(f"{len(problems)} of {len(args.captures)} captures cannot be used:\n  " + "\n  ".join(problems))
+    result = calibrate_projector(objects, camera_points, projector_points, (np.asarray(camera.K), np.asarray(camera.dist)),
+                                 (camera.width, camera.height), projector_size, args.distortion)
+    projector = Device(kind="projector", width=projector_size[0], height=projector_size[1],
+                       K=result.projector.K.tolist(), dist=result.projector.dist.tolist(),
+                       R=result.stereo.R.tolist(), t=result.stereo.t.tolist())
+    names = [str(directory) for directory in args.captures]
+    report = ProjectorCalibrationFile(
+        projector_rms_px=result.projector.rms, stereo_rms_px=result.stereo.rms, baseline_mm=result.stereo.baseline_mm,
+        std=result.projector.std, views=[names[i] for i in result.projector.views],
+        per_view_rms_px=result.projector.per_view_rms.tolist(),
+        rejected=[RejectedView(image=names[i], reason=reason) for i, reason in result.projector.rejected],
+    )
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    save_projector_calibration(report, projector_report_path(args.out))
+    save_rig(Rig(devices={camera.name: camera.device(), args.name: projector}), args.out)
+    print(f"{args.name}: projector RMS {result.projector.rms:.3f} px, stereo RMS {result.stereo.rms:.3f} px over "
+          f"{len(result.projector.views)} poses; baseline {result.stereo.baseline_mm:.2f} mm")
+    return 0
+
+
+def projector_report_path(rig_path: Path) -> Path:
+    """Where ``calibrate projector`` writes its report: beside the rig, sharing its stem."""
+    return rig_path.with_name(f"{rig_path.stem}_projector.json")
+
+
+def _corner_spacing(points: np.ndarray) -> float:
+    distances = np.linalg.norm(points[:, None] - points[None], axis=-1)
+    np.fill_diagonal(distances, np.inf)
+    return float(np.median(distances.min(axis=1)))
 
 
 def run_stereo(args: argparse.Namespace) -> int:

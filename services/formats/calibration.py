@@ -67,6 +67,20 @@ class CameraCalibrationFile(BaseModel):
         return Device(kind=self.kind, width=self.width, height=self.height, K=self.K, dist=self.dist)
 
 
+class ProjectorCalibrationFile(BaseModel):
+    """The report ``thermofield calibrate projector`` writes beside the rig."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    projector_rms_px: float
+    stereo_rms_px: float
+    baseline_mm: float
+    std: dict[str, float]
+    views: list[str]
+    per_view_rms_px: list[float]
+    rejected: list[RejectedView]
+
+
 def load_camera_calibration(path: str | Path) -> CameraCalibrationFile:
     """Read and validate a camera calibration file."""
     path = Path(path)
@@ -86,6 +100,14 @@ def save_camera_calibration(calibration: CameraCalibrationFile, path: str | Path
     path = Path(path)
     temporary = path.with_name(path.name + ".part")
     temporary.write_text(calibration.model_dump_json(indent=2) + "\n")
+    temporary.replace(path)
+
+
+def save_projector_calibration(report: ProjectorCalibrationFile, path: str | Path) -> None:
+    """Write the projector calibration report atomically."""
+    path = Path(path)
+    temporary = path.with_name(path.name + ".part")
+    temporary.write_text(report.model_dump_json(indent=2) + "\n")
     temporary.replace(path)
 
 

@@ -8,7 +8,7 @@ import pytest
 
 from services.formats.board import parse_board
 
-from .simulated_rig import render_pairs
+from .simulated_rig import render_pairs, render_projector_captures
 
 OPENCV_IMAGES = Path(__file__).parents[2].parent / "shared" / "data" / "opencv-chessboard"
 
@@ -33,3 +33,13 @@ def opencv_left_images() -> list[Path]:
 @pytest.fixture(scope="session")
 def visible_infrared_pairs(chessboard_9x6):
     return render_pairs(chessboard_9x6, 8)
+
+
+@pytest.fixture(scope="session")
+def chessboard_15mm():
+    return parse_board('{"type": "chessboard", "inner_corners": [9, 6], "square_mm": 15.0}')
+
+
+@pytest.fixture(scope="session")
+def projector_captures(chessboard_15mm):
+    return render_projector_captures(chessboard_15mm, 5)

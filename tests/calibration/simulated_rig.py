@@ -5,7 +5,9 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from services.simulation.boards import render_board
+from services.formats.rig import Device
+from services.simulation.boards import render_board, render_board_capture
+from services.structured_light.patterns import generate_sequence
 
 THERMAL_SIZE = (320, 256)
 THERMAL_K = np.array([[400.0, 0.0, 161.3], [0.0, 400.0, 127.6], [0.0, 0.0, 1.0]])
@@ -50,3 +52,30 @@ def render_pairs(board, count: int, seed: int = 11) -> list[tuple[np.ndarray, np
                                 rng=rng)
         pairs.append((visible, infrared))
     return pairs
+
+
+PROJECTOR_CAMERA_SIZE = (480, 360)
+PROJECTOR_CAMERA_K = np.array([[560.0, 0.0, 240.5], [0.0, 560.0, 179.0], [0.0, 0.0, 1.0]])
+PROJECTOR_CAMERA_DIST = np.array([-0.05, 0.02, 0.0, 0.0, 0.0])
+
+
+def projector_beside_camera() -> Device:
+    """A 400x300 projector 150 mm left of the camera, turned 15 degrees toward its axis (pose from the camera)."""
+    R = cv2.Rodrigues(np.array([0.0, np.radians(-15.0), 0.0]))[0]
+    centre = np.array([-150.0, 5.0, 10.0])
+    return Device(kind="projector", width=400, height=300,
+                  K=[[600.0, 0.0, 199.5], [0.0, 600.0, 170.0], [0.0, 0.0, 1.0]], dist=[0.03, -0.02, 0.0, 0.0],
+                  R=R.tolist(), t=(-R @ centre).tolist())
+
+
+def render_projector_captures(board, count: int, seed: int = 4):
+    """(sequence, frames) of ``count`` board poses lit by ``projector_beside_camera`` with both axes coded."""
+    projector = projector_beside_camera()
+    sequence, patterns = generate_sequence(projector.width, projector.height, axes="xy", period=16, steps=4)
+    rng = np.random.default_rng(seed)
+    captures = []
+    for R, t in board_poses(board, count, 520.0, 25.0, spread_mm=10.0):
+        frames = render_board_capture(board, PROJECTOR_CAMERA_K, PROJECTOR_CAMERA_DIST, R, t, PROJECTOR_CAMERA_SIZE,
+                                      projector, patterns, blur_sigma=0.7, noise_sigma=1.5, rng=rng)
+        captures.append((sequence, frames, (R, t)))
+    return captures
