@@ -26,6 +26,7 @@ from services.simulation.scene import Scene, surface_albedo
 
 _SHADOW_TOLERANCE_MM = 1e-3
 _UNLIT = -1.0  # remap coordinate of unlit samples, whose light weight is zero anyway
+_SAMPLES_PER_BLOCK = 1 << 19  # camera rays traced at a time, bounding memory to a few hundred MB
 _IDEAL_MARGIN = 0.25  # accept projector pixels whose distortion-free projection is within 25% beyond the image
 
 
@@ -237,6 +238,51 @@ def render_view(scene: Scene, camera: Device, projector: Device, supersample: in
        Applications, section 2.2 (2022).
     """
     origin, directions = subsample_rays(camera, supersample)
+    height, width, s = camera.height, camera.width, supersample
+    samples_per_row = width * s * s
+    shape = (height * s, width * s)
+    maps = np.empty((height * s * width * s, 2), dtype=np.float32)
+    direct = np.empty(maps.shape[0], dtype=np.float32)
+    ambient = np.empty(maps.shape[0], dtype=np.float32)
+    lit = np.empty(maps.shape[0], dtype=bool)
+    centre = {"points": np.empty((height, width, 3)), "surface": np.empty((height, width), dtype=np.int64),
+              "lit": np.empty((height, width), dtype=bool), "projector_pixels": np.empty((height, width, 2))}
+    rows_per_block = max(1, _SAMPLES_PER_BLOCK // samples_per_row)
+    for top in range(0, height, rows_per_block):
+        rows = slice(top, min(height, top + rows_per_block))
+        block = slice(rows.start * samples_per_row, rows.stop * samples_per_row)
+        traced = _trace_samples(scene, origin, directions[block], projector)
+        maps[block] = np.where(traced.lit[:, None], traced.projector_pixels, _UNLIT)
+        direct[block] = traced.direct
+        ambient[block] = traced.albedo * scene.ambient
+        lit[block] = traced.lit
+        grid = (rows.stop - rows.start, s, width, s)
+        for name, values in centre.items():
+            values[rows] = _centre_samples(getattr(traced, name), grid)
+    grid = (height, s, width, s)
+    points = centre["points"]
+    truth = GroundTruth(depth=points @ camera.R_array[2] + camera.t_array[2], points=points,
+                        surface=centre["surface"], lit=lit.reshape(grid).all(axis=(1, 3)),
+                        projector_pixels=np.where(centre["lit"][..., None], centre["projector_pixels"], np.nan))
+    return ViewGeometry(camera=camera, projector=projector, supersample=supersample,
+                        projector_x=maps[:, 0].reshape(shape), projector_y=maps[:, 1].reshape(shape),
+                        direct=direct.reshape(shape), ambient=ambient.reshape(shape), truth=truth)
+
+
+@dataclass(frozen=True)
+class _TracedSamples:
+    """Per camera sub-sample: surface point and index, lit flag, projector pixel, albedo, light weight."""
+
+    points: np.ndarray
+    surface: np.ndarray
+    lit: np.ndarray
+    projector_pixels: np.ndarray
+    albedo: np.ndarray
+    direct: np.ndarray
+
+
+def _trace_samples(scene: Scene, origin: np.ndarray, directions: np.ndarray, projector: Device) -> _TracedSamples:
+    """Hit, shadow and shading of one block of camera rays (see ``render_view``)."""
     hits = cast_rays(scene, origin, directions)
     hit = hits.surface >= 0
     projector_centre = camera_center(projector.R_array, projector.t_array)
@@ -251,34 +297,15 @@ def render_view(scene: Scene, camera: Device, projector: Device, supersample: in
     shadow_hits = cast_rays(scene, projector_centre, -to_projector[candidate])
     lit = np.zeros(len(directions), dtype=bool)
     lit[candidate] = shadow_hits.distance >= distance_to_projector[candidate] - _SHADOW_TOLERANCE_MM
-
     albedo = np.zeros(len(directions))
     albedo[hit] = surface_albedo(scene, hits.points[hit], hits.surface[hit])
-    shape = (camera.height * supersample, camera.width * supersample)
-    direct = np.where(lit, albedo * cosine, 0.0).astype(np.float32).reshape(shape)
-    maps = np.where(lit[:, None], projector_pixels, _UNLIT).astype(np.float32)
-    truth = _centre_truth(camera, supersample, hits.points, hits.surface, lit, projector_pixels)
-    return ViewGeometry(camera=camera, projector=projector, supersample=supersample,
-                        projector_x=maps[:, 0].reshape(shape), projector_y=maps[:, 1].reshape(shape),
-                        direct=direct, ambient=(albedo * scene.ambient).astype(np.float32).reshape(shape),
-                        truth=truth)
-
-
-def _centre_truth(camera: Device, supersample: int, points: np.ndarray, surface: np.ndarray, lit: np.ndarray,
-                  projector_pixels: np.ndarray) -> GroundTruth:
-    """Per-pixel ground truth from the centre sub-samples (exactly the pixel centres, s being odd)."""
-    grid = (camera.height, supersample, camera.width, supersample)
-    points = _centre_samples(points, grid)
-    depth = points @ camera.R_array[2] + camera.t_array[2]
-    pixels = np.where(_centre_samples(lit, grid)[..., None], _centre_samples(projector_pixels, grid), np.nan)
-    return GroundTruth(depth=depth, points=points, surface=_centre_samples(surface, grid),
-                       lit=lit.reshape(grid).all(axis=(1, 3)), projector_pixels=pixels)
+    return _TracedSamples(points=hits.points, surface=hits.surface, lit=lit, projector_pixels=projector_pixels,
+                          albedo=albedo, direct=np.where(lit, albedo * cosine, 0.0))
 
 
 def _centre_samples(samples: np.ndarray, grid: tuple[int, int, int, int]) -> np.ndarray:
-    """The centre sub-sample of each pixel, (H * s * W * s, ...) -> (H, W, ...), copied so the rest can be freed."""
-    middle = grid[1] // 2
-    return np.ascontiguousarray(samples.reshape(grid + samples.shape[1:])[:, middle, :, middle])
+    """The centre sub-sample of each pixel: (rows * s * W * s, ...) -> (rows, W, ...)."""
+    return samples.reshape(grid + samples.shape[1:])[:, grid[1] // 2, :, grid[3] // 2]
 
 
 def _projector_light(pattern: np.ndarray, effects: ProjectorEffects) -> np.ndarray:
