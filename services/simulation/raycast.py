@@ -59,8 +59,9 @@ def cast_rays(scene: Scene, origins: np.ndarray, directions: np.ndarray, t_min: 
     -----
     A ray X(s) = o + s d (|d| = 1) meets a plane n . (X - c) = 0 at s = n . (c - o) / n . d, a sphere
     |X - c| = r at s = -b -/+ sqrt(b^2 - |o - c|^2 + r^2) with b = d . (o - c), and a cylinder side where
-    the components perpendicular to the axis satisfy |o_perp + s d_perp| = r, all in closed form.
-    Triangles use the Moller-Trumbore test [1]_ inside a bounding-volume hierarchy.
+    the components perpendicular to the axis satisfy |o_perp + s d_perp| = r (caps as disks), all in
+    closed form, so hits are exact to rounding. Triangles use the Moller-Trumbore test [1]_ inside a
+    bounding-volume hierarchy. Rays that pass outside a surface's bounding sphere skip its exact test.
 
     References
     ----------
