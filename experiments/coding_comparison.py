@@ -54,7 +54,8 @@ CODINGS = {
     "Gray (16 px stripes) + 4-step, plain unwrapping": _sequence(finest_bit=4, period=16, steps=4),
     "complementary Gray + 4-step, P = 16": _sequence(finest_bit=3, period=16, steps=4),
     "Gray (16 px stripes) + 8-step, plain unwrapping": _sequence(finest_bit=4, period=16, steps=8),
-    "**complementary Gray + 8-step, P = 16 (default)**": _sequence(finest_bit=3, period=16, steps=8),
+    "complementary Gray + 8-step, P = 16": _sequence(finest_bit=3, period=16, steps=8),
+    "**complementary Gray + 12-step, P = 16 (default)**": _sequence(finest_bit=3, period=16, steps=12),
     "complementary Gray + 8-step, P = 32": _sequence(finest_bit=4, period=32, steps=8),
     "3-frequency 4-step (P = 1100, 110, 16), no Gray": _sequence(periods=[(1100, 4), (110, 4), (16, 4)]),
 }

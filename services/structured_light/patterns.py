@@ -15,7 +15,7 @@ import numpy as np
 from services.formats.sequence import BlackFrame, GrayFrame, PhaseFrame, ProjectorSize, Sequence, WhiteFrame
 
 DEFAULT_PERIOD = 16
-DEFAULT_STEPS = 8
+DEFAULT_STEPS = 12
 
 
 def complementary_gray_bit(period: float) -> int:
@@ -69,8 +69,8 @@ def generate_sequence(
     Notes
     -----
     Frames per axis: ``2 (ceil(log2 size) - b) + N`` with ``b`` from
-    :func:`complementary_gray_bit`; for 1280 columns, period 16 and N = 8 that is
-    2 + 16 + 8 = 26 frames.
+    :func:`complementary_gray_bit`; for 1280 columns, period 16 and N = 12 that is
+    2 + 16 + 12 = 30 frames.
     """
     if axes not in ("x", "y", "xy"):
         raise ValueError(f"axes must be 'x', 'y' or 'xy'; got {axes!r}.")

@@ -205,9 +205,9 @@ def test_default_thresholds_follow_the_bit_depth():
 @pytest.mark.parametrize(
     ("frames", "message"),
     [
-        (np.zeros((26, 4, 4), np.float32), "uint8 or uint16"),
-        (np.zeros((26, 16), np.uint8), "(F, H, W) stack"),
-        (np.zeros((25, 4, 4), np.uint8), "26 frames but 25"),
+        (np.zeros((30, 4, 4), np.float32), "uint8 or uint16"),
+        (np.zeros((30, 16), np.uint8), "(F, H, W) stack"),
+        (np.zeros((29, 4, 4), np.uint8), "30 frames but 29"),
     ],
 )
 def test_bad_frames_are_refused(frames, message):

@@ -16,14 +16,14 @@ def test_default_sequence_layout():
     sequence, patterns = generate_sequence(1280, 800)
     kinds = [frame.kind for frame in sequence.frames]
     assert kinds[:2] == ["white", "black"]
-    assert kinds.count("phase") == 8 and kinds.count("gray") == 16  # bits 10..3, each with its inverse
+    assert kinds.count("phase") == 12 and kinds.count("gray") == 16  # bits 10..3, each with its inverse
     planes = sequence.gray_planes("x")
     assert [plane.bit for plane in planes] == list(range(3, 11))
     assert all(plane.complement is not None for plane in planes)
     assert 2 ** planes[0].bit == sequence.phase_groups("x")[0].period / 2  # complementary: half-period stripes
-    assert patterns.shape == (26, 800, 1280) and patterns.dtype == np.uint8
+    assert patterns.shape == (30, 800, 1280) and patterns.dtype == np.uint8
     assert sequence.coded_axes == ("x",)
-    assert len({frame.file for frame in sequence.frames}) == 26
+    assert len({frame.file for frame in sequence.frames}) == 30
 
 
 @pytest.mark.parametrize(("period", "bit"), [(16, 3), (20, 3), (32, 4), (2, 0), (3, 0)])
