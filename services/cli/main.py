@@ -11,7 +11,7 @@ from services.errors import InputError
 
 # Each module defines ``register(subparsers)``, which adds its sub-command(s) and sets ``handler``.
 COMMAND_MODULES = [
-    "services.cli.structured_light",
+    "services.cli.reconstruct",
     "services.cli.fusion",
     "services.cli.patterns",
     "services.cli.service",

@@ -1,0 +1,164 @@
+"""Speed and memory of decode + triangulate, beside a plain vectorised numpy decoder on the same frames.
+
+Run by hand (not a test; machines are shared and noisy):
+
+    .venv/bin/python benchmarks/bench_reconstruct.py [--repeats 15] [--out docs/benchmark-reconstruct.md]
+
+Captures are rendered once by the simulator (the forging station's part at 1280x800, and the same
+station with 1920x1080 camera and projector). Both decoders read the same frames and share the camera
+ray table (computed once per calibration, outside the timed region) and the triangulation kernel, so
+the ratio isolates decoding; the total per scan is reported too. Peak memory is the largest traced
+allocation (``tracemalloc``) during one scan, beside the size of the input frames.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import platform
+import statistics
+import time
+import tracemalloc
+from pathlib import Path
+
+import numpy as np
+
+from services.formats.rig import Device
+from services.simulation.presets import forging_rig, forging_scene
+from services.simulation.render import CameraEffects, ProjectorEffects, render_frames, render_view
+from services.structured_light.decode import decode
+from services.structured_light.patterns import generate_sequence
+from services.structured_light.reconstruct import reconstruct_points
+from services.structured_light.triangulate import camera_ray_table, triangulate
+
+
+def _scaled(device: Device, width: int, height: int) -> Device:
+    scale = width / device.width
+    K = device.K_array.copy()
+    K[:2] *= scale
+    K[0, 2], K[1, 2] = (width - 1) / 2, (height - 1) / 2
+    return device.model_copy(update={"width": width, "height": height, "K": K.tolist()})
+
+
+def _capture(width: int, height: int):
+    rig = forging_rig()
+    camera = _scaled(rig.devices["camera"], width, height)
+    projector = _scaled(rig.devices["projector"], width, height)
+    sequence, patterns = generate_sequence(projector.width, projector.height)
+    view = render_view(forging_scene(), camera, projector, supersample=1)
+    frames = render_frames(view, patterns, np.random.default_rng(0),
+                           CameraEffects(noise_sigma=1.5, blur_sigma=0.7), ProjectorEffects(blur_sigma=0.8))
+    return camera, projector, sequence, frames
+
+
+def numpy_decode(frames: np.ndarray, sequence) -> np.ndarray:
+    """The baseline: a plain vectorised numpy decoder of complementary Gray code + N-step phase shift.
+
+    Threshold each Gray plane against its inverse, convert Gray to binary by cumulative XOR, take the
+    wrapped phase from the arctangent of the sine and cosine sums, and unwrap it with the stripe index
+    (nearest period to the Gray-code estimate). Shadowed pixels (white - black below 10 grey levels)
+    are NaN.
+    """
+    f = frames.astype(np.float32)
+    valid = (f[sequence.white_index] - f[sequence.black_index]) > 10
+    planes = sequence.gray_planes("x")[::-1]  # most significant first
+    binary = np.zeros(frames.shape[1:], dtype=np.int32)
+    bit_value = np.zeros(frames.shape[1:], dtype=np.int32)
+    for plane in planes:
+        bit = (f[plane.frame] > f[plane.complement]).astype(np.int32)
+        bit_value ^= bit
+        binary = (binary << 1) | bit_value
+    finest = planes[-1].bit
+    gray_estimate = (binary + 0.5) * (1 << finest) - 0.5
+    group = sequence.phase_groups("x")[0]
+    deltas = 2 * np.pi * np.arange(len(group.frames)) / len(group.frames)
+    stack = f[list(group.frames)]
+    sine = np.tensordot(np.sin(deltas).astype(np.float32), stack, axes=1)
+    cosine = np.tensordot(np.cos(deltas).astype(np.float32), stack, axes=1)
+    wrapped = np.mod(np.arctan2(sine, cosine), 2 * np.pi) * (group.period / (2 * np.pi))
+    coordinate = wrapped + group.period * np.round((gray_estimate - wrapped) / group.period)
+    return np.where(valid, coordinate, np.nan).astype(np.float32)
+
+
+def numpy_reconstruct(frames, sequence, camera: Device, projector: Device, rays) -> np.ndarray:
+    coordinate = numpy_decode(frames, sequence)
+    index = np.flatnonzero(np.isfinite(coordinate))
+    return triangulate(rays.reshape(-1, 2)[index], coordinate.ravel()[index], "x", camera.R_array,
+                       camera.t_array, projector.K_array, projector.dist_array, projector.R_array,
+                       projector.t_array)
+
+
+def _median_ms(function, repeats: int) -> float:
+    function()  # warm-up: numba compilation and caches
+    times = []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        function()
+        times.append(time.perf_counter() - start)
+    return 1000 * statistics.median(times)
+
+
+def _peak_mb(function) -> float:
+    tracemalloc.start()
+    function()
+    peak = tracemalloc.get_traced_memory()[1]
+    tracemalloc.stop()
+    return peak / 2**20
+
+
+def run(repeats: int) -> list[dict]:
+    rows = []
+    for width, height in ((1280, 800), (1920, 1080)):
+        camera, projector, sequence, frames = _capture(width, height)
+        rays = camera_ray_table(camera.K_array, camera.dist_array, width, height)
+        ours = lambda: reconstruct_points(frames, sequence, camera, projector, rays=rays)  # noqa: E731
+        baseline = lambda: numpy_reconstruct(frames, sequence, camera, projector, rays)  # noqa: E731
+        points = len(ours()["x"])
+        row = {
+            "size": f"{width}x{height}", "frames": len(frames), "input_mb": frames.nbytes / 2**20,
+            "points": points,
+            "ours_ms": _median_ms(ours, repeats), "baseline_ms": _median_ms(baseline, repeats),
+            "ours_decode_ms": _median_ms(lambda: decode(frames, sequence), repeats),
+            "baseline_decode_ms": _median_ms(lambda: numpy_decode(frames, sequence), repeats),
+            "ours_peak_mb": _peak_mb(ours), "baseline_peak_mb": _peak_mb(baseline),
+        }
+        rows.append(row)
+        print(row, flush=True)
+    return rows
+
+
+def report(rows: list[dict], repeats: int) -> str:
+    lines = ["# Benchmark: decode + triangulate", "",
+             f"Command: `.venv/bin/python benchmarks/bench_reconstruct.py --repeats {repeats}` "
+             f"(medians of {repeats} runs after a warm-up; {platform.processor() or platform.machine()}, "
+             f"{os.cpu_count()} cores, numba threads {os.environ.get('NUMBA_NUM_THREADS', 'default')}).", "",
+             "Baseline: a plain vectorised numpy decoder of the same complementary Gray code + 8-step phase "
+             "shift (`numpy_decode` in the script), on the same frames, in the same run, followed by the same "
+             "triangulation. Memory: peak traced allocation during one scan (`tracemalloc`; numba's own "
+             "allocations are made through numpy arrays allocated in Python and so are counted).", "",
+             "| capture | frames | input MB | points | ours ms/scan | baseline ms/scan | speed-up | "
+             "ours Mpoints/s | decode only: ours ms | baseline ms | speed-up | ours peak MB | "
+             "peak / input | baseline peak MB |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+    for r in rows:
+        lines.append(
+            f"| {r['size']} | {r['frames']} | {r['input_mb']:.1f} | {r['points']} | {r['ours_ms']:.1f} | "
+            f"{r['baseline_ms']:.1f} | {r['baseline_ms'] / r['ours_ms']:.1f}x | "
+            f"{r['points'] / r['ours_ms'] / 1000:.1f} | {r['ours_decode_ms']:.1f} | {r['baseline_decode_ms']:.1f} | "
+            f"{r['baseline_decode_ms'] / r['ours_decode_ms']:.1f}x | {r['ours_peak_mb']:.1f} | "
+            f"{r['ours_peak_mb'] / r['input_mb']:.2f} | {r['baseline_peak_mb']:.1f} |")
+    return "\n".join(lines) + "\n"
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description="decode + triangulate benchmark")
+    parser.add_argument("--repeats", type=int, default=15)
+    parser.add_argument("--out", type=Path, default=Path("docs/benchmark-reconstruct.md"))
+    args = parser.parse_args()
+    text = report(run(args.repeats), args.repeats)
+    args.out.write_text(text)
+    print(text)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,77 @@
+"""End-to-end accuracy of decode + triangulate on the simulator's ground truth (issue 2 targets)."""
+
+import numpy as np
+import pytest
+
+from services.simulation.presets import PAPER_SPHERE_CENTRE, forging_rig, forging_scene, paper_plane, paper_rig, paper_sphere
+from services.simulation.render import CameraEffects, ProjectorEffects, render_frames, render_view
+from services.simulation.scene import Albedo
+from services.structured_light.patterns import generate_sequence
+from services.structured_light.reconstruct import reconstruct_points, surface_normals
+
+NOISY_CAMERA = CameraEffects(noise_sigma=1.5, blur_sigma=0.7)
+BLURRY_PROJECTOR = ProjectorEffects(gamma=2.2, blur_sigma=0.8, black_level=0.02)
+TEXTURE = Albedo(base=0.7, texture_amplitude=0.15, feature_size=30.0, seed=3)
+
+
+def _scan(scene, rig, camera_effects=NOISY_CAMERA, supersample=3, seed=0):
+    camera, projector = rig.devices["camera"], rig.devices["projector"]
+    sequence, patterns = generate_sequence(projector.width, projector.height)
+    view = render_view(scene, camera, projector, supersample=supersample)
+    frames = render_frames(view, patterns, np.random.default_rng(seed), camera_effects, BLURRY_PROJECTOR)
+    cloud = reconstruct_points(frames, sequence, camera, projector)
+    points = np.column_stack([cloud["x"], cloud["y"], cloud["z"]]).astype(np.float64)
+    pixels = (cloud["v"].astype(int), cloud["u"].astype(int))
+    reconstructed = np.zeros(view.truth.lit.shape, dtype=bool)
+    reconstructed[pixels] = True
+    coverage = (reconstructed & view.truth.lit).sum() / view.truth.lit.sum()
+    return cloud, points, pixels, view.truth, coverage
+
+
+def test_paper_plane_beats_the_paper_by_an_order_of_magnitude():
+    depth = 570.0  # the paper's worst depth: mean error 0.680 mm, max 1.720 mm
+    _, points, _, _, coverage = _scan(paper_plane(depth, TEXTURE), paper_rig())
+    errors = np.abs(points[:, 2] - depth)
+    assert errors.mean() <= 0.03
+    assert errors.max() <= 0.3
+    assert coverage >= 0.97
+
+
+def test_paper_sphere_beats_the_paper_by_an_order_of_magnitude():
+    radius = 80.0  # the paper's worst maximum error (3.240 mm; mean 0.701 mm)
+    _, points, _, _, coverage = _scan(paper_sphere(radius, TEXTURE), paper_rig())
+    errors = np.abs(np.linalg.norm(points - np.asarray(PAPER_SPHERE_CENTRE), axis=1) - radius)
+    assert errors.mean() <= 0.05
+    assert coverage >= 0.97
+
+
+def test_distorted_rig_points_match_the_true_surface_pixel_by_pixel():
+    """All three lenses of the forging station are distorted; the cloud must still sit on the truth."""
+    cloud, points, pixels, truth, coverage = _scan(forging_scene(), forging_rig(),
+                                                    CameraEffects(noise_sigma=0.5), supersample=1)
+    true_points = truth.points[pixels]
+    error = np.linalg.norm(points - true_points, axis=1)
+    assert np.median(error) < 0.02
+    assert np.percentile(error, 99) < 0.3
+    assert coverage >= 0.9  # a cluttered scene: shadows and occluding edges are rejected on purpose
+    assert set(cloud) >= {"x", "y", "z", "nx", "ny", "nz", "u", "v", "quality", "intensity"}
+    assert all(len(values) == len(points) for values in cloud.values())
+
+
+def test_normals_of_a_tilted_plane_face_the_camera():
+    v, u = np.mgrid[0:20, 0:30].astype(float)
+    normal = np.array([0.3, -0.2, -1.0]) / np.linalg.norm([0.3, -0.2, -1.0])
+    points_map = np.dstack([u, v, np.zeros_like(u)])
+    points_map[..., 2] = 500 - (normal[0] * u + normal[1] * v) / normal[2]
+    normals = surface_normals(points_map.astype(np.float32), np.array([0.0, 0.0, 0.0]))
+    inner = normals[1:-1, 1:-1].reshape(-1, 3)
+    np.testing.assert_allclose(inner, np.tile(normal, (len(inner), 1)), atol=1e-5)
+    assert np.isnan(normals[0]).all()
+
+
+def test_frames_of_another_size_are_refused():
+    rig = paper_rig()
+    sequence, patterns = generate_sequence(1024, 768)
+    with pytest.raises(ValueError, match="calibrated for 1024x768"):
+        reconstruct_points(np.zeros((len(patterns), 10, 10), np.uint8), sequence, rig.devices["camera"],
+                           rig.devices["projector"])
