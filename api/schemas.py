@@ -35,6 +35,20 @@ class ScanRequest(BaseModel):
     calibration_set_id: str | None = Field(None, description="Defaults to the station's active calibration set.")
 
 
+class ScanJobRequest(BaseModel):
+    """One processing step again on a stored scan."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    kind: Literal["reconstruct", "fuse", "register"]
+    calibration_set_id: str | None = Field(
+        None, description="reconstruct, fuse: the calibration set to use; default the scan's own.")
+    cloud_job_id: str | None = Field(
+        None, description="fuse: a succeeded reconstruct job of this scan whose cloud to fuse; default the scan's cloud.")
+    model: Literal["translation", "rigid", "similarity", "affine", "homography"] = Field(
+        "similarity", description="register: the geometric model mapping thermal to camera pixels.")
+
+
 class Accepted(BaseModel):
     job_id: str
     scan_id: str | None = None

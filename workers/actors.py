@@ -1,9 +1,15 @@
 """Dramatiq actors: plain functions that load their job's inputs, call ``services/`` and store the outputs.
 
 Each actor takes a job id; its parameters are the job row's ``params`` and its
-return value becomes the job's ``result`` (via the JobBookkeeping middleware).
-Retries and time limits are set per actor: device and network trouble is retried,
-bad input (``ValueError``, including ``InputError``) is not.
+return value becomes the job's ``result`` (via the JobBookkeeping middleware):
+``{"artifacts": {name: digest}, ...}``. Retries and time limits are set per actor:
+device and network trouble is retried, bad input (``ValueError``, including
+``InputError``) is not.
+
+- ``scan``: capture with the gateway, reconstruct, fuse, store, stream, summarise.
+- ``reconstruct``, ``fuse``, ``register``: one step again on a stored scan, e.g. with
+  another calibration set (reconstruct then fuse its cloud) or to check the thermal
+  camera's alignment by mutual information (register).
 """
 
 from __future__ import annotations
@@ -13,20 +19,24 @@ import tempfile
 import time
 from collections.abc import Iterator
 from contextlib import contextmanager
-from functools import lru_cache
 from pathlib import Path
 from typing import Any
 
+import cv2
 import dramatiq
 import numpy as np
 
 from device_gateway.client import GatewayClient
 from services.db.models import CalibrationSet, Job, Scan
-from services.formats.ply import write_cloud
+from services.formats.ply import read_cloud, write_cloud
+from services.formats.registration import registration_to_file
 from services.formats.rig import Rig, parse_rig
+from services.formats.sequence import Sequence, parse_sequence, sequence_to_json
 from services.fusion.field import temperature_field
 from services.fusion.fuse import ThermalView
 from services.geometry.camera import camera_center
+from services.registration.overlay import fused_overlay
+from services.registration.register import register as register_images
 from services.storage.artifacts import ArtifactStore
 from services.streaming.proxy import proxy_url
 from services.streaming.recording import StationView, scan_recording
@@ -53,25 +63,21 @@ def scan(job_id: str) -> dict[str, Any]:
     store, settings = runtime.store, runtime.settings
     params = _job_params(runtime, job_id)
     rig_digest, rig = _calibration_rig(runtime, params["calibration_set_id"])
-    camera_name, camera = rig.device(None, "camera")
-    _, projector = rig.device(None, "projector")
-    thermal_name, thermal = rig.device(None, "thermal")
     stages = _Stages(runtime, job_id)
 
     with stages("capture", 0.05), GatewayClient(settings.gateway_url) as gateway:
         capture = gateway.capture(thermal_frames=1)
     with stages("reconstruct", 0.3):
-        cloud = reconstruct_points(capture.frames, capture.sequence, camera, projector,
-                                   rays=_ray_table(rig_digest, camera_name, rig))
+        cloud = _reconstruct(capture.frames, capture.sequence, rig, rig_digest)
     with stages("fuse", 0.55):
-        field = temperature_field(cloud, [ThermalView(thermal, capture.thermal)],
-                                  camera_center(camera.R_array, camera.t_array))
+        field = _fuse(cloud, capture.thermal, rig)
     with stages("store", 0.7):
         artifacts = {
             "cloud.ply": _store_cloud(store, cloud),
             "field.ply": _store_cloud(store, field),
             "frames.npy": store.put_bytes(_npy(capture.frames)),
             "thermal.npy": store.put_bytes(_npy(capture.thermal.astype(np.float32))),
+            "sequence.json": store.put_bytes(sequence_to_json(capture.sequence).encode()),
         }
     with stages("stream", 0.85):
         captured_at = float(capture.frame_timestamps[0]) if len(capture.frame_timestamps) else None
@@ -83,11 +89,67 @@ def scan(job_id: str) -> dict[str, Any]:
     with runtime.sessions.begin() as session:
         row = session.get(Scan, params["scan_id"])
         row.artifacts, row.summary = artifacts, summary
-    return {"scan_id": params["scan_id"], "artifacts": artifacts, "thermal_device": thermal_name,
-            "stage_seconds": stages.seconds}
+    return {"scan_id": params["scan_id"], "artifacts": artifacts, "stage_seconds": stages.seconds}
 
 
-ACTORS = {"scan": scan}
+@dramatiq.actor(actor_name="reconstruct", **_options(max_retries=1, time_limit_s=120))
+def reconstruct(job_id: str) -> dict[str, Any]:
+    """The point cloud of a stored scan's frames, with the job's calibration set."""
+    runtime = current_runtime()
+    params = _job_params(runtime, job_id)
+    rig_digest, rig = _calibration_rig(runtime, params["calibration_set_id"])
+    artifacts = _scan_artifacts(runtime, params["scan_id"])
+    runtime.tracker.progress(job_id, "reconstruct", 0.1)
+    cloud = _reconstruct(_load_npy(runtime.store, artifacts["frames.npy"]),
+                         _load_sequence(runtime.store, artifacts["sequence.json"]), rig, rig_digest)
+    return {"artifacts": {"cloud.ply": _store_cloud(runtime.store, cloud)}, "point_count": len(cloud["x"])}
+
+
+@dramatiq.actor(actor_name="fuse", **_options(max_retries=1, time_limit_s=120))
+def fuse(job_id: str) -> dict[str, Any]:
+    """The temperature field of a stored cloud (the scan's, or a reconstruct job's) and the scan's thermal frames."""
+    runtime = current_runtime()
+    params = _job_params(runtime, job_id)
+    _, rig = _calibration_rig(runtime, params["calibration_set_id"])
+    artifacts = _scan_artifacts(runtime, params["scan_id"])
+    runtime.tracker.progress(job_id, "fuse", 0.1)
+    cloud = read_cloud(runtime.store.path(params.get("cloud_sha256") or artifacts["cloud.ply"]))
+    field = _fuse(cloud, _load_npy(runtime.store, artifacts["thermal.npy"]), rig)
+    return {"artifacts": {"field.ply": _store_cloud(runtime.store, field)}, "summary": field_summary(field)}
+
+
+@dramatiq.actor(actor_name="register", **_options(max_retries=1, time_limit_s=300))
+def register(job_id: str) -> dict[str, Any]:
+    """Mutual-information registration of a stored scan's thermal frame onto its white camera frame."""
+    runtime = current_runtime()
+    params = _job_params(runtime, job_id)
+    artifacts = _scan_artifacts(runtime, params["scan_id"])
+    frames = _load_npy(runtime.store, artifacts["frames.npy"])
+    sequence = _load_sequence(runtime.store, artifacts["sequence.json"])
+    visible = frames[_white_frame_index(sequence)]
+    thermal = _load_npy(runtime.store, artifacts["thermal.npy"])[0]
+    runtime.tracker.progress(job_id, "register", 0.1)
+    registration = register_images(visible, thermal, params["model"])
+    overlay = fused_overlay(visible, thermal, registration.matrix)
+    registration_json = registration_to_file(registration).model_dump_json(indent=2).encode()
+    return {"artifacts": {"registration.json": runtime.store.put_bytes(registration_json),
+                          "overlay.png": runtime.store.put_bytes(_png(overlay))},
+            "nmi": registration.nmi}
+
+
+ACTORS = {actor.actor_name: actor for actor in (scan, reconstruct, fuse, register)}
+
+
+def _reconstruct(frames: np.ndarray, sequence: Sequence, rig: Rig, rig_digest: str) -> dict[str, np.ndarray]:
+    camera_name, camera = rig.device(None, "camera")
+    _, projector = rig.device(None, "projector")
+    return reconstruct_points(frames, sequence, camera, projector, rays=_ray_table(rig_digest, camera_name, rig))
+
+
+def _fuse(cloud: dict[str, np.ndarray], thermal_frames: np.ndarray, rig: Rig) -> dict[str, np.ndarray]:
+    _, camera = rig.device(None, "camera")
+    _, thermal = rig.device(None, "thermal")
+    return temperature_field(cloud, [ThermalView(thermal, thermal_frames)], camera_center(camera.R_array, camera.t_array))
 
 
 class _Stages:
@@ -110,10 +172,14 @@ def _job_params(runtime: Runtime, job_id: str) -> dict[str, Any]:
         return dict(session.get(Job, job_id).params)
 
 
+def _scan_artifacts(runtime: Runtime, scan_id: str) -> dict[str, str]:
+    with runtime.sessions() as session:
+        return dict(session.get(Scan, scan_id).artifacts)
+
+
 def _calibration_rig(runtime: Runtime, calibration_set_id: str) -> tuple[str, Rig]:
     with runtime.sessions() as session:
-        calibration = session.get(CalibrationSet, calibration_set_id)
-        digest = calibration.rig_sha256
+        digest = session.get(CalibrationSet, calibration_set_id).rig_sha256
     return digest, parse_rig(runtime.store.read_bytes(digest).decode(), f"calibration set {calibration_set_id}")
 
 
@@ -129,9 +195,20 @@ def _ray_table(rig_digest: str, camera_name: str, rig: Rig) -> np.ndarray:
     return _ray_tables[rig_digest, camera_name]
 
 
-@lru_cache(maxsize=1)
+def _white_frame_index(sequence: Sequence) -> int:
+    for index, frame in enumerate(sequence.frames):
+        if frame.kind == "white":
+            return index
+    raise ValueError("The scan's sequence has no white frame to register the thermal frame against.")
+
+
 def _station_view(host: str, port: int, station: str) -> StationView:
-    return StationView(proxy_url(host, port), station)
+    if (host, port, station) not in _station_views:
+        _station_views[host, port, station] = StationView(proxy_url(host, port), station)
+    return _station_views[host, port, station]
+
+
+_station_views: dict[tuple[str, int, str], StationView] = {}
 
 
 def _store_cloud(store: ArtifactStore, cloud: dict[str, np.ndarray]) -> str:
@@ -146,3 +223,18 @@ def _npy(stack: np.ndarray) -> bytes:
     buffer = io.BytesIO()
     np.save(buffer, stack, allow_pickle=False)
     return buffer.getvalue()
+
+
+def _load_npy(store: ArtifactStore, digest: str) -> np.ndarray:
+    return np.load(store.path(digest), allow_pickle=False)
+
+
+def _load_sequence(store: ArtifactStore, digest: str) -> Sequence:
+    return parse_sequence(store.read_bytes(digest).decode(), f"artifact {digest}")
+
+
+def _png(image: np.ndarray) -> bytes:
+    ok, encoded = cv2.imencode(".png", image)
+    if not ok:
+        raise RuntimeError("OpenCV could not encode the image as PNG.")
+    return encoded.tobytes()

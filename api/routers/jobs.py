@@ -3,11 +3,13 @@
 from __future__ import annotations
 
 import asyncio
+import mimetypes
 from collections.abc import AsyncIterator
 from typing import Annotated
 
 from fastapi import APIRouter, Depends, Query
 from fastapi.concurrency import run_in_threadpool
+from fastapi.responses import FileResponse
 from fastapi.sse import EventSourceResponse, ServerSentEvent
 from sqlalchemy import select
 
@@ -23,7 +25,10 @@ _KEEPALIVE_S = 15.0
 
 
 def job_out(job: Job) -> JobOut:
-    return JobOut(**job_state(job), links={"self": f"/v1/jobs/{job.id}", "events": f"/v1/jobs/{job.id}/events"})
+    links = {"self": f"/v1/jobs/{job.id}", "events": f"/v1/jobs/{job.id}/events"}
+    for name in job.result.get("artifacts", {}):
+        links[name] = f"/v1/jobs/{job.id}/artifacts/{name}"
+    return JobOut(**job_state(job), links=links)
 
 
 async def _existing_job(job_id: str, runtime: RuntimeDep, _: ReaderKey) -> Job:
@@ -71,6 +76,18 @@ async def stream_job_events(job: ExistingJob, runtime: RuntimeDep) -> AsyncItera
             yield ServerSentEvent(comment="keep-alive")
         await asyncio.sleep(_POLL_INTERVAL_S)
         idle += _POLL_INTERVAL_S
+
+
+@router.get("/{job_id}/artifacts/{name}", name="download_job_artifact",
+            responses={200: {"content": {"application/octet-stream": {}}}})
+def download_job_artifact(job: ExistingJob, name: str, runtime: RuntimeDep) -> FileResponse:
+    """A file the job produced, as listed in its ``result.artifacts`` (e.g. ``cloud.ply``, ``registration.json``)."""
+    digest = job.result.get("artifacts", {}).get(name)
+    if digest is None:
+        raise Problem(404, "not-found", f"Job {job.id} has no artifact {name!r} "
+                                        f"(it has: {', '.join(job.result.get('artifacts', {})) or 'none yet'}).")
+    media_type = mimetypes.guess_type(name)[0] or "application/octet-stream"
+    return FileResponse(runtime.store.path(digest), media_type=media_type, filename=f"{job.id}-{name}")
 
 
 def _read_state(runtime, job_id: str) -> dict:

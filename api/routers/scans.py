@@ -16,7 +16,7 @@ from sqlalchemy import select
 from api.deps import OperatorKey, ReaderKey, RuntimeDep, SessionDep
 from api.idempotency import IdempotencyKeyHeader, Outcome, request_digest, respond_once
 from api.problems import Problem
-from api.schemas import Accepted, ScanOut, ScanRequest
+from api.schemas import Accepted, ScanJobRequest, ScanOut, ScanRequest
 from services.db.models import CalibrationSet, Job, Scan, new_id
 from workers.broker import send_job
 
@@ -99,6 +99,46 @@ def _calibration_for(session, station: str, calibration_set_id: str | None) -> C
         raise Problem(409, "no-active-calibration", f"Station {station!r} has no active calibration set; "
                                                     "activate one or pass calibration_set_id.")
     return calibration
+
+
+@router.post("/{scan_id}/jobs", name="create_scan_job", status_code=202, response_model=Accepted,
+             responses={202: {"headers": {"Location": {"description": "The job."}}}})
+async def create_scan_job(request: Request, scan: ExistingScan, body: ScanJobRequest, session: SessionDep,
+                          runtime: RuntimeDep, key: OperatorKey, idempotency_key: IdempotencyKeyHeader = None):
+    """Run one step again on a stored scan: reconstruct or fuse (e.g. with another calibration set), or register
+    its thermal frame onto its camera frame by mutual information. Results: ``/v1/jobs/{id}/artifacts/{name}``."""
+    digest = request_digest(request, await request.body())
+
+    def start() -> Outcome:
+        if scan.artifacts.get("frames.npy") is None:
+            raise Problem(409, "not-ready", f"Scan {scan.id} has no stored capture yet; wait for its job.")
+        params = {"scan_id": scan.id, "calibration_set_id": scan.calibration_set_id}
+        if body.calibration_set_id is not None:
+            params["calibration_set_id"] = _calibration_for(session, scan.station, body.calibration_set_id).id
+        if body.kind == "register":
+            params["model"] = body.model
+        if body.cloud_job_id is not None:
+            params["cloud_sha256"] = _reconstructed_cloud(session, scan, body)
+        job = runtime.tracker.create(session, body.kind, params)
+
+        def dispatch() -> None:
+            runtime.tracker.announce(job)
+            send_job(body.kind, job.id)
+
+        accepted = Accepted(job_id=job.id, scan_id=scan.id, status="queued",
+                            links={"job": f"/v1/jobs/{job.id}", "events": f"/v1/jobs/{job.id}/events"})
+        return Outcome(202, accepted.model_dump(mode="json"), f"/v1/jobs/{job.id}", dispatch)
+
+    return respond_once(session, key, idempotency_key, digest, start)
+
+
+def _reconstructed_cloud(session, scan: Scan, body: ScanJobRequest) -> str:
+    job = session.get(Job, body.cloud_job_id)
+    if body.kind != "fuse" or job is None or job.kind != "reconstruct" or job.params.get("scan_id") != scan.id \
+            or job.status != "succeeded":
+        raise Problem(422, "invalid-input", f"cloud_job_id: {body.cloud_job_id!r} is not a succeeded reconstruct job "
+                                            f"of scan {scan.id} (and only a fuse job takes one).")
+    return job.result["artifacts"]["cloud.ply"]
 
 
 @router.get("", name="list_scans")

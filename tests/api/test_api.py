@@ -169,3 +169,30 @@ def test_devices_without_a_gateway_is_a_bad_gateway_problem(client, auth):
     response = client.get("/v1/devices", headers=auth["read"])
     assert response.status_code == 502 and response.headers["content-type"] == PROBLEM
     assert "unreachable" in response.json()["detail"]
+
+
+def test_scan_jobs_check_their_inputs_and_serve_their_artifacts(client, auth, runtime):
+    upload_rig(client, auth["admin"])
+    scan_id = client.post("/v1/scans", headers=auth["operate"]).json()["scan_id"]
+    not_captured = client.post(f"/v1/scans/{scan_id}/jobs", headers=auth["operate"], json={"kind": "fuse"})
+    assert not_captured.status_code == 409 and "no stored capture" in not_captured.json()["detail"]
+    with runtime.sessions.begin() as session:
+        session.get(Scan, scan_id).artifacts = {"frames.npy": runtime.store.put_bytes(b"x")}
+    unknown = client.post(f"/v1/scans/{scan_id}/jobs", headers=auth["operate"], json={"kind": "paint"})
+    assert unknown.status_code == 422 and unknown.json()["errors"][0]["field"] == "body.kind"
+    bad_cloud = client.post(f"/v1/scans/{scan_id}/jobs", headers=auth["operate"],
+                            json={"kind": "fuse", "cloud_job_id": "nope"})
+    assert bad_cloud.status_code == 422 and "cloud_job_id" in bad_cloud.json()["detail"]
+    accepted = client.post(f"/v1/scans/{scan_id}/jobs", headers=auth["operate"],
+                           json={"kind": "register", "model": "affine"})
+    assert accepted.status_code == 202
+    job_id = accepted.json()["job_id"]
+    with runtime.sessions() as session:
+        assert session.get(Job, job_id).params == {"scan_id": scan_id, "model": "affine",
+                                                   "calibration_set_id": session.get(Scan, scan_id).calibration_set_id}
+    assert client.get(f"/v1/jobs/{job_id}/artifacts/overlay.png", headers=auth["read"]).status_code == 404
+    runtime.tracker.start(job_id)
+    runtime.tracker.succeed(job_id, {"artifacts": {"overlay.png": runtime.store.put_bytes(b"png")}})
+    job = client.get(f"/v1/jobs/{job_id}", headers=auth["read"]).json()
+    overlay = client.get(job["links"]["overlay.png"], headers=auth["read"])
+    assert overlay.content == b"png" and overlay.headers["content-type"] == "image/png"

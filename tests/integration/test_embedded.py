@@ -57,6 +57,19 @@ def test_embedded_scan_from_http_to_an_accurate_field(e2e, tmp_path):
         thermal = tifffile.imread(io.BytesIO(client.get(scan["links"]["thermal"].format(index=0)).content))
         assert thermal.shape == (256, 320) and thermal.dtype == np.float32 and np.nanmax(thermal) > 900
 
+        # One step again on the stored scan: reconstruct, fuse that cloud; register thermal onto camera.
+        reconstructed = client.post(f"/v1/scans/{scan_id}/jobs", json={"kind": "reconstruct"}).json()["job_id"]
+        registered = client.post(f"/v1/scans/{scan_id}/jobs", json={"kind": "register"}).json()["job_id"]
+        assert e2e.follow_events(client, reconstructed)[-1][1]["status"] == "succeeded"
+        fused = client.post(f"/v1/scans/{scan_id}/jobs", json={"kind": "fuse", "cloud_job_id": reconstructed})
+        fuse_state = e2e.follow_events(client, fused.json()["job_id"])[-1][1]
+        assert fuse_state["status"] == "succeeded", fuse_state
+        assert fuse_state["result"]["summary"]["point_count"] == summary["point_count"]  # same frames, same rig
+        register_state = e2e.follow_events(client, registered)[-1][1]
+        assert register_state["status"] == "succeeded", register_state
+        registration = client.get(f"/v1/jobs/{registered}/artifacts/registration.json").json()
+        assert registration["model"] == "similarity" and registration["nmi"] > 0
+
     # Crash recovery: the serve process is killed in the middle of a scan; on restart the job that was
     # running is queued again and runs to success as its second attempt.
     serve_command = e2e.processes.running[0][1]
