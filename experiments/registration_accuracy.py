@@ -98,6 +98,11 @@ def run(pairs: list, model: str, preprocessing: str, metric: str) -> dict[str, l
     return errors
 
 
+def _at_most_640_wide(image: np.ndarray) -> np.ndarray:
+    factor = 640.0 / image.shape[1]
+    return image if factor >= 1.0 else cv2.resize(image, None, fx=factor, fy=factor, interpolation=cv2.INTER_AREA)
+
+
 def _figures(pairs: list, errors: dict[str, list[float]]) -> None:
     FIGURES.mkdir(parents=True, exist_ok=True)
     figure, axis = plt.subplots(figsize=(6, 3.5))
@@ -116,11 +121,14 @@ def _figures(pairs: list, errors: dict[str, list[float]]) -> None:
     plt.close(figure)
     for source, visible, infrared, truth, scale in pairs[:1] + [pair for pair in pairs if pair[0] == "photograph"][:1]:
         result = register(visible, infrared, "similarity", scale=scale)
-        cv2.imwrite(str(FIGURES / f"{source}_infrared.png"), cv2.equalizeHist(cv2.normalize(
-            infrared, None, 0, 255, cv2.NORM_MINMAX, cv2.CV_8U)))
-        cv2.imwrite(str(FIGURES / f"{source}_visible.png"), visible)
-        cv2.imwrite(str(FIGURES / f"{source}_overlay.png"), fused_overlay(visible, infrared, result.matrix))
-        cv2.imwrite(str(FIGURES / f"{source}_checkerboard.png"), checkerboard_blend(visible, infrared, result.matrix))
+        pictures = {
+            "infrared": cv2.equalizeHist(cv2.normalize(infrared, None, 0, 255, cv2.NORM_MINMAX, cv2.CV_8U)),
+            "visible": visible,
+            "overlay": fused_overlay(visible, infrared, result.matrix),
+            "checkerboard": checkerboard_blend(visible, infrared, result.matrix),
+        }
+        for name, picture in pictures.items():
+            cv2.imwrite(str(FIGURES / f"{source}_{name}.png"), _at_most_640_wide(picture))
 
 
 SECTIONS = ["similarity", "variants", "models", "boards"]
