@@ -16,6 +16,7 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from pathlib import Path
 
 from matplotlib.figure import Figure
@@ -96,24 +97,22 @@ def load_camera_calibration(path: str | Path) -> CameraCalibrationFile:
 
 
 def save_camera_calibration(calibration: CameraCalibrationFile, path: str | Path) -> None:
-    """Write the calibration atomically (temporary file, then rename)."""
-    path = Path(path)
-    temporary = path.with_name(path.name + ".part")
-    temporary.write_text(calibration.model_dump_json(indent=2) + "\n")
-    temporary.replace(path)
+    """Write the calibration atomically (a reader never sees half a file)."""
+    _write_atomically(path, lambda temporary: temporary.write_text(calibration.model_dump_json(indent=2) + "\n"))
 
 
 def save_projector_calibration(report: ProjectorCalibrationFile, path: str | Path) -> None:
     """Write the projector calibration report atomically."""
-    path = Path(path)
-    temporary = path.with_name(path.name + ".part")
-    temporary.write_text(report.model_dump_json(indent=2) + "\n")
-    temporary.replace(path)
+    _write_atomically(path, lambda temporary: temporary.write_text(report.model_dump_json(indent=2) + "\n"))
 
 
 def save_figure(figure: Figure, path: str | Path) -> None:
     """Write a report figure as PNG atomically."""
+    _write_atomically(path, lambda temporary: figure.savefig(temporary, format="png", dpi=100))
+
+
+def _write_atomically(path: str | Path, write: Callable[[Path], object]) -> None:
     path = Path(path)
     temporary = path.with_name(path.name + ".part")
-    figure.savefig(temporary, format="png", dpi=100)
+    write(temporary)
     temporary.replace(path)
