@@ -17,6 +17,7 @@ class JobOut(BaseModel):
     stage: str
     fraction: float = Field(ge=0, le=1)
     attempts: int
+    worker: str | None = Field(description="host:pid of the worker process that ran the last attempt.")
     error: str | None
     result: dict[str, Any]
     scan_id: str | None

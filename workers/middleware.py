@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import logging
 import os
+import socket
 import threading
 
 import dramatiq
@@ -50,7 +51,7 @@ class JobBookkeeping(Middleware):
 
     def before_process_message(self, broker, message) -> None:
         job_id = message.args[0]
-        if current_runtime().tracker.start(job_id) is None:
+        if current_runtime().tracker.start(job_id, f"{socket.gethostname()}:{os.getpid()}") is None:
             logger.info("Skipping message %s: job %s is unknown or already finished.", message.message_id, job_id)
             raise SkipMessage()
 

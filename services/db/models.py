@@ -68,6 +68,7 @@ class Job(Base):
     stage: Mapped[str] = mapped_column(String(50), default="queued")
     fraction: Mapped[float] = mapped_column(Float, default=0.0)
     attempts: Mapped[int] = mapped_column(Integer, default=0)
+    worker: Mapped[str | None] = mapped_column(String(200), default=None, doc="host:pid that ran the last attempt.")
     error: Mapped[str | None] = mapped_column(Text, default=None)
     params: Mapped[dict[str, Any]] = mapped_column(default=dict)
     result: Mapped[dict[str, Any]] = mapped_column(default=dict, doc="Artifact digests and other outputs.")

@@ -27,6 +27,7 @@ def job_state(job: Job) -> dict[str, Any]:
         "stage": job.stage,
         "fraction": round(job.fraction, 4),
         "attempts": job.attempts,
+        "worker": job.worker,
         "error": job.error,
         "result": job.result,
         "scan_id": job.params.get("scan_id"),
@@ -50,8 +51,8 @@ class JobTracker:
         session.flush()
         return job
 
-    def start(self, job_id: str) -> Job | None:
-        """Mark an attempt as running; None when the job is unknown or already finished."""
+    def start(self, job_id: str, worker: str | None = None) -> Job | None:
+        """Mark an attempt as running (by ``worker``, host:pid); None when the job is unknown or already finished."""
         with self.sessions.begin() as session:
             job = session.get(Job, job_id, with_for_update=True)
             if job is None or job.status in TERMINAL_STATUSES:
@@ -59,6 +60,7 @@ class JobTracker:
             job.status, job.stage, job.fraction = "running", "starting", 0.0
             job.attempts += 1
             job.started_at = datetime.now(UTC)
+            job.worker = worker
         self.announce(job)
         return job
 

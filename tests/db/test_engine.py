@@ -42,3 +42,24 @@ def test_migrations_match_the_models(engine):
     with engine.connect() as connection:
         differences = compare_metadata(MigrationContext.configure(connection), Base.metadata)
     assert differences == []
+
+
+def test_upgrade_from_the_first_revision_keeps_the_jobs(tmp_path):
+    from alembic import command
+    from alembic.config import Config
+
+    from services.db.engine import MIGRATIONS_DIR
+
+    engine = make_engine(f"sqlite:///{tmp_path / 'old.db'}")
+    config = Config()
+    config.set_main_option("script_location", str(MIGRATIONS_DIR))
+    with engine.begin() as connection:
+        config.attributes["connection"] = connection
+        command.upgrade(config, "0001")
+        connection.execute(text("INSERT INTO jobs (id, kind, status, stage, fraction, attempts, params, result, "
+                                "created_at, updated_at) VALUES ('old', 'scan', 'succeeded', 'done', 1, 1, '{}', "
+                                "'{}', '2026-01-01', '2026-01-01')"))
+    migrate(engine)
+    with make_sessions(engine)() as session:
+        job = session.get(Job, "old")
+        assert (job.status, job.worker) == ("succeeded", None)

@@ -16,7 +16,8 @@ def test_lifecycle_attempts_progress_and_result(engine):
     tracker = JobTracker(make_sessions(engine))
     with tracker.sessions.begin() as session:
         job_id = tracker.create(session, "scan", {"scan_id": "s1"}).id
-    assert tracker.start(job_id).attempts == 1
+    started = tracker.start(job_id, "host:1")
+    assert (started.attempts, started.worker) == (1, "host:1")
     tracker.progress(job_id, "reconstruct", 0.4)
     tracker.fail(job_id, "GatewayError: lost", will_retry=True)
     with tracker.sessions() as session:

@@ -71,9 +71,12 @@ def test_scaled_out_scans_with_two_workers_and_survive_a_worker_crash(e2e, deplo
         assert created.status_code == 201, created.text
 
         jobs = [client.post("/v1/scans", json={"part_id": f"part-{i}"}).json() for i in range(2)]
+        workers = set()
         for job in jobs:
             final = e2e.follow_events(client, job["job_id"])[-1]
             assert final[0] == "done" and final[1]["status"] == "succeeded", (final, e2e.processes.log("worker"))
+            workers.add(final[1]["worker"])
+        assert len(workers) == 2, workers  # the two scans ran at once, one in each spawned worker process
         scan = client.get(f"/v1/scans/{jobs[0]['scan_id']}").json()
         (tmp_path / "field.ply").write_bytes(client.get(scan["links"]["field.ply"]).content)
         assert scan["summary"]["temperature"]["max"] > 900
