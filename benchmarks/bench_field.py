@@ -13,12 +13,15 @@ the captured frames in memory:
 - baseline: the naive fusion the z-buffer replaces, one ``cv2.projectPoints``
   call and ``cv2.remap`` bilinear sampling with no visibility test.
 
-Prints medians (and min/max) in milliseconds, and fuse / baseline.
+Prints median and minimum wall-clock and median process CPU milliseconds (on a
+shared, oversubscribed machine CPU time is the better guide to unloaded speed),
+fuse / baseline, and the load average.
 """
 
 from __future__ import annotations
 
 import argparse
+import os
 import time
 
 import cv2
@@ -47,13 +50,15 @@ def _naive_fusion(cloud: dict, thermal, image: np.ndarray) -> np.ndarray:
     return sampled.ravel()[: len(pixels)]
 
 
-def _time(function, repeats: int) -> np.ndarray:
-    times = []
+def _time(function, repeats: int) -> tuple[np.ndarray, np.ndarray]:
+    """Wall-clock and process CPU milliseconds of each call."""
+    wall, cpu = [], []
     for _ in range(repeats):
-        start = time.perf_counter()
+        start, start_cpu = time.perf_counter(), time.process_time()
         function()
-        times.append(time.perf_counter() - start)
-    return np.array(times) * 1000
+        wall.append(time.perf_counter() - start)
+        cpu.append(time.process_time() - start_cpu)
+    return np.array(wall) * 1000, np.array(cpu) * 1000
 
 
 def main() -> None:
@@ -84,12 +89,14 @@ def main() -> None:
     }
     print(f"{len(cloud['x'])} points from {frames.shape[0]} frames of {frames.shape[2]}x{frames.shape[1]}, "
           f"thermal {thermal.width}x{thermal.height}, {args.repeats} repeats")
-    print("| stage | median ms | min ms | max ms |")
+    print("| stage | median wall ms | min wall ms | median CPU ms |")
     print("|---|---|---|---|")
-    for name, times in results.items():
-        print(f"| {name} | {np.median(times):.0f} | {times.min():.0f} | {times.max():.0f} |")
-    ratio = np.median(results["fuse"]) / np.median(results["baseline: naive fusion, no visibility"])
-    print(f"fuse / naive baseline: {ratio:.2f}")
+    for name, (wall, cpu) in results.items():
+        print(f"| {name} | {np.median(wall):.0f} | {wall.min():.0f} | {np.median(cpu):.0f} |")
+    baseline = results["baseline: naive fusion, no visibility"]
+    print(f"fuse / naive baseline: {np.median(results['fuse'][0]) / np.median(baseline[0]):.2f} (wall), "
+          f"{np.median(results['fuse'][1]) / np.median(baseline[1]):.2f} (CPU)")
+    print(f"load average: {', '.join(f'{load:.1f}' for load in os.getloadavg())} on {os.cpu_count()} CPUs")
 
 
 if __name__ == "__main__":
