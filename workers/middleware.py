@@ -5,9 +5,10 @@ from __future__ import annotations
 import logging
 import os
 import socket
-import threading
 
+import cv2
 import dramatiq
+import numba
 from dramatiq.middleware import Middleware, SkipMessage
 
 from workers.runtime import current_runtime
@@ -29,10 +30,10 @@ class ComputeThreads(Middleware):
         self.threads = threads
 
     def before_worker_boot(self, broker, worker) -> None:
-        import cv2
-        import numba
-
         cv2.setNumThreads(self.threads)
+
+    def after_worker_thread_boot(self, broker, thread) -> None:
+        # numba's thread count is per calling thread, so each worker thread sets its own.
         numba.set_num_threads(min(self.threads, numba.config.NUMBA_NUM_THREADS))
 
 
@@ -45,9 +46,6 @@ class JobBookkeeping(Middleware):
     ``failed`` when it will not. A message whose job already finished (a duplicate
     delivery after a crash) is skipped.
     """
-
-    def __init__(self) -> None:
-        self._local = threading.local()
 
     def before_process_message(self, broker, message) -> None:
         job_id = message.args[0]

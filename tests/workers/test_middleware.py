@@ -118,3 +118,14 @@ def test_service_actors_set_their_own_retries_and_time_limits(broker):
     for actor in ACTORS.values():
         assert actor.broker is broker
         assert {"max_retries", "time_limit", "throws"} <= set(actor.options), actor.actor_name
+
+
+def test_worker_threads_use_the_configured_numeric_thread_count(broker):
+    import numba
+
+    @dramatiq.actor(broker=broker, actor_name="t_threads", queue_name="t_threads", max_retries=0)
+    def threads(job_id):
+        return {"numba": numba.get_num_threads()}
+
+    (job,) = run_jobs(broker, threads, 1)
+    assert job.result == {"numba": 1}  # the fixture's compute_threads
