@@ -5,7 +5,7 @@ from services.formats.rig import Device
 from services.geometry.camera import camera_center, pixel_grid, pixel_rays, project_points
 from services.simulation.raycast import cast_rays
 from services.simulation.render import CameraEffects, ProjectorEffects, expose, render_frames, render_view
-from services.simulation.scene import Albedo, Plane, Scene, Sphere
+from services.simulation.scene import Albedo, Mesh, Plane, Scene, Sphere
 
 NOISELESS_16 = CameraEffects(bit_depth=16)
 
@@ -220,3 +220,17 @@ def test_bad_arguments_are_refused(small_rig):
 def test_aimed_devices_helper_matches_its_target(aimed):
     device = aimed("camera", (100, 80), 120.0, (200, -50, 0), (0, 0, 500))
     np.testing.assert_allclose(_project(device, np.array([[0.0, 0.0, 500.0]]))[0], [49.5, 39.5])
+
+
+def test_a_two_triangle_mesh_renders_like_the_same_plane(small_rig):
+    camera, projector = small_rig.devices["camera"], small_rig.devices["projector"]
+    mesh = Mesh(vertices=[[-150, -100, 400], [150, -100, 400], [150, 100, 400], [-150, 100, 400]],
+                faces=[[0, 1, 2], [0, 2, 3]], albedo=Albedo(texture_amplitude=0.2, seed=1))
+    plane = _plane(400, size=(300, 200), albedo=Albedo(texture_amplitude=0.2, seed=1))
+    patterns = np.random.default_rng(2).integers(0, 256, (2, projector.height, projector.width), dtype=np.uint8)
+    views = [render_view(Scene(surfaces=[surface]), camera, projector) for surface in (plane, mesh)]
+    frames = [render_frames(view, patterns, np.random.default_rng(0), NOISELESS_16) for view in views]
+    np.testing.assert_allclose(views[1].truth.depth, views[0].truth.depth, rtol=1e-12)
+    np.testing.assert_array_equal(views[1].truth.lit, views[0].truth.lit)
+    assert np.abs(frames[1].astype(int) - frames[0]).max() <= 1
+    assert views[0].truth.lit.mean() > 0.2
