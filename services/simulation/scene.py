@@ -52,7 +52,7 @@ class Albedo(BaseModel):
     base: float = Field(0.8, ge=0.0, le=1.0)
     texture_amplitude: float = Field(0.0, ge=0.0, le=1.0)
     feature_size: float = Field(20.0, gt=0.0)
-    seed: int = 0
+    seed: int = Field(0, ge=0)
 
     def evaluate(self, points: np.ndarray) -> np.ndarray:
         """Albedo at world points (N, 3) -> (N,)."""
