@@ -23,7 +23,7 @@ $(VENV)/.installed-test: pyproject.toml
 	touch $(VENV)/.installed $@
 
 demo: install
-	$(BIN)/python -m services.cli.demo --out $(DEMO_DIR)
+	$(BIN)/thermofield demo --data-dir $(DEMO_DIR)
 
 test: install-test docker-compose
 	$(BIN)/python -m pytest

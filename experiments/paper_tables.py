@@ -76,6 +76,13 @@ def sphere_measurement(radius: float, seed: int = 0) -> Measurement:
                    float(centre[2]), seed)
 
 
+def _sequence_summary() -> str:
+    sequence, _ = generate_sequence(*paper_rig().devices["projector"].size)
+    group = sequence.phase_groups("x")[0]
+    return (f"white, black, complementary Gray code with inverses, {len(group.frames)}-step phase shift of "
+            f"period {group.period:g} px; {len(sequence.frames)} frames at 1024 columns")
+
+
 def _table(out: Path) -> str:
     lines = ["# The paper's plane and sphere experiments, reproduced and beaten", "",
              "Made by `.venv/bin/python experiments/paper_tables.py` "
@@ -86,8 +93,8 @@ def _table(out: Path) -> str:
              "Rig: `presets.paper_rig()`: projector at the world origin, camera centred at (400, 0, 0) mm "
              "with the paper's Table 1 rotation (20.0 degrees about y), both 1024x768, focal lengths 1300 px "
              "(projector) and 800 px (camera), principal points at the image centres, ideal pinholes as in "
-             "the paper. Capture: the default sequence (`thermofield patterns`: white, black, complementary "
-             "Gray code with inverses, 8-step phase shift of period 16 px; 24 frames at 1024 columns), "
+             "the paper. Capture: the default sequence (`thermofield patterns`: "
+             f"{_sequence_summary()}), "
              f"camera noise {CAMERA.noise_sigma} grey levels, camera blur sigma {CAMERA.blur_sigma} px, "
              f"projector blur sigma {PROJECTOR.blur_sigma} px, projector gamma {PROJECTOR.gamma}, "
              f"textured albedo ({ALBEDO.base} +/- {ALBEDO.texture_amplitude}), 3x3 supersampled pixels, "

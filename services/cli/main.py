@@ -18,6 +18,7 @@ COMMAND_MODULES = [
     "services.cli.calibrate",
     "services.cli.simulate",
     "services.cli.gateway",
+    "services.cli.demo",
     "services.cli.register",
 ]
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import cv2
 import numpy as np
 
 from services.formats.rig import Device
@@ -22,6 +23,56 @@ def coded_axis(decoded: DecodedCapture, camera: Device, projector: Device) -> st
     camera_centre = -camera.R_array.T @ camera.t_array
     baseline = projector.R_array @ camera_centre + projector.t_array
     return max(available, key=lambda axis: abs(baseline[0 if axis == "x" else 1]))
+
+
+def _coordinate_step_limit(sequence: Sequence, axis: str) -> float:
+    """Largest plausible coordinate change between neighbouring pixels: half the finest period, or
+    four stripes of a Gray-code-only axis. Decoding errors (a misread Gray bit, a wrong period) jump by
+    at least a whole period or stripe group."""
+    groups = sequence.phase_groups(axis)
+    if groups:
+        return min(group.period for group in groups) / 2
+    return 4.0 * (1 << sequence.gray_planes(axis)[0].bit)
+
+
+def remove_speckles(coordinates: np.ndarray, axis_size: int, max_step: float, max_speckle_px: int = 25) -> np.ndarray:
+    """Reject small islands of decoded pixels that disagree with everything around them.
+
+    Parameters
+    ----------
+    coordinates : (H, W) float array
+        Decoded projector coordinates, NaN where invalid.
+    axis_size : int
+        Projector pixels along the coded axis.
+    max_step : float
+        Largest coordinate difference, in projector pixels, between 4-neighbours of one surface.
+    max_speckle_px : int
+        Connected regions of at most this many pixels are removed.
+
+    Returns
+    -------
+    keep : (H, W) bool array
+        Valid pixels that belong to a region larger than ``max_speckle_px``.
+
+    Notes
+    -----
+    Pixels are grouped by 4-connected flood fill where neighbours differ by at most ``max_step``; a
+    decoding error (a misread high Gray bit, an unwrapping slip) produces an island that differs from its
+    surroundings by at least a period and is removed, like OpenCV's speckle filter for disparity maps,
+    which this calls on the coordinates quantised to 16-bit integers.
+
+    References
+    ----------
+    .. [1] H. Hirschmuller, "Stereo processing by semiglobal matching and mutual information",
+       IEEE TPAMI 30(2), 2008 (the speckle filter of OpenCV's ``filterSpeckles``).
+    """
+    invalid = np.int16(-32768)
+    scale = 32000.0 / (axis_size + 1)
+    valid = np.isfinite(coordinates)
+    quantised = np.full(coordinates.shape, invalid, dtype=np.int16)
+    quantised[valid] = np.rint((coordinates[valid] + 0.5) * scale).astype(np.int16)
+    cv2.filterSpeckles(quantised, int(invalid), max_speckle_px, max(1, int(max_step * scale)))
+    return quantised != invalid
 
 
 def surface_normals(points_map: np.ndarray, camera_centre: np.ndarray) -> np.ndarray:
@@ -94,7 +145,7 @@ def reconstruct_points(
     decoded = decode(frames, sequence)
     axis = coded_axis(decoded, camera, projector)
     coordinates = getattr(decoded, f"projector_{axis}")
-    valid = np.isfinite(coordinates)
+    valid = remove_speckles(coordinates, sequence.axis_size(axis), _coordinate_step_limit(sequence, axis))
     flat_index = np.flatnonzero(valid)
     points = triangulate(rays.reshape(-1, 2)[flat_index], coordinates.ravel()[flat_index], axis,
                          camera.R_array, camera.t_array, projector.K_array, projector.dist_array,

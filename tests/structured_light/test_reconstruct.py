@@ -7,7 +7,7 @@ from services.simulation.presets import PAPER_SPHERE_CENTRE, forging_rig, forgin
 from services.simulation.render import CameraEffects, ProjectorEffects, render_frames, render_view
 from services.simulation.scene import Albedo
 from services.structured_light.patterns import generate_sequence
-from services.structured_light.reconstruct import reconstruct_points, surface_normals
+from services.structured_light.reconstruct import reconstruct_points, remove_speckles, surface_normals
 
 NOISY_CAMERA = CameraEffects(noise_sigma=1.5, blur_sigma=0.7)
 BLURRY_PROJECTOR = ProjectorEffects(gamma=2.2, blur_sigma=0.8, black_level=0.02)
@@ -75,3 +75,14 @@ def test_frames_of_another_size_are_refused():
     with pytest.raises(ValueError, match="calibrated for 1024x768"):
         reconstruct_points(np.zeros((len(patterns), 10, 10), np.uint8), sequence, rig.devices["camera"],
                            rig.devices["projector"])
+
+
+def test_speckles_of_wrong_periods_are_removed_and_surfaces_kept():
+    coordinates = np.tile(np.arange(200, dtype=np.float32) * 1.5, (80, 1))
+    coordinates[40, 50] += 16  # one pixel a period off
+    coordinates[10:13, 100:103] += 64  # a 3x3 island from a misread Gray bit
+    coordinates[:, 150] = np.nan  # a gap splitting the surface: both sides are large and stay
+    keep = remove_speckles(coordinates, 1024, max_step=8)
+    assert not keep[40, 50] and not keep[10:13, 100:103].any()
+    assert not keep[:, 150].any()
+    assert keep.sum() == 80 * 199 - 1 - 9
