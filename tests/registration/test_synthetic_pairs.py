@@ -1,0 +1,40 @@
+import numpy as np
+
+from services.registration.models import apply_homography
+from services.registration.synthetic_pairs import (
+    INFRARED_LEVELS,
+    infrared_from_visible,
+    random_transform,
+    render_scene_pair,
+)
+
+
+def test_random_transforms_stay_within_the_requested_ranges():
+    rng = np.random.default_rng(0)
+    centre = np.array([[159.5, 127.5]])
+    for _ in range(50):
+        matrix = random_transform(rng, (320, 256), (1024, 768), 3.0, max_shift=40.0, max_angle=5.0,
+                                  max_scale_change=0.1)
+        scale = np.sqrt(np.linalg.det(matrix[:2, :2]))
+        angle = np.degrees(np.arctan2(matrix[1, 0], matrix[0, 0]))
+        shift = apply_homography(matrix, centre)[0] - [511.5, 383.5]
+        assert 2.7 <= scale <= 3.3 and abs(angle) <= 5.0 and np.all(np.abs(shift) <= 40.0)
+
+
+def test_rendered_pair_has_the_requested_sizes_and_bit_depths():
+    rng = np.random.default_rng(1)
+    matrix = random_transform(rng, (320, 256), (1024, 768), 3.0)
+    visible, infrared = render_scene_pair(rng, matrix)
+    assert visible.shape == (768, 1024) and visible.dtype == np.uint8
+    assert infrared.shape == (256, 320) and infrared.dtype == np.uint16
+    assert infrared.max() <= INFRARED_LEVELS and infrared.max() > 0.5 * INFRARED_LEVELS  # hot parts in view
+
+
+def test_infrared_from_visible_is_a_negative_of_the_photograph_seen_through_the_matrix():
+    rng = np.random.default_rng(2)
+    visible = np.zeros((480, 640), np.uint8)
+    visible[100:300, 200:500] = 250
+    matrix = np.array([[2.0, 0.0, 0.0], [0.0, 2.0, 0.0], [0.0, 0.0, 1.0]])
+    infrared = infrared_from_visible(rng, visible, matrix, blobs=0, noise=0.0).astype(float)
+    assert infrared[100, 175] < infrared[20, 20]  # inside the bright rectangle (visible 350, 200): cold
+    assert infrared[100, 95] > infrared[100, 105]  # the rectangle's left edge sits at infrared x = 100
