@@ -73,7 +73,8 @@ def respond_once(
 
 def _stored_response(session: Session, key: ApiKey, idempotency_key: str, digest: str) -> JSONResponse | None:
     record = session.scalar(
-        select(IdempotencyRecord).where(IdempotencyRecord.api_key_id == key.id, IdempotencyRecord.key == idempotency_key)
+        select(IdempotencyRecord).where(IdempotencyRecord.api_key_id == key.id,
+                                        IdempotencyRecord.key == idempotency_key)
     )
     if record is None:
         return None

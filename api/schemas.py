@@ -45,7 +45,8 @@ class ScanJobRequest(BaseModel):
     calibration_set_id: str | None = Field(
         None, description="reconstruct, fuse: the calibration set to use; default the scan's own.")
     cloud_job_id: str | None = Field(
-        None, description="fuse: a succeeded reconstruct job of this scan whose cloud to fuse; default the scan's cloud.")
+        None, description="fuse: a succeeded reconstruct job of this scan whose cloud to fuse; "
+                          "default the scan's cloud.")
     model: Literal["translation", "rigid", "similarity", "affine", "homography"] = Field(
         "similarity", description="register: the geometric model mapping thermal to camera pixels.")
 

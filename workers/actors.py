@@ -149,7 +149,8 @@ def _reconstruct(frames: np.ndarray, sequence: Sequence, rig: Rig, rig_digest: s
 def _fuse(cloud: dict[str, np.ndarray], thermal_frames: np.ndarray, rig: Rig) -> dict[str, np.ndarray]:
     _, camera = rig.device(None, "camera")
     _, thermal = rig.device(None, "thermal")
-    return temperature_field(cloud, [ThermalView(thermal, thermal_frames)], camera_center(camera.R_array, camera.t_array))
+    viewpoint = camera_center(camera.R_array, camera.t_array)
+    return temperature_field(cloud, [ThermalView(thermal, thermal_frames)], viewpoint)
 
 
 class _Stages:

@@ -14,7 +14,8 @@ from workers.middleware import ComputeThreads, JobBookkeeping
 
 
 class _ResultsGoToTheJobsTable(logging.Filter):
-    """Drops Dramatiq's warning that an actor's return value is discarded: JobBookkeeping stores it as the job's result."""
+    """Drops Dramatiq's warning that an actor's return value is discarded: JobBookkeeping stores it as the
+    job's result."""
 
     def filter(self, record: logging.LogRecord) -> bool:
         return "Results middleware" not in record.getMessage()

@@ -6,6 +6,7 @@ import json
 from typing import Annotated
 
 from fastapi import APIRouter, Depends, File, Form, Request, UploadFile
+from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import Response
 from sqlalchemy import select, update
 
@@ -63,8 +64,8 @@ async def create_calibration_set(request: Request, session: SessionDep, runtime:
         out = calibration_out(calibration)
         return Outcome(201, out.model_dump(mode="json"), out.links["self"])
 
-    form = json.dumps({"name": name, "activate": activate}).encode() + text
-    return respond_once(session, key, idempotency_key, request_digest(request, form), create)
+    digest = request_digest(request, json.dumps({"name": name, "activate": activate}).encode() + text)
+    return await run_in_threadpool(respond_once, session, key, idempotency_key, digest, create)
 
 
 @router.get("", name="list_calibration_sets")

@@ -10,6 +10,7 @@ import cv2
 import numpy as np
 import tifffile
 from fastapi import APIRouter, Depends, Path, Request
+from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import FileResponse, Response
 from sqlalchemy import select
 
@@ -82,7 +83,8 @@ async def create_scan(request: Request, session: SessionDep, runtime: RuntimeDep
 
         return Outcome(202, accepted.model_dump(mode="json"), f"/v1/jobs/{job.id}", dispatch)
 
-    return respond_once(session, key, idempotency_key, request_digest(request, await request.body()), start)
+    digest = request_digest(request, await request.body())
+    return await run_in_threadpool(respond_once, session, key, idempotency_key, digest, start)
 
 
 def _calibration_for(session, station: str, calibration_set_id: str | None) -> CalibrationSet:
@@ -129,7 +131,7 @@ async def create_scan_job(request: Request, scan: ExistingScan, body: ScanJobReq
                             links={"job": f"/v1/jobs/{job.id}", "events": f"/v1/jobs/{job.id}/events"})
         return Outcome(202, accepted.model_dump(mode="json"), f"/v1/jobs/{job.id}", dispatch)
 
-    return respond_once(session, key, idempotency_key, digest, start)
+    return await run_in_threadpool(respond_once, session, key, idempotency_key, digest, start)
 
 
 def _reconstructed_cloud(session, scan: Scan, body: ScanJobRequest) -> str:

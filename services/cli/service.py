@@ -65,7 +65,8 @@ def _serve(args: argparse.Namespace) -> int:
     _ensure_simulator_calibration(runtime)
     broker = setup_broker(settings)
     worker = dramatiq.Worker(broker, worker_threads=settings.worker_threads)
-    with _GatewayProcess(settings.gateway_port) as gateway, RerunProxy(settings.rerun_host, settings.rerun_port) as proxy:
+    with (_GatewayProcess(settings.gateway_port) as gateway,
+          RerunProxy(settings.rerun_host, settings.rerun_port) as proxy):
         gateway.wait_until_healthy()
         worker.start()
         for job in runtime.tracker.recover():
@@ -170,7 +171,8 @@ def _worker(args: argparse.Namespace) -> int:
 
 def _require_broker(settings: Settings, command: str) -> None:
     if not settings.broker_url:
-        raise InputError(f"`thermofield {command}` needs THERMOFIELD_BROKER_URL (e.g. amqp://guest:guest@127.0.0.1:5672); "
+        raise InputError(f"`thermofield {command}` needs THERMOFIELD_BROKER_URL "
+                         "(e.g. amqp://guest:guest@127.0.0.1:5672); "
                          "for a single process use `thermofield serve`")
 
 

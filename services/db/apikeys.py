@@ -27,7 +27,8 @@ def parse_scopes(scopes: list[str]) -> list[str]:
     """Validate scope names; ``ValueError`` names the unknown one."""
     unknown = [scope for scope in scopes if scope not in SCOPES]
     if unknown or not scopes:
-        raise ValueError(f"Scopes must be a non-empty subset of {', '.join(SCOPES)}; got {', '.join(scopes) or 'none'}.")
+        raise ValueError(f"Scopes must be a non-empty subset of {', '.join(SCOPES)}; "
+                         f"got {', '.join(scopes) or 'none'}.")
     return sorted(set(scopes), key=SCOPES.index)
 
 

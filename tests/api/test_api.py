@@ -68,7 +68,8 @@ def test_calibration_set_upload_download_activate(client, auth, runtime):
     assert second["active"]
     activated = client.post(f"/v1/calibration-sets/{first['calibration_set_id']}/activate", headers=auth["admin"])
     assert activated.json()["active"]
-    listed = {c["calibration_set_id"]: c["active"] for c in client.get("/v1/calibration-sets", headers=auth["read"]).json()}
+    listed = {c["calibration_set_id"]: c["active"]
+              for c in client.get("/v1/calibration-sets", headers=auth["read"]).json()}
     assert listed == {first["calibration_set_id"]: True, second["calibration_set_id"]: False}
     assert upload_rig(client, auth["operate"]).status_code == 403
 
