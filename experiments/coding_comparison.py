@@ -106,6 +106,7 @@ def main() -> None:
     names = list(patterns)
     stack = np.stack([patterns[name] for name in names])
     results: dict[tuple[str, str], list[dict[str, float]]] = {}
+    by_scene: dict[tuple[str, str], dict[str, float]] = {}
     for scene_name, scene in SCENES.items():
         view = render_view(scene, camera, projector)
         for condition_name, effects in CONDITIONS.items():
@@ -114,6 +115,8 @@ def main() -> None:
             for coding_name, sequence in CODINGS.items():
                 measured = _measure(sequence, captured, view, camera, projector)
                 results.setdefault((coding_name, condition_name), []).append(measured)
+                if condition_name == "linear projector":
+                    by_scene[coding_name, scene_name] = measured
                 print(f"<!-- {scene_name}, {condition_name}, {coding_name}: "
                       + ", ".join(f"{k} {v:.4g}" for k, v in measured.items()) + " -->", flush=True)
     print()
@@ -126,6 +129,14 @@ def main() -> None:
         print(f"| {coding_name} | {rows[0]['frames']} | {condition_name} | {100 * least['coverage']:.2f} % "
               f"| {worst['mean_px']:.4f} | {worst['p999_px']:.3f} | {100 * worst['gross']:.3f} % "
               f"| {worst['mean_mm']:.4f} | {worst['max_mm']:.3f} | {int(worst['stray'])} |")
+
+    print()
+    print("| coding (linear projector) | scene | coverage of lit pixels | mean error (px) | 99.9 % error (px) "
+          "| mean 3D error (mm) | max 3D error (mm) |")
+    print("|---|---|---|---|---|---|---|")
+    for (coding_name, scene_name), row in by_scene.items():
+        print(f"| {coding_name} | {scene_name} | {100 * row['coverage']:.2f} % | {row['mean_px']:.4f} "
+              f"| {row['p999_px']:.3f} | {row['mean_mm']:.4f} | {row['max_mm']:.3f} |")
 
 
 if __name__ == "__main__":

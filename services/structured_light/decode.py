@@ -332,7 +332,7 @@ def decode(
     min_modulation: float | None = None,
     min_quality: float = 0.5,
     consistency: float = 0.25,
-    edge_margin: int = 2,
+    edge_margin: int = 3,
     max_jump: float = np.inf,
 ) -> DecodedCapture:
     """Decode camera frames of a structured-light sequence into projector coordinates.
@@ -361,7 +361,7 @@ def decode(
     edge_margin : int
         Valid pixels within this many pixels (a square neighbourhood) of a
         rejected pixel are ``EDGE``: at an object's outline a camera pixel, and
-        its blur, mix the object with what lies beyond it. About twice the
+        its blur, mix the object with what lies beyond it. About three times the
         camera's blur sigma; 0 keeps them.
     max_jump : float
         Valid pixels whose projector coordinate differs from a 4-neighbour's by

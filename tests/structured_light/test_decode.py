@@ -223,7 +223,7 @@ def test_pixels_beside_rejected_ones_or_a_jump_are_edges():
     decoded = decode(frames, sequence, edge_margin=1)
     assert np.all(decoded.rejection[:, [99, 110]] == Rejection.EDGE)
     assert np.all(decoded.rejection[:, [98, 111]] == Rejection.VALID)
-    assert np.all(decode(frames, sequence).rejection[:, [98, 99, 110, 111]] == Rejection.EDGE)  # default margin 2
+    assert np.all(decode(frames, sequence).rejection[:, [97, 98, 99, 110, 111, 112]] == Rejection.EDGE)  # default 3
     assert np.all(np.isnan(decoded.projector_x[:, [99, 110]]))
     assert np.all(decode(frames, sequence, edge_margin=0).rejection[:, [99, 110]] == Rejection.VALID)
 
