@@ -44,7 +44,7 @@ ExistingCalibration = Annotated[CalibrationSet, Depends(_existing_calibration)]
 
 @router.post("", name="create_calibration_set", status_code=201, response_model=CalibrationSetOut)
 async def create_calibration_set(request: Request, session: SessionDep, runtime: RuntimeDep, key: AdminKey,
-                                 rig: Annotated[UploadFile, File(description="A rig file (docs/formats.md).")],
+                                 rig: Annotated[UploadFile, File(description="A rig file (docs/rig-file.md).")],
                                  name: Annotated[str, Form(min_length=1, max_length=200)],
                                  activate: Annotated[bool, Form()] = False,
                                  idempotency_key: IdempotencyKeyHeader = None):
@@ -53,10 +53,11 @@ async def create_calibration_set(request: Request, session: SessionDep, runtime:
     if len(text) > _MAX_RIG_BYTES:
         raise Problem(413, "too-large", f"rig: the file {rig.filename!r} is larger than {_MAX_RIG_BYTES} bytes.")
     parsed = parse_rig(text.decode("utf-8", errors="replace"), f"rig ({rig.filename})")
-    digest = runtime.store.put_bytes(rig_to_json(parsed).encode())
+    rig_digest = runtime.store.put_bytes(rig_to_json(parsed).encode())
 
     def create() -> Outcome:
-        calibration = CalibrationSet(name=name, station=runtime.settings.station, rig_sha256=digest, source="upload")
+        calibration = CalibrationSet(name=name, station=runtime.settings.station, rig_sha256=rig_digest,
+                                     source="upload")
         session.add(calibration)
         session.flush()
         if activate:
@@ -64,8 +65,8 @@ async def create_calibration_set(request: Request, session: SessionDep, runtime:
         out = calibration_out(calibration)
         return Outcome(201, out.model_dump(mode="json"), out.links["self"])
 
-    digest = request_digest(request, json.dumps({"name": name, "activate": activate}).encode() + text)
-    return await run_in_threadpool(respond_once, session, key, idempotency_key, digest, create)
+    request_sha256 = request_digest(request, json.dumps({"name": name, "activate": activate}).encode() + text)
+    return await run_in_threadpool(respond_once, session, key, idempotency_key, request_sha256, create)
 
 
 @router.get("", name="list_calibration_sets")
