@@ -61,49 +61,59 @@ def detect_board(image: np.ndarray, board: BoardSpec) -> BoardDetection | None:
     -----
     Chessboards are located by OpenCV's sector-based detector [2]_, falling back to the quad
     detector (which finds boards whose quiet zone is cut by the image border but misplaces
-    the outer corners of a board without a light frame, such as a hollowed infrared board
-    seen with its own polarity) and, for frames under 480 pixels, to both on a
-    twice-upsampled frame.
-    Each corner is then refined as the saddle point of the intensity, the point q where
-    sum_i (grad I(p_i) . (p_i - q)) = 0 over a window (``cv2.cornerSubPix``). The half
+    the outer corners of a board without a light frame, such as a hollowed infrared board)
+    and, for frames under 480 pixels, to both on a twice-upsampled frame. Each corner is
+    refined as the saddle point of the intensity, the point q where
+    sum_i (grad I(p_i) . (p_i - q)) = 0 over a window [1]_ (``cv2.cornerSubPix``). The half
     window is a quarter of the corner's distance to its nearest neighbour, so it adapts to
     the imaged square size and perspective instead of being tuned by hand: on OpenCV's own
     chessboard images this halves the reprojection error of the usual fixed 11x11 window.
-    Chessboard corners are put in a canonical order (right-handed in the image, the square
-    between features 0, 1, cols and cols+1 dark in "normal" polarity) so that two cameras
-    viewing the same board agree on which corner is which.
+    A detection is discarded when one of its corners is not an X-junction (a misplaced
+    corner), and refused when X-junctions continue the grid beyond a side (the board is
+    larger than its specification). Chessboard corners are put in a canonical order
+    (right-handed in the image, the square between features 0, 1, cols and cols+1 dark in
+    the image) so that a visible and an infrared camera viewing one board agree on which
+    corner is which.
 
     References
     ----------
-    .. [1] Z. Zhang, "A flexible new technique for camera calibration", IEEE TPAMI 22(11), 2000.
+    .. [1] W. Foerstner, E. Guelch, "A fast operator for detection and precise location of
+       distinct points, corners and centres of circular features", ISPRS Intercommission
+       Workshop, Interlaken, 1987.
     .. [2] A. Duda, U. Frese, "Accurate detection and localization of checkerboard corners for
        calibration", BMVC 2018.
     """
     if image.ndim != 2 or image.dtype not in (np.uint8, np.uint16):
         raise ValueError(f"The image must be a 2-D uint8 or uint16 array; got {image.dtype} {image.shape}.")
-    grey = _stretch_to_uint8(image)
+    levels = _grey_levels(image)
+    grey = np.round(levels).astype(np.uint8)
     polarities = ("normal", "inverted") if board.polarity == "auto" else (board.polarity,)
     if isinstance(board, ChessboardSpec):
-        return _detect_chessboard(grey, board, polarities)
+        return _detect_chessboard(grey, levels, board, polarities)
     for polarity in polarities:
         view = grey if polarity == "normal" else 255 - grey
-        found = _detect_charuco(view, board) if isinstance(board, CharucoSpec) else _detect_circles(view, board)
+        if isinstance(board, CharucoSpec):
+            found = _detect_charuco(view, levels, board)
+        else:
+            found = _detect_circles(view, board)
         if found is not None:
             points, ids = found
             return BoardDetection(points.astype(np.float64), ids.astype(int), polarity)
     return None
 
 
-def _stretch_to_uint8(image: np.ndarray) -> np.ndarray:
+def _grey_levels(image: np.ndarray) -> np.ndarray:
+    """The frame as float32 on a 0..255 scale; 16-bit frames stretched, keeping their fine levels."""
     if image.dtype == np.uint8:
-        return image
+        return image.astype(np.float32)
     low, high = np.percentile(image, [0.5, 99.5])
-    scaled = (image.astype(np.float64) - low) * (255.0 / max(high - low, 1.0))
-    return np.clip(scaled, 0, 255).astype(np.uint8)
+    scaled = (image.astype(np.float32) - np.float32(low)) * np.float32(255.0 / max(high - low, 1.0))
+    return np.clip(scaled, 0, 255)
 
 
-def _detect_chessboard(grey: np.ndarray, board: ChessboardSpec, polarities: tuple[str, ...]) -> BoardDetection | None:
-    """Try the locators from the cheapest to the costliest, each with every polarity."""
+def _detect_chessboard(grey: np.ndarray, levels: np.ndarray, board: ChessboardSpec,
+                       polarities: tuple[str, ...]) -> BoardDetection | None:
+    """Locate on the 8-bit ``grey`` (each locator with every polarity), refine and check on ``levels``."""
     size = board.pattern_size
     scales = (1, 2) if min(grey.shape) < _UPSAMPLE_BELOW else (1,)
     for scale in scales:
@@ -113,42 +123,42 @@ def _detect_chessboard(grey: np.ndarray, board: ChessboardSpec, polarities: tupl
                 corners = locate(frame if polarity == "normal" else 255 - frame, size)
                 if corners is None:
                     continue
-                corners = refine_corners(grey, (corners + 0.5) / scale - 0.5)
+                corners = refine_corners(levels, (corners + 0.5) / scale - 0.5)
                 grid = corners.reshape(size[1], size[0], 2)
-                strength = _saddle_strength(grey, corners, grid)
+                strength = _saddle_strength(levels, corners, grid)
                 if strength.min() < _WEAKEST_CORNER * np.median(strength):
                     continue  # a misplaced corner: an outer corner of a board without a light frame
-                if _grid_continues(grey, grid):
+                if _grid_continues(levels, grid):
                     return None
-                corners = _canonical_chessboard_order(grey, corners, size)
+                corners = _canonical_chessboard_order(levels, corners, size)
                 return BoardDetection(corners, np.arange(len(corners)), polarity)
     return None
 
 
-def _grid_continues(grey: np.ndarray, grid: np.ndarray) -> bool:
+def _grid_continues(levels: np.ndarray, grid: np.ndarray) -> bool:
     """Whether the board has more corners than specified on some side (a spec/board mismatch).
 
     The corner row or column beyond each side is extrapolated and refined; a side continues
     when most of those points are X-junctions at least half as strong as the detected corners.
     """
-    strength = np.median(_saddle_strength(grey, grid.reshape(-1, 2), grid))
+    strength = np.median(_saddle_strength(levels, grid.reshape(-1, 2), grid))
     beyond = (2 * grid[0] - grid[1], 2 * grid[-1] - grid[-2], 2 * grid[:, 0] - grid[:, 1], 2 * grid[:, -1] - grid[:, -2])
-    return any(np.mean(_saddle_strength(grey, _refine_inside(grey, side), grid) > 0.5 * strength) > 0.5
+    return any(np.mean(_saddle_strength(levels, _refine_inside(levels, side), grid) > 0.5 * strength) > 0.5
                for side in beyond)
 
 
-def _refine_inside(grey: np.ndarray, points: np.ndarray) -> np.ndarray:
+def _refine_inside(levels: np.ndarray, points: np.ndarray) -> np.ndarray:
     """Refine the points that lie inside the image; leave the others where they are."""
-    height, width = grey.shape
+    height, width = levels.shape
     inside = (points[:, 0] >= 0) & (points[:, 0] <= width - 1) & (points[:, 1] >= 0) & (points[:, 1] <= height - 1)
     if inside.sum() < 2:
         return points
     refined = points.copy()
-    refined[inside] = refine_corners(grey, points[inside])
+    refined[inside] = refine_corners(levels, points[inside])
     return refined
 
 
-def _saddle_strength(grey: np.ndarray, points: np.ndarray, grid: np.ndarray) -> np.ndarray:
+def _saddle_strength(levels: np.ndarray, points: np.ndarray, grid: np.ndarray) -> np.ndarray:
     """Second minus first angular harmonic amplitude of the intensity on a ring around each point.
 
     An X-junction (a chessboard corner) alternates four times around the ring: a strong second
@@ -161,9 +171,9 @@ def _saddle_strength(grey: np.ndarray, points: np.ndarray, grid: np.ndarray) -> 
     angles = np.linspace(0, 2 * np.pi, 16, endpoint=False)
     ring_x = points[:, :1] + radius * np.cos(angles)
     ring_y = points[:, 1:] + radius * np.sin(angles)
-    height, width = grey.shape
+    height, width = levels.shape
     inside = np.all((ring_x >= 0) & (ring_x <= width - 1) & (ring_y >= 0) & (ring_y <= height - 1), axis=1)
-    values = cv2.remap(grey.astype(np.float32), ring_x.astype(np.float32), ring_y.astype(np.float32),
+    values = cv2.remap(levels.astype(np.float32), ring_x.astype(np.float32), ring_y.astype(np.float32),
                        cv2.INTER_LINEAR)
     second = 2 * np.abs(values @ np.exp(-2j * angles)) / len(angles)
     first = 2 * np.abs(values @ np.exp(-1j * angles)) / len(angles)
@@ -180,12 +190,12 @@ def _locate_by_sectors(view: np.ndarray, size: tuple[int, int]) -> np.ndarray | 
     return corners.reshape(-1, 2).astype(np.float64) if found else None
 
 
-def _detect_charuco(grey: np.ndarray, board: CharucoSpec) -> tuple[np.ndarray, np.ndarray] | None:
+def _detect_charuco(grey: np.ndarray, levels: np.ndarray, board: CharucoSpec) -> tuple[np.ndarray, np.ndarray] | None:
     detector = cv2.aruco.CharucoDetector(board.opencv_board())
     corners, ids, _, _ = detector.detectBoard(grey)
     if ids is None or len(ids) < 6:
         return None
-    return refine_corners(grey, corners.reshape(-1, 2)), ids.ravel()
+    return refine_corners(levels, corners.reshape(-1, 2)), ids.ravel()
 
 
 def _detect_circles(grey: np.ndarray, board: CirclesSpec) -> tuple[np.ndarray, np.ndarray] | None:
@@ -196,12 +206,12 @@ def _detect_circles(grey: np.ndarray, board: CirclesSpec) -> tuple[np.ndarray, n
     return centres.reshape(-1, 2), np.arange(len(centres))
 
 
-def refine_corners(grey: np.ndarray, corners: np.ndarray) -> np.ndarray:
+def refine_corners(image: np.ndarray, corners: np.ndarray) -> np.ndarray:
     """Refine chessboard corners to the intensity saddle point with a spacing-derived window.
 
     Parameters
     ----------
-    grey : (H, W) uint8 array
+    image : (H, W) uint8 or float32 array
         The image.
     corners : (N, 2) array, N >= 2
         Approximate corner positions in pixels.
@@ -222,7 +232,7 @@ def refine_corners(grey: np.ndarray, corners: np.ndarray) -> np.ndarray:
     spacing = cKDTree(corners).query(corners, k=2)[0][:, 1]
     half_windows = np.maximum(_MIN_HALF_WINDOW, np.floor(_WINDOW_FRACTION * spacing)).astype(int)
     refined = corners.copy()
-    image = grey.astype(np.float32)
+    image = np.asarray(image, dtype=np.float32)
     for half in np.unique(half_windows):
         chosen = half_windows == half
         block = refined[chosen].reshape(-1, 1, 2).copy()
@@ -230,22 +240,22 @@ def refine_corners(grey: np.ndarray, corners: np.ndarray) -> np.ndarray:
     return refined.astype(np.float64)
 
 
-def _canonical_chessboard_order(grey: np.ndarray, corners: np.ndarray, size: tuple[int, int]) -> np.ndarray:
+def _canonical_chessboard_order(levels: np.ndarray, corners: np.ndarray, size: tuple[int, int]) -> np.ndarray:
     cols, rows = size
     grid = corners.reshape(rows, cols, 2)
     along_row, across_rows = grid[0, -1] - grid[0, 0], grid[-1, 0] - grid[0, 0]
     if along_row[0] * across_rows[1] - along_row[1] * across_rows[0] < 0:
         grid = grid[:, ::-1]
     if (cols + rows) % 2 == 1:
-        if _square_brightness(grey, grid, 0) > _square_brightness(grey, grid, 1):
+        if _square_brightness(levels, grid, 0) > _square_brightness(levels, grid, 1):
             grid = grid[::-1, ::-1]
     elif grid[-1, -1].sum() < grid[0, 0].sum():
         grid = grid[::-1, ::-1]
     return np.ascontiguousarray(grid).reshape(-1, 2)
 
 
-def _square_brightness(grey: np.ndarray, grid: np.ndarray, column: int) -> float:
+def _square_brightness(levels: np.ndarray, grid: np.ndarray, column: int) -> float:
     """Mean intensity near the centre of the square between corners (0, column) and (1, column + 1)."""
     centre = grid[0:2, column:column + 2].reshape(-1, 2).mean(axis=0)
-    patch = cv2.getRectSubPix(grey, (3, 3), (float(centre[0]), float(centre[1])))
+    patch = cv2.getRectSubPix(levels, (3, 3), (float(centre[0]), float(centre[1])))
     return float(patch.mean())
