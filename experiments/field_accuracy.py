@@ -20,15 +20,17 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
+from services.formats.rig import Device  # noqa: E402
 from services.fusion.field import temperature_field  # noqa: E402
 from services.fusion.fuse import ThermalView  # noqa: E402
-from services.geometry.camera import camera_center  # noqa: E402
+from services.fusion.visibility import depth_buffer, seen_mask  # noqa: E402
+from services.geometry.camera import camera_center, project_points  # noqa: E402
 from services.simulation.presets import forging_rig, forging_scene  # noqa: E402
 from services.simulation.render import CameraEffects, render_frames, render_view  # noqa: E402
 from services.simulation.thermal import (  # noqa: E402
     ThermalEffects, forging_temperatures, render_thermal, seen_by, surface_temperature,
 )
-from services.structured_light.patterns import generate_sequence, render_patterns  # noqa: E402
+from services.structured_light.patterns import generate_sequence  # noqa: E402
 from services.structured_light.reconstruct import reconstruct_points  # noqa: E402
 
 
@@ -39,7 +41,7 @@ def simulate(seed: int = 0):
     rng = np.random.default_rng(seed)
     sequence, patterns = generate_sequence(projector.width, projector.height)
     view = render_view(scene, camera, projector, supersample=3)
-    frames = render_frames(view, patterns if patterns is not None else render_patterns(sequence), rng,
+    frames = render_frames(view, patterns, rng,
                            CameraEffects(noise_sigma=1.0))
     image = render_thermal(scene, temperatures, thermal, ThermalEffects(netd=0.05), rng)
     return rig, scene, temperatures, sequence, frames, image, view.truth
@@ -81,28 +83,43 @@ def exact_cloud(truth) -> dict[str, np.ndarray]:
             "u": u.astype(np.float32), "v": v.astype(np.float32)}
 
 
+def _virtual_camera(centre, target, focal: float, width: int, height: int) -> Device:
+    """A distortion-free camera at ``centre`` looking at ``target`` (image y roughly along world y)."""
+    centre = np.asarray(centre, dtype=float)
+    forward = np.asarray(target, dtype=float) - centre
+    forward /= np.linalg.norm(forward)
+    right = np.cross([0.0, 1.0, 0.0], forward)
+    right /= np.linalg.norm(right)
+    R = np.stack([right, np.cross(forward, right), forward])
+    return Device(kind="camera", width=width, height=height,
+                  K=[[focal, 0, width / 2], [0, focal, height / 2], [0, 0, 1]], R=R.tolist(), t=(-R @ centre).tolist())
+
+
 def render_field_picture(field: dict, path: Path, title: str) -> None:
-    """An orthographic splat of the coloured points seen from the camera side, with a colour bar."""
+    """The coloured points seen from a virtual camera off the rig's axis, z-buffered and shaded by normal."""
+    view = _virtual_camera((-260.0, -240.0, 100.0), (-10.0, 30.0, 660.0), 430.0, 520, 360)
+    points = np.column_stack([field["x"], field["y"], field["z"]]).astype(np.float64)
+    pixels = project_points(points, view.K_array, view.dist_array, view.R_array, view.t_array)
+    depth = np.einsum("j,nj->n", view.R_array[2], points) + view.t_array[2]
+    buffer = depth_buffer(pixels, depth, view.width, view.height)
+    front = seen_mask(pixels, depth, buffer, np.full(len(depth), 3.0))
+    normals = np.column_stack([field["nx"], field["ny"], field["nz"]])
+    light = np.array([-0.3, -0.6, -0.75]) / np.linalg.norm([-0.3, -0.6, -0.75])
+    shade = 0.55 + 0.45 * np.clip(np.nan_to_num(np.abs(normals @ light), nan=1.0), 0, 1)
+    rgb = np.column_stack([field["red"], field["green"], field["blue"]]) / 255.0 * shade[:, None]
+    picture = np.ones((view.height, view.width, 3))
+    column, row = np.rint(pixels[front]).astype(int).T
+    picture[row, column] = rgb[front]
     seen = np.isfinite(field["temperature"])
-    x, y, z = field["x"], field["y"], field["z"]
-    rgb = np.column_stack([field["red"], field["green"], field["blue"]]) / 255.0
-    step = max(1, len(x) // 200_000)
-    figure = plt.figure(figsize=(8, 5.5))
-    axes = figure.add_subplot(projection="3d")
-    order = np.argsort(-z[::step])
-    axes.scatter(x[::step][order], z[::step][order], -y[::step][order], c=rgb[::step][order], s=0.3,
-                 linewidths=0, depthshade=False)
-    axes.set_xlabel("x (mm)")
-    axes.set_ylabel("z (mm)")
-    axes.set_zlabel("-y (mm)")
-    axes.view_init(elev=20, azim=-70)
-    axes.set_box_aspect((np.ptp(x), np.ptp(z), np.ptp(y)))
-    mappable = plt.cm.ScalarMappable(cmap="inferno", norm=plt.Normalize(np.nanmin(field["temperature"][seen]),
-                                                                         np.nanmax(field["temperature"][seen])))
-    figure.colorbar(mappable, ax=axes, shrink=0.6, label="temperature (°C); grey: unseen")
+    figure, axes = plt.subplots(figsize=(8.4, 5.2))
+    axes.imshow(picture, interpolation="nearest")
+    axes.set_axis_off()
+    norm = plt.Normalize(np.min(field["temperature"][seen]), np.max(field["temperature"][seen]))
+    figure.colorbar(plt.cm.ScalarMappable(norm=norm, cmap="inferno"), ax=axes, shrink=0.8,
+                    label="temperature (°C); grey: not seen by the thermal camera")
     axes.set_title(title)
     figure.tight_layout()
-    figure.savefig(path, dpi=130)
+    figure.savefig(path, dpi=120)
     plt.close(figure)
 
 
@@ -117,6 +134,7 @@ def main() -> None:
     reconstructed = reconstruct_points(frames, sequence, rig.devices["camera"], rig.devices["projector"])
     rows = {}
     rows["reconstructed cloud"], field = evaluate(reconstructed, rig, scene, temperatures, truth, image)
+    render_field_picture(field, args.out / "forging_field.png", "Simulated forging: fused 3D temperature field")
     rows["exact cloud"], _ = evaluate(exact_cloud(truth), rig, scene, temperatures, truth, image)
 
     names = list(next(iter(rows.values())))
@@ -126,7 +144,6 @@ def main() -> None:
         cells = [f"{row[name]:.4g}" if isinstance(row[name], float) else str(row[name]) for row in rows.values()]
         print(f"| {name} | " + " | ".join(cells) + " |")
 
-    render_field_picture(field, args.out / "forging_field.png", "Simulated forging: fused 3D temperature field")
     figure, axes = plt.subplots(figsize=(5, 4))
     shown = axes.imshow(image, cmap="inferno")
     figure.colorbar(shown, ax=axes, label="°C")
