@@ -125,6 +125,21 @@ def _coarse_model(model: str) -> str:
     return model if model in ("translation", "rigid", "similarity") else "similarity"
 
 
+def _search_grid(
+    model: str, coarse_shape: tuple[int, int], max_angle: float, max_scale_change: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """Rotations (radians) and scale factors of the coarse search, spaced by ``_SEARCH_STEP`` pixels at the corners."""
+    step = _SEARCH_STEP / (0.5 * float(np.hypot(*coarse_shape)))
+    angles, factors = np.zeros(1), np.ones(1)
+    if model != "translation" and max_angle > 0.0:
+        angle_range = np.deg2rad(max_angle)
+        angles = np.arange(-angle_range, angle_range + 0.5 * step, step)
+    if model not in ("translation", "rigid") and max_scale_change > 0.0:
+        log_range = np.log1p(max_scale_change)
+        factors = np.exp(np.arange(-log_range, log_range + 0.5 * step, step))
+    return angles, factors
+
+
 def register(
     fixed: np.ndarray,
     moving: np.ndarray,
@@ -209,7 +224,7 @@ def register(
     fixed_reduced = _reduce(fixed, reduction)
     fixed_pre = preprocess(fixed_reduced, preprocessing, invert=True)
     moving_pre = preprocess(moving, preprocessing)
-    levels = int(max(0, np.floor(np.log2(min(moving_height, moving_width) / _COARSEST_SIZE))))
+    levels = int(np.floor(np.log2(min(moving_height, moving_width) / _COARSEST_SIZE)))  # >= 1 by the size check
     fixed_levels, moving_levels = _pyramid(fixed_pre, levels), _pyramid(moving_pre, levels)
     fixed_pyramid = [quantize(level, bins) for level in fixed_levels]
     moving_pyramid = [quantize(level, bins) for level in moving_levels]
@@ -217,12 +232,7 @@ def register(
     search_fixed, search_moving = quantize(fixed_levels[-1], search_bins), quantize(moving_levels[-1], search_bins)
 
     coarse_fixed, coarse_moving = fixed_pyramid[levels], moving_pyramid[levels]
-    radius = 0.5 * float(np.hypot(*coarse_moving.shape))
-    step = _SEARCH_STEP / radius
-    angle_range = 0.0 if model == "translation" else np.deg2rad(max_angle)
-    log_scale_range = np.log1p(max_scale_change) if model not in ("translation", "rigid") else 0.0
-    angles = np.arange(-angle_range, angle_range + 0.5 * step, step) if angle_range else np.zeros(1)
-    factors = np.exp(np.arange(-log_scale_range, log_scale_range + 0.5 * step, step)) if log_scale_range else np.ones(1)
+    angles, factors = _search_grid(model, coarse_moving.shape, max_angle, max_scale_change)
     shift_range = max_shift if max_shift is not None else _DEFAULT_SHIFT_RANGE * min(moving_height, moving_width) * nominal
     reduced_scale = nominal * reduction
     coarse_shift = int(np.ceil(shift_range / (nominal * 2**levels)))
@@ -232,9 +242,8 @@ def register(
         raise ValueError("The images do not overlap enough anywhere in the search range; "
                          "check the nominal scale and the search range.")
 
-    coarse_model = _coarse_model(model)
-    refined = [_refine(coarse_fixed, coarse_moving, candidate.matrix, coarse_model, bins, log_base, metric, min_overlap)
-               for candidate in candidates]
+    refined = [_refine(coarse_fixed, coarse_moving, candidate.matrix, _coarse_model(model), bins, log_base, metric,
+                       min_overlap) for candidate in candidates]
     matrix = _level_matrix(max(refined, key=lambda item: item[1])[0], -levels)
     for level in range(levels - 1, -1, -1):
         level_start = _level_matrix(matrix, level)
@@ -242,8 +251,6 @@ def register(
         level_matrix, _ = _refine(fixed_pyramid[level], moving_pyramid[level], level_start, level_model,
                                   bins, log_base, metric, min_overlap, _FINE_STEP)
         matrix = _level_matrix(level_matrix, -level)
-    if levels == 0 and coarse_model != model:
-        matrix, _ = _refine(fixed_pyramid[0], moving_pyramid[0], matrix, model, bins, log_base, metric, min_overlap)
 
     samples = sample_fixed(fixed_pyramid[0], matrix, moving_width, moving_height)
     mi, nmi, _ = information(samples, moving_pyramid[0], bins, log_base)
