@@ -1,0 +1,1 @@
+"""Infrared-to-visible image registration by mutual information; see docs/registration.md."""
