@@ -166,7 +166,10 @@ def _worker(args: argparse.Namespace) -> int:
     limit_thread_environment(settings.compute_threads)
     command = [sys.executable, "-m", "dramatiq", "workers.main", "--use-spawn", "--queues", settings.job_queue,
                "--processes", str(settings.worker_processes), "--threads", str(settings.worker_threads)]
-    return subprocess.run(command, env=os.environ).returncode
+    # A scan takes seconds: each process takes only as many messages as it has threads, so that jobs queued
+    # together spread over the processes instead of waiting in one process's prefetch.
+    env = os.environ | {"dramatiq_queue_prefetch": str(settings.worker_threads)}
+    return subprocess.run(command, env=env).returncode
 
 
 def _require_broker(settings: Settings, command: str) -> None:
