@@ -205,3 +205,21 @@ def test_scan_jobs_check_their_inputs_and_serve_their_artifacts(client, auth, ru
     job = client.get(f"/v1/jobs/{job_id}", headers=auth["read"]).json()
     overlay = client.get(job["links"]["overlay.png"], headers=auth["read"])
     assert overlay.content == b"png" and overlay.headers["content-type"] == "image/png"
+
+
+def test_unknown_routes_and_methods_are_problems_too(client, auth):
+    missing = client.get("/v1/nothing", headers=auth["read"])
+    assert missing.status_code == 404 and missing.headers["content-type"] == PROBLEM
+    assert missing.json()["type"].endswith("/not-found")
+    wrong_method = client.delete("/v1/scans", headers=auth["admin"])
+    assert wrong_method.status_code == 405 and wrong_method.headers["content-type"] == PROBLEM
+
+
+def test_a_lost_artifact_is_a_server_problem_not_a_traceback(client, auth, runtime):
+    upload_rig(client, auth["admin"])
+    scan_id = client.post("/v1/scans", headers=auth["operate"]).json()["scan_id"]
+    with runtime.sessions.begin() as session:
+        session.get(Scan, scan_id).artifacts = {"cloud.ply": "0" * 64}
+    response = client.get(f"/v1/scans/{scan_id}/cloud.ply", headers=auth["read"])
+    assert response.status_code == 500 and response.headers["content-type"] == PROBLEM
+    assert response.json()["type"].endswith("/artifact-missing") and "Traceback" not in response.text
