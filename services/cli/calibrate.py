@@ -19,10 +19,12 @@ from services.formats.calibration import (
     CameraCalibrationFile,
     ProjectorCalibrationFile,
     RejectedView,
+    StereoCalibrationFile,
     load_camera_calibration,
     save_camera_calibration,
     save_figure,
     save_projector_calibration,
+    save_stereo_calibration,
 )
 from services.formats.images import FRAME_SUFFIXES, read_frame
 from services.formats.rig import Device, Rig, load_rig, save_rig
@@ -245,18 +247,24 @@ def run_stereo(args: argparse.Namespace) -> int:
         if size != expected.size:
             raise InputError(f"{args.pairs / label}: images are {size[0]}x{size[1]} but the calibration of "
                              f"{label} is for {expected.width}x{expected.height}")
-    object_points, first, second = [], [], []
-    for a, b in zip(reference, seen):
+    object_points, first, second, pair_names = [], [], [], []
+    for path, a, b in zip(paired, reference, seen):
         shared, index_a, index_b = np.intersect1d(a.ids, b.ids, return_indices=True)
         if len(shared) >= 4:
             object_points.append(board.object_points()[shared])
             first.append(a.image_points[index_a])
             second.append(b.image_points[index_b])
+            pair_names.append(path.name)
     result = calibrate_stereo(object_points, first, second, (camera.K_array, camera.dist_array),
                               (device.K_array, device.dist_array), reference_size)
     R = result.R @ camera.R_array
     t = result.R @ camera.t_array + result.t
     placed = device.model_copy(update={"R": R.tolist(), "t": t.tolist()})
+    report = StereoCalibrationFile(device=args.device, reference=camera_name, stereo_rms_px=result.rms,
+                                   baseline_mm=result.baseline_mm, pairs=pair_names,
+                                   per_view_rms_px=result.per_view_rms.tolist())
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    save_stereo_calibration(report, args.out.with_name(f"{args.out.stem}_stereo_{args.device}.json"))
     save_rig(Rig(units=rig.units, devices={**rig.devices, args.device: placed}), args.out)
     print(f"{args.device}: stereo RMS {result.rms:.3f} px over {len(object_points)} pairs; "
           f"baseline {result.baseline_mm:.2f} mm from {camera_name}")

@@ -82,6 +82,19 @@ class ProjectorCalibrationFile(BaseModel):
     rejected: list[RejectedView]
 
 
+class StereoCalibrationFile(BaseModel):
+    """The report ``thermofield calibrate stereo`` writes beside the rig."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    device: str
+    reference: str
+    stereo_rms_px: float
+    baseline_mm: float
+    pairs: list[str]
+    per_view_rms_px: list[list[float]]
+
+
 def load_camera_calibration(path: str | Path) -> CameraCalibrationFile:
     """Read and validate a camera calibration file."""
     path = Path(path)
@@ -103,6 +116,11 @@ def save_camera_calibration(calibration: CameraCalibrationFile, path: str | Path
 
 def save_projector_calibration(report: ProjectorCalibrationFile, path: str | Path) -> None:
     """Write the projector calibration report atomically."""
+    _write_atomically(path, lambda temporary: temporary.write_text(report.model_dump_json(indent=2) + "\n"))
+
+
+def save_stereo_calibration(report: StereoCalibrationFile, path: str | Path) -> None:
+    """Write the stereo calibration report atomically."""
     _write_atomically(path, lambda temporary: temporary.write_text(report.model_dump_json(indent=2) + "\n"))
 
 

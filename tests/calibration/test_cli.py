@@ -125,6 +125,9 @@ def test_calibrate_stereo_places_the_thermal_camera_in_the_rig(tmp_path, visible
     np.testing.assert_allclose(thermal.R_array, R_rel @ camera_R, atol=1e-3)
     np.testing.assert_allclose(thermal.t_array, R_rel @ camera_t + t_rel, atol=0.5)
     assert thermal.kind == "thermal" and thermal.K == THERMAL_K.tolist()
+    report = json.loads((tmp_path / "rig2_stereo_thermal.json").read_text())
+    assert report["stereo_rms_px"] < 0.1 and len(report["pairs"]) == len(visible_infrared_pairs)
+    assert abs(report["baseline_mm"] - np.linalg.norm(t_rel)) < 0.5
 
 
 def test_calibrate_stereo_needs_the_device_intrinsics(tmp_path, capsys, opencv_board_file):
