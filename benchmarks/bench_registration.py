@@ -38,7 +38,9 @@ from services.registration.register import register  # noqa: E402
 
 
 def _nominal_scale(visible: np.ndarray, infrared: np.ndarray, scale: float | None) -> float:
-    return scale if scale is not None else min(visible.shape[1] / infrared.shape[1], visible.shape[0] / infrared.shape[0])
+    if scale is not None:
+        return scale
+    return min(visible.shape[1] / infrared.shape[1], visible.shape[0] / infrared.shape[0])
 
 
 def simpleitk_register(visible: np.ndarray, infrared: np.ndarray, scale: float | None, gradient: bool) -> np.ndarray:

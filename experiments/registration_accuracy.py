@@ -1,4 +1,4 @@
-"""Registration accuracy on pairs with known infrared-to-visible matrices: the tables and figures of docs/registration.md.
+"""Registration accuracy on pairs with known infrared-to-visible matrices (tables and figures of docs/registration.md).
 
 Pairs: (a) rendered scenes, 1024x768 visible / 320x256 infrared of hot and
 cold parts, each band with its own intensity mapping; (b) the real visible
@@ -76,8 +76,9 @@ def board_pairs(rng: np.random.Generator, count: int):
         relative = Rotation.from_euler("xyz", rng.uniform(-1.0, 1.0, 3) * [2.0, 2.0, 5.0], degrees=True).as_matrix()
         visible = render_board(board, visible_k, np.zeros(5), rotation, translation, (1024, 768),
                                blur_sigma=0.7, noise_sigma=2.0, rng=rng)
-        infrared = render_board(board, infrared_k, np.zeros(5), relative @ rotation, relative @ translation, INFRARED_SIZE,
-                                modality="infrared", blur_sigma=0.8, noise_sigma=100.0, bit_depth=16, rng=rng)
+        infrared = render_board(board, infrared_k, np.zeros(5), relative @ rotation, relative @ translation,
+                                INFRARED_SIZE, modality="infrared", blur_sigma=0.8, noise_sigma=100.0,
+                                bit_depth=16, rng=rng)
         matrix = visible_k @ relative.T @ np.linalg.inv(infrared_k)
         yield "board", visible, infrared, matrix / matrix[2, 2], None
 

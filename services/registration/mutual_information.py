@@ -71,7 +71,9 @@ def _entropies(joint: np.ndarray) -> tuple[float, float, float, float]:
 
 
 @numba.njit(cache=True, nogil=True)
-def quantized_information(fixed: np.ndarray, moving: np.ndarray, bins: int, log_base: float) -> tuple[float, float, float]:
+def quantized_information(
+    fixed: np.ndarray, moving: np.ndarray, bins: int, log_base: float
+) -> tuple[float, float, float]:
     """MI, NMI and overlap weight of quantised 2-D images (see :func:`information_from_histogram`)."""
     total, h_fixed, h_moving, h_joint = _entropies(quantized_joint_histogram(fixed, moving, bins))
     if h_joint <= 0.0:

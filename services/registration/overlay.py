@@ -13,7 +13,9 @@ import numpy as np
 from services.registration.preprocess import to_uint8
 
 
-def _warped_moving(fixed: np.ndarray, moving: np.ndarray, matrix: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _warped_moving(
+    fixed: np.ndarray, moving: np.ndarray, matrix: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The fixed image as uint8, the equalised moving one warped onto its grid, and where the latter is defined."""
     matrix = np.asarray(matrix, dtype=np.float64)
     if matrix.shape != (3, 3) or not np.all(np.isfinite(matrix)) or abs(np.linalg.det(matrix)) < 1e-12:

@@ -233,7 +233,8 @@ def register(
 
     coarse_fixed, coarse_moving = fixed_pyramid[levels], moving_pyramid[levels]
     angles, factors = _search_grid(model, coarse_moving.shape, max_angle, max_scale_change)
-    shift_range = max_shift if max_shift is not None else _DEFAULT_SHIFT_RANGE * min(moving_height, moving_width) * nominal
+    default_shift = _DEFAULT_SHIFT_RANGE * min(moving_height, moving_width) * nominal
+    shift_range = max_shift if max_shift is not None else default_shift
     reduced_scale = nominal * reduction
     coarse_shift = int(np.ceil(shift_range / (nominal * 2**levels)))
     candidates = coarse_search(search_fixed, search_moving, reduced_scale, angles, factors, coarse_shift,
