@@ -15,7 +15,7 @@ from services.geometry.camera import camera_center, project_points
 
 DEFAULT_MAX_VIEW_ANGLE_DEG = 75.0
 DEFAULT_DEPTH_TOLERANCE_MM = 2.0
-DEFAULT_OCCLUSION_MARGIN_PX = 4
+DEFAULT_OCCLUSION_MARGIN_PX = 6
 # cv2.projectPoints slows down several-fold on very large inputs; chunks keep it fast.
 _PROJECTION_CHUNK = 65536
 

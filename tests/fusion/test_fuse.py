@@ -8,7 +8,7 @@ from services.geometry.camera import camera_center, project_points
 def test_seen_points_get_their_true_temperature(hot_scene):
     field = fuse_temperature(hot_scene.points, hot_scene.normals, [ThermalView(hot_scene.thermal, hot_scene.image)])
     error = np.abs(field.temperature - hot_scene.truth)[hot_scene.visible]
-    assert np.mean(np.isfinite(error)) > 0.95
+    assert np.mean(np.isfinite(error)) > 0.9  # all but the guard band beside the bar's outline
     assert np.nanmedian(error) <= 1.0
     assert np.nanpercentile(error, 90) <= 2.0
 
