@@ -200,23 +200,33 @@ def _decode_kernel(frames, saturation_frames, saturation_level, white, black, me
             referenced = False
             uncertainty = 0.0
             if gray_count[a] > 0:
-                stripe_index = np.zeros(width, np.int64)
-                binary = np.zeros(width, np.int64)
+                gray_only = first_group == end_group  # the plane margins are then modulation and quality
+                stripe_index = np.zeros(width, np.int32)
+                binary = np.zeros(width, np.int32)
                 margin_sum = np.zeros(width)
                 margin_min = np.full(width, np.inf)
                 for b in range(gray_count[a]):
                     plane = frames[gray_frame[a, b], row]
-                    inverted = gray_inverted[a, b]
-                    complement = frames[max(gray_complement[a, b], 0), row]
-                    paired = gray_complement[a, b] >= 0
-                    for col in range(width):
-                        value = float(plane[col])
-                        against = float(complement[col]) if paired else threshold[col]
-                        margin = 0.5 * abs(value - against) if paired else abs(value - against)
-                        binary[col] ^= (value > against) ^ inverted
-                        stripe_index[col] = 2 * stripe_index[col] + binary[col]
-                        margin_sum[col] += margin
-                        margin_min[col] = min(margin_min[col], margin)
+                    inverted = np.int32(gray_inverted[a, b])
+                    if gray_complement[a, b] >= 0:
+                        complement = frames[gray_complement[a, b], row]
+                        for col in range(width):
+                            binary[col] ^= np.int32(plane[col] > complement[col]) ^ inverted
+                            stripe_index[col] = 2 * stripe_index[col] + binary[col]
+                        if gray_only:
+                            for col in range(width):
+                                margin = 0.5 * abs(float(plane[col]) - float(complement[col]))
+                                margin_sum[col] += margin
+                                margin_min[col] = min(margin_min[col], margin)
+                    else:
+                        for col in range(width):
+                            binary[col] ^= np.int32(plane[col] > threshold[col]) ^ inverted
+                            stripe_index[col] = 2 * stripe_index[col] + binary[col]
+                        if gray_only:
+                            for col in range(width):
+                                margin = abs(plane[col] - threshold[col])
+                                margin_sum[col] += margin
+                                margin_min[col] = min(margin_min[col], margin)
                 stripe = float(1 << finest_bit[a])
                 for col in range(width):
                     inconsistent[col] |= stripe_index[col] * stripe >= axis_size[a]
