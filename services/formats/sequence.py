@@ -334,10 +334,27 @@ def read_capture(directory: str | Path) -> tuple[Sequence, np.ndarray]:
     ------
     InputError
         Naming the file, for a missing or invalid manifest, a missing or
-        unreadable frame, or frames of different sizes or bit depths.
+        unreadable frame, frames of different sizes or bit depths, or a black
+        frame brighter than the white one (frames out of the manifest's order).
     """
     directory = Path(directory)
     if not directory.is_dir():
         raise InputError(f"{directory}: capture directory does not exist")
     sequence = load_sequence(directory)
-    return sequence, read_frame_stack([directory / frame.file for frame in sequence.frames])
+    frames = read_frame_stack([directory / frame.file for frame in sequence.frames])
+    _check_references(sequence, frames, directory)
+    return sequence, frames
+
+
+def _check_references(sequence: Sequence, frames: np.ndarray, directory: Path) -> None:
+    """Refuse a capture whose black frame is brighter than its white one: the manifest's order is wrong."""
+    white, black = sequence.white_index, sequence.black_index
+    if white is None or black is None:
+        return
+    white_mean, black_mean = float(frames[white].mean()), float(frames[black].mean())
+    if black_mean > white_mean + 0.005 * np.iinfo(frames.dtype).max:
+        raise InputError(
+            f"{directory / sequence.frames[black].file}: the black frame is brighter than the white frame "
+            f"{sequence.frames[white].file} (mean grey level {black_mean:.1f} against {white_mean:.1f}); "
+            f"the frames do not match the order in {MANIFEST_NAME}"
+        )

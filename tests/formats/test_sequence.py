@@ -115,7 +115,9 @@ def _write_capture(directory, dtype=np.uint8, sizes=None):
     images = []
     for index, frame in enumerate(frames):
         shape = sizes[index] if sizes else (5, 7)
-        image = rng.integers(0, np.iinfo(dtype).max, size=shape, dtype=dtype)
+        image = rng.integers(0, np.iinfo(dtype).max // 2, size=shape, dtype=dtype)
+        if frame["kind"] == "white":
+            image += np.iinfo(dtype).max // 2
         if frame["file"].endswith(".tif"):
             import tifffile
 
@@ -165,3 +167,13 @@ def test_read_capture_names_a_frame_of_another_bit_depth(tmp_path):
 def test_read_capture_refuses_a_missing_directory(tmp_path):
     with pytest.raises(InputError, match="capture directory does not exist"):
         read_capture(tmp_path / "nope")
+
+
+def test_read_capture_refuses_frames_out_of_the_manifest_order(tmp_path):
+    _write_capture(tmp_path)
+    write_png(tmp_path / "w.png", np.full((5, 7), 10, np.uint8))
+    import tifffile
+
+    tifffile.imwrite(tmp_path / "b.tif", np.full((5, 7), 200, np.uint8))
+    with pytest.raises(InputError, match="b.tif: the black frame is brighter than the white frame w.png"):
+        read_capture(tmp_path)
