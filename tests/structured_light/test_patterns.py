@@ -89,6 +89,7 @@ def test_cli_writes_pngs_and_a_manifest_that_decode_back(tmp_path, capsys):
     assert (sequence.projector.width, sequence.projector.height) == (96, 40)
     first = read_frame(out / sequence.frames[0].file)
     assert first.dtype == np.uint8 and first.shape == (40, 96)
+    assert not list(out.glob("*.part*"))
     sequence, frames = read_capture(out)  # the patterns are their own ideal capture
     decoded = decode((20 + 0.8 * frames).astype(np.uint8), sequence)
     rows, columns = np.mgrid[0:40, 0:96]
