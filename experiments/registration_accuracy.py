@@ -37,6 +37,7 @@ from scipy.spatial.transform import Rotation  # noqa: E402
 from services.formats.board import ChessboardSpec  # noqa: E402
 from services.registration.models import apply_homography, corner_error  # noqa: E402
 from services.registration.overlay import checkerboard_blend, fused_overlay  # noqa: E402
+from services.registration.preprocess import preprocess  # noqa: E402
 from services.registration.register import register  # noqa: E402
 from services.registration.synthetic_pairs import (  # noqa: E402
     infrared_from_visible,
@@ -104,6 +105,21 @@ def _at_most_640_wide(image: np.ndarray) -> np.ndarray:
     return image if factor >= 1.0 else cv2.resize(image, None, fx=factor, fy=factor, interpolation=cv2.INTER_AREA)
 
 
+def _preprocessing_figure(visible: np.ndarray, infrared: np.ndarray, path: Path) -> None:
+    """Visible and infrared images raw, as the paper preprocesses them, and as gradient magnitude (cf. Figure 11)."""
+    figure, axes = plt.subplots(2, 3, figsize=(10, 5.2))
+    for row, (label, image, invert) in enumerate((("visible", visible, True), ("infrared", infrared, False))):
+        panels = (("raw", preprocess(image, "none")), ("paper: invert + equalise" if invert else "paper: equalise",
+                  preprocess(image, "paper", invert=invert)), ("gradient magnitude", preprocess(image, "gradient")))
+        for axis, (title, panel) in zip(axes[row], panels):
+            axis.imshow(panel, cmap="gray", vmin=0.0, vmax=1.0)
+            axis.set_title(f"{label}: {title}", fontsize=9)
+            axis.axis("off")
+    figure.tight_layout()
+    figure.savefig(path, dpi=100)
+    plt.close(figure)
+
+
 def _figures(pairs: list, errors: dict[str, list[float]]) -> None:
     FIGURES.mkdir(parents=True, exist_ok=True)
     figure, axis = plt.subplots(figsize=(6, 3.5))
@@ -130,6 +146,7 @@ def _figures(pairs: list, errors: dict[str, list[float]]) -> None:
         }
         for name, picture in pictures.items():
             cv2.imwrite(str(FIGURES / f"{source}_{name}.png"), _at_most_640_wide(picture))
+        _preprocessing_figure(visible, infrared, FIGURES / f"{source}_preprocessing.png")
 
 
 SECTIONS = ["similarity", "variants", "models", "boards"]
