@@ -90,8 +90,7 @@ class CalibrationSetOut(BaseModel):
     name: str
     station: str
     active: bool
-    source: str
-    job_id: str | None
+    source: str = Field(description="upload, or simulator (the simulated rig's true calibration).")
     created_at: datetime
     links: dict[str, str]
 

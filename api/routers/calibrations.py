@@ -25,10 +25,8 @@ def calibration_out(calibration: CalibrationSet) -> CalibrationSetOut:
     links = {"self": f"/v1/calibration-sets/{calibration.id}"}
     if calibration.rig_sha256:
         links["rig"] = f"/v1/calibration-sets/{calibration.id}/rig.json"
-    if calibration.job_id:
-        links["job"] = f"/v1/jobs/{calibration.job_id}"
     return CalibrationSetOut(calibration_set_id=calibration.id, name=calibration.name, station=calibration.station,
-                             active=calibration.active, source=calibration.source, job_id=calibration.job_id,
+                             active=calibration.active, source=calibration.source,
                              created_at=calibration.created_at, links=links)
 
 
