@@ -44,7 +44,7 @@ def quantized_joint_histogram(fixed: np.ndarray, moving: np.ndarray, bins: int) 
 
 
 @numba.njit(cache=True, nogil=True)
-def _entropies(joint: np.ndarray) -> tuple[float, float, float, float]:
+def joint_entropies(joint: np.ndarray) -> tuple[float, float, float, float]:
     """Total weight and natural-log entropies H(A), H(B), H(A, B) of a joint histogram."""
     bins = joint.shape[0]
     total = joint.sum()
@@ -75,7 +75,7 @@ def quantized_information(
     fixed: np.ndarray, moving: np.ndarray, bins: int, log_base: float
 ) -> tuple[float, float, float]:
     """MI, NMI and overlap weight of quantised 2-D images (see :func:`information_from_histogram`)."""
-    total, h_fixed, h_moving, h_joint = _entropies(quantized_joint_histogram(fixed, moving, bins))
+    total, h_fixed, h_moving, h_joint = joint_entropies(quantized_joint_histogram(fixed, moving, bins))
     if h_joint <= 0.0:
         return 0.0, 1.0, total
     return (h_fixed + h_moving - h_joint) / np.log(log_base), (h_fixed + h_moving) / h_joint, total
@@ -119,7 +119,7 @@ def information_from_histogram(joint: np.ndarray, log_base: float = DEFAULT_LOG_
         raise ValueError(f"The joint histogram must be a square 2-D array; got shape {joint.shape}.")
     if log_base <= 0.0 or log_base == 1.0:
         raise ValueError(f"The log base must be positive and not 1; got {log_base}.")
-    _, h_fixed, h_moving, h_joint = _entropies(joint)
+    _, h_fixed, h_moving, h_joint = joint_entropies(joint)
     if h_joint <= 0.0:
         return 0.0, 1.0
     return float((h_fixed + h_moving - h_joint) / np.log(log_base)), float((h_fixed + h_moving) / h_joint)
