@@ -4,7 +4,8 @@ A local optimiser started at the nominal alignment falls into the nearest
 MI maximum; a shift of 40 px is many capture ranges at full resolution. At the
 coarsest pyramid level the whole plausible range is cheap to scan: for each
 (rotation, scale) the fixed image is warped once onto a moving-grid canvas
-widened by the shift range, and every integer shift is then a slice of it.
+widened by the shift range, and every integer shift is then a slice of it,
+scored with a hard-binned joint histogram.
 """
 
 from __future__ import annotations

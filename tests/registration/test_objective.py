@@ -1,0 +1,31 @@
+import numpy as np
+import pytest
+
+from services.registration.mutual_information import quantize
+from services.registration.objective import information, sample_fixed, score
+
+
+def test_samples_outside_the_fixed_image_are_negative_and_inside_ones_exact():
+    fixed = np.arange(100, dtype=np.float32).reshape(10, 10)
+    shift = np.array([[1.0, 0.0, 5.0], [0.0, 1.0, 2.0], [0.0, 0.0, 1.0]])
+    samples = sample_fixed(fixed, shift, 8, 8)
+    np.testing.assert_allclose(samples[:8, :5], fixed[2:10, 5:10])
+    assert np.all(samples[:, 5:] < 0)
+
+
+def test_perspective_matrices_are_sampled_too():
+    fixed = np.ones((20, 20), np.float32)
+    perspective = np.array([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.001, 0.0, 1.0]])
+    assert np.all(sample_fixed(fixed, perspective, 10, 10) == 1.0)
+
+
+def test_score_is_minus_infinity_below_the_minimum_overlap():
+    rng = np.random.default_rng(0)
+    moving = quantize(rng.random((20, 20)), 8)
+    fixed_samples = moving.copy()
+    fixed_samples[:, :12] = -1.0  # 40 % overlap
+    mi, nmi, weight = information(fixed_samples, moving, 8, 2.0)
+    assert weight == pytest.approx(160.0)
+    assert score(fixed_samples, moving, 8, 2.0, "nmi", 0.3) == pytest.approx(nmi)
+    assert score(fixed_samples, moving, 8, 2.0, "mi", 0.3) == pytest.approx(mi)
+    assert score(fixed_samples, moving, 8, 2.0, "mi", 0.5) == -np.inf
