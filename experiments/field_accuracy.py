@@ -56,9 +56,11 @@ def evaluate(cloud, rig, scene, temperatures, truth, image) -> tuple[dict, dict]
     true_points = truth.points[row, column]
     on_surface = truth.surface[row, column] >= 0
     true_temperature = surface_temperature(temperatures, true_points, truth.surface[row, column])
+    pixels = project_points(true_points, thermal.K_array, thermal.dist_array, thermal.R_array, thermal.t_array)
+    in_image = on_surface & np.all((pixels > -0.5) & (pixels < [thermal.width - 0.5, thermal.height - 0.5]), axis=1)
     visible = np.zeros(len(row), dtype=bool)
-    visible[on_surface] = seen_by(scene, thermal, true_points[on_surface])
-    occluded = on_surface & ~visible
+    visible[in_image] = seen_by(scene, thermal, true_points[in_image])
+    occluded = in_image & ~visible
     error = np.abs(field["temperature"] - true_temperature)
     seen = visible & np.isfinite(error)
     scores = {

@@ -134,7 +134,8 @@ def sample_view(
     buffer = depth_buffer(pixels, depth, device.width, device.height)
     seen = seen_mask(pixels, depth, buffer, tolerance)
     if occlusion_margin_px > 0:
-        guard = depth_tolerance(gradient, depth_tolerance_mm, SAMPLE_FOOTPRINTS + occlusion_margin_px)
+        # the square window reaches margin * sqrt(2) pixels away along its diagonals
+        guard = depth_tolerance(gradient, depth_tolerance_mm, SAMPLE_FOOTPRINTS + np.sqrt(2) * occlusion_margin_px)
         seen &= seen_mask(pixels, depth, nearest_depth_around(buffer, occlusion_margin_px), guard)
     usable = seen & (angle <= max_angle)
 
@@ -193,8 +194,8 @@ def fuse_temperature(
     in each thermal camera. It is seen if its depth z is within a tolerance of the
     z-buffer of the cloud at p (see :func:`services.fusion.visibility.depth_buffer`),
     so that a hidden point gets NaN rather than its occluder's temperature, and
-    no surface nearer by more than the slope-scaled tolerance lies within the
-    occlusion margin (a guard band at depth discontinuities [2]_). Its
+    no surface nearer by more than the slope-scaled tolerance (over the
+    window's reach) lies within the occlusion margin (a guard band at depth discontinuities [2]_). Its
     temperature is the depth-aware bilinear sample at p, averaged over the
     view's frames, and views are fused by
 
