@@ -71,8 +71,7 @@ class _Tables:
 
     white: int
     black: int
-    saturation_frames: np.ndarray  # the phase frames, whose clipping biases the phase; all frames without phase
-    mean_frames: np.ndarray  # frames whose mean is the offset level, when there is no white/black pair
+    mean_frames: np.ndarray  # Gray planes and inverses whose mean is the offset level (no phase, no white/black pair)
     axis_size: np.ndarray  # (2,)
     gray_count: np.ndarray  # (2,) Gray bits shown per axis
     gray_frame: np.ndarray  # (2, B) frame of each bit, most significant first
@@ -110,15 +109,13 @@ def _sequence_tables(sequence: Sequence) -> _Tables:
             group_period.append(group.period)
             group_start.append(len(group_frames))
         group_range.append(len(group_period))
-    if sequence.phase_groups():
-        mean_frames = list(sequence.phase_groups()[-1].frames)
-    else:
-        mean_frames = [i for axis in AXES for p in planes[axis] if p.complement is not None for i in (p.frame, p.complement)]
     white, black = sequence.white_index, sequence.black_index
+    mean_frames = [i for axis in AXES for p in planes[axis] if p.complement is not None for i in (p.frame, p.complement)]
+    if white is not None and black is not None:
+        mean_frames = []  # the references give both the threshold and the intensity
     return _Tables(
         white=-1 if white is None else white,
         black=-1 if black is None else black,
-        saturation_frames=np.asarray(group_frames or range(len(sequence.frames)), np.int64),
         mean_frames=np.asarray(mean_frames, np.int64),
         axis_size=np.array([sequence.projector.width, sequence.projector.height], np.int64),
         gray_count=np.array([len(planes[axis]) for axis in AXES], np.int64),
@@ -162,24 +159,44 @@ def _polynomial_atan2(y, x):
 # Hand-written numba kernels: one pass over the rows reading the uint8/uint16 stack in place, with
 # per-row buffers so the inner loops over columns vectorise; numpy would need float copies of the stack.
 @njit(parallel=True, cache=True, fastmath=False)
-def _decode_kernel(frames, saturation_frames, saturation_level, white, black, mean_frames, axis_size, gray_count,
+def _decode_kernel(frames, saturation_level, white, black, mean_frames, axis_size, gray_count,
                    gray_frame, gray_complement, gray_inverted, finest_bit, group_range, group_start, group_frames,
                    group_cos, group_sin, group_period, min_intensity, min_modulation, min_quality, consistency,
                    coordinates, modulation, intensity, quality, rejection):
     height, width = frames.shape[1], frames.shape[2]
+    n_groups = group_period.size
     for row in prange(height):
+        # Phase sums first: the same pass over the phase frames finds clipping and the offset level.
         saturated = np.zeros(width, np.bool_)
-        for f in saturation_frames:
-            samples = frames[f, row]
-            for col in range(width):
-                saturated[col] |= samples[col] >= saturation_level
-        offset = np.zeros(width)
-        for f in mean_frames:
-            samples = frames[f, row]
-            for col in range(width):
-                offset[col] += samples[col]
-        if mean_frames.size > 0:
-            offset /= mean_frames.size
+        c_sum = np.zeros((n_groups, width))
+        s_sum = np.zeros((n_groups, width))
+        total = np.zeros((n_groups, width))
+        squares = np.zeros((n_groups, width))
+        for g in range(n_groups):
+            for i in range(group_start[g], group_start[g + 1]):
+                samples = frames[group_frames[i], row]
+                cosine, sine = group_cos[i], group_sin[i]
+                for col in range(width):
+                    value = float(samples[col])
+                    c_sum[g, col] += value * cosine
+                    s_sum[g, col] += value * sine
+                    total[g, col] += value
+                    squares[g, col] += value * value
+                    saturated[col] |= value >= saturation_level
+        if n_groups > 0:
+            offset = total[n_groups - 1] / (group_start[n_groups] - group_start[n_groups - 1])
+        else:
+            for f in range(frames.shape[0]):
+                samples = frames[f, row]
+                for col in range(width):
+                    saturated[col] |= samples[col] >= saturation_level
+            offset = np.zeros(width)
+            for f in mean_frames:
+                samples = frames[f, row]
+                for col in range(width):
+                    offset[col] += samples[col]
+            if mean_frames.size > 0:
+                offset /= mean_frames.size
         threshold = offset
         if white >= 0 and black >= 0:
             threshold = 0.5 * (frames[white, row].astype(np.float64) + frames[black, row])
@@ -238,27 +255,14 @@ def _decode_kernel(frames, saturation_frames, saturation_level, white, black, me
             for g in range(first_group, end_group):
                 period = group_period[g]
                 steps = group_start[g + 1] - group_start[g]
-                c_sum = np.zeros(width)
-                s_sum = np.zeros(width)
-                total = np.zeros(width)
-                squares = np.zeros(width)
-                for i in range(group_start[g], group_start[g + 1]):
-                    samples = frames[group_frames[i], row]
-                    cosine, sine = group_cos[i], group_sin[i]
-                    for col in range(width):
-                        value = float(samples[col])
-                        c_sum[col] += value * cosine
-                        s_sum[col] += value * sine
-                        total[col] += value
-                        squares[col] += value * value
                 tolerance = uncertainty + consistency * (0.5 * period - uncertainty)
                 for col in range(width):
-                    energy = c_sum[col] * c_sum[col] + s_sum[col] * s_sum[col]
-                    alternating = squares[col] - total[col] * total[col] / steps
+                    energy = c_sum[g, col] * c_sum[g, col] + s_sum[g, col] * s_sum[g, col]
+                    alternating = squares[g, col] - total[g, col] * total[g, col] / steps
                     group_quality = min(1.0, 2.0 * energy / steps / alternating) if alternating > 0 else 0.0
                     axis_quality[col] = group_quality if g == first_group else min(axis_quality[col], group_quality)
                     axis_modulation[col] = 2.0 * math.sqrt(energy) / steps
-                    phase = _polynomial_atan2(s_sum[col], c_sum[col])
+                    phase = _polynomial_atan2(s_sum[g, col], c_sum[g, col])
                     wrapped = (phase / (2 * math.pi) + (1.0 if phase < 0 else 0.0)) * period
                     if referenced:
                         unwrapped = wrapped + period * math.floor((reference[col] - wrapped) / period + 0.5)
@@ -435,7 +439,7 @@ def decode(
     quality = np.empty((height, width), np.float32)
     rejection = np.empty((height, width), np.uint8)
     _decode_kernel(
-        np.ascontiguousarray(frames), tables.saturation_frames, full_scale, tables.white, tables.black, tables.mean_frames, tables.axis_size,
+        np.ascontiguousarray(frames), full_scale, tables.white, tables.black, tables.mean_frames, tables.axis_size,
         tables.gray_count, tables.gray_frame, tables.gray_complement, tables.gray_inverted, tables.finest_bit,
         tables.group_range, tables.group_start, tables.group_frames, tables.group_cos, tables.group_sin,
         tables.group_period, float(min_intensity), float(min_modulation), float(min_quality), float(consistency),
