@@ -81,10 +81,10 @@ def make_hot_scene(seed: int = 0) -> HotScene:
                     seen_by(scene, thermal, points), image)
 
 
-def rerender(hot: HotScene, seed: int) -> np.ndarray:
-    """Another thermal frame of the same scene with different noise."""
-    return render_thermal(hot.scene, hot.temperatures, hot.thermal, ThermalEffects(supersample=3),
-                          np.random.default_rng(seed))
+def noiseless_image(hot: HotScene) -> np.ndarray:
+    """The thermal frame of the same scene without noise."""
+    return render_thermal(hot.scene, hot.temperatures, hot.thermal, ThermalEffects(supersample=3, netd=0.0),
+                          np.random.default_rng(0))
 
 
 @pytest.fixture(scope="session")
