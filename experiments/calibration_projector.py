@@ -1,13 +1,14 @@
 """Calibrate the paper's rig from simulated board captures, then measure the paper's planes with it.
 
 The true rig is ``presets.paper_rig()`` (projector at the origin, camera at (400, 0, 0) mm rotated
-20 degrees, 1024x768 both). A 9x6-corner chessboard of 15 mm squares is shown in 12 poses across the
-measuring volume (depths 430..570 mm, tilts of 25 degrees), lit by the project's default pattern
-sequence with both axes coded (camera blur 0.7 px, noise 1.5 grey levels). From these captures:
+20 degrees, 1024x768 both). As in practice, the camera is calibrated first on its own: 15 views of
+a 13x9-corner chessboard (20 mm squares) filling its view (``calibrate_camera``, k1 k2 model). Then
+a 9x6-corner chessboard of 18 mm squares is shown in 16 poses across the projector's field at the
+measuring depths (430..570 mm, tilts of 25 degrees), lit by the project's default pattern sequence
+with both axes coded (camera blur 0.7 px, noise 1.5 grey levels). From these captures:
 
-1. the camera intrinsics, by Zhang's method on the lit frames (``calibrate_camera``);
-2. the projector corners, by local homographies of the decoded coordinates (``projector_corners``);
-3. the projector intrinsics and camera-projector pose (``calibrate_projector``).
+1. the projector corners, by local homographies of the decoded coordinates (``projector_corners``);
+2. the projector intrinsics and camera-projector pose (``calibrate_projector``).
 
 The calibrated rig keeps the camera's true world pose (the world anchor is a separate choice, see
 Table 1) and places the projector by the calibrated camera-to-projector transform. Then the paper's
@@ -28,8 +29,8 @@ from services.calibration.camera import calibrate_camera
 from services.calibration.corners import detect_board
 from services.calibration.projector import calibrate_projector, projector_corners
 from services.formats.board import parse_board
-from services.geometry.camera import project_points
-from services.simulation.boards import render_board_capture
+from services.geometry.camera import camera_center, project_points
+from services.simulation.boards import render_board, render_board_capture
 from services.simulation.presets import paper_plane, paper_rig
 from services.simulation.render import CameraEffects, ProjectorEffects, render_frames, render_view
 from services.simulation.scene import Albedo
@@ -37,21 +38,37 @@ from services.structured_light.decode import decode
 from services.structured_light.patterns import generate_sequence
 from services.structured_light.reconstruct import reconstruct_points
 
-BOARD = parse_board('{"type": "chessboard", "inner_corners": [9, 6], "square_mm": 15.0}')
-POSES = 12
+BOARD = parse_board('{"type": "chessboard", "inner_corners": [9, 6], "square_mm": 18.0}')
+CAMERA_BOARD = parse_board('{"type": "chessboard", "inner_corners": [13, 9], "square_mm": 20.0}')
+POSES = 16
 DEPTHS_MM = list(range(430, 571, 20))
 OUT = Path(__file__).parents[1] / "docs" / "figures" / "calibration" / "projector.md"
 
 
-def board_poses_in_world() -> list[tuple[np.ndarray, np.ndarray]]:
-    centre = BOARD.object_points().mean(axis=0)
+def _turning_tilts(count: int, tilt_deg: float) -> list[np.ndarray]:
+    """Rotations tilted by ``tilt_deg`` about axes turning around the view direction."""
+    angles = 2 * np.pi * np.arange(count) / count
+    tilt = np.radians(tilt_deg)
+    return [cv2.Rodrigues(np.array([tilt * np.cos(a), tilt * np.sin(a), 0.15 * np.sin(2 * a)]))[0] for a in angles]
+
+
+def projector_board_poses() -> list[tuple[np.ndarray, np.ndarray]]:
+    """World-from-board poses across the projector's field at the measuring depths (430..570 mm)."""
+    angles = 2 * np.pi * np.arange(POSES) / POSES
+    centres = np.column_stack([15 + 30 * np.cos(3 * angles), 20 * np.sin(2 * angles), 500 + 70 * np.cos(5 * angles)])
+    middle = BOARD.object_points().mean(axis=0)
+    return [(R, centre - R @ middle) for R, centre in zip(_turning_tilts(POSES, 25.0), centres)]
+
+
+def camera_board_poses(camera_R: np.ndarray, camera_centre: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
+    """World-from-board poses of a larger board filling the camera's view, for its own calibration."""
+    angles = 2 * np.pi * np.arange(15) / 15
+    middle = CAMERA_BOARD.object_points().mean(axis=0)
     poses = []
-    for index in range(POSES):
-        angle = 2 * np.pi * index / POSES
-        tilt = np.radians(25.0)
-        R = cv2.Rodrigues(np.array([tilt * np.cos(angle), tilt * np.sin(angle), 0.15 * np.sin(2 * angle)]))[0]
-        position = np.array([50 + 15 * np.cos(2 * angle), 10 * np.sin(2 * angle), 500 + 70 * np.cos(3 * angle)])
-        poses.append((R, position - R @ centre))
+    for angle, facing_camera in zip(angles, _turning_tilts(15, 35.0)):
+        offset = np.array([40 * np.cos(2 * angle), 30 * np.sin(2 * angle), 420 + 60 * np.cos(3 * angle)])
+        R = camera_R.T @ facing_camera
+        poses.append((R, camera_centre + camera_R.T @ offset - R @ middle))
     return poses
 
 
@@ -61,10 +78,17 @@ def main() -> None:
     R_c, t_c = camera.R_array, camera.t_array
     projector_from_camera = projector.model_copy(update={"R": (projector.R_array @ R_c.T).tolist(),
                                                          "t": (projector.t_array - projector.R_array @ R_c.T @ t_c).tolist()})
-    sequence, patterns = generate_sequence(projector.width, projector.height, axes="xy")
     rng = np.random.default_rng(12)
-    detections, decoded_maps, corner_errors = [], [], []
-    for R_wb, t_wb in board_poses_in_world():
+    camera_views = []
+    for R_wb, t_wb in camera_board_poses(R_c, camera_center(R_c, t_c)):
+        image = render_board(CAMERA_BOARD, camera.K_array, camera.dist_array, R_c @ R_wb, R_c @ t_wb + t_c,
+                             camera.size, blur_sigma=0.7, noise_sigma=1.5, rng=rng)
+        camera_views.append(detect_board(image, CAMERA_BOARD).image_points)
+    camera_cal = calibrate_camera([CAMERA_BOARD.object_points()] * len(camera_views), camera_views, camera.size,
+                                  distortion="radial")
+    sequence, patterns = generate_sequence(projector.width, projector.height, axes="xy")
+    detections, corner_errors = [], []
+    for R_wb, t_wb in projector_board_poses():
         R, t = R_c @ R_wb, R_c @ t_wb + t_c
         frames = render_board_capture(BOARD, camera.K_array, camera.dist_array, R, t, camera.size,
                                       projector_from_camera, patterns, blur_sigma=0.7, noise_sigma=1.5, rng=rng)
@@ -73,13 +97,12 @@ def main() -> None:
         detection = detect_board(lit, BOARD)
         spacing = np.median(np.linalg.norm(np.diff(detection.image_points.reshape(6, 9, 2), axis=1), axis=2))
         corners, found = projector_corners(detection.image_points, decoded.projector_x, decoded.projector_y,
-                                           int(spacing / 2))
+                                           int(spacing / 2), decoded.modulation)
         truth = project_points(BOARD.object_points() @ R_wb.T + t_wb, projector.K_array, projector.dist_array,
                                projector.R_array, projector.t_array)
         corner_errors.append(np.linalg.norm(corners[found] - truth[found], axis=1))
         detections.append((detection.image_points[found], corners[found], BOARD.object_points()[found]))
     objects = [d[2] for d in detections]
-    camera_cal = calibrate_camera(objects, [d[0] for d in detections], camera.size, distortion="radial")
     result = calibrate_projector(objects, [d[0] for d in detections], [d[1] for d in detections],
                                  (camera_cal.K, camera_cal.dist), camera.size, projector.size)
     R_pc, t_pc = result.stereo.R, result.stereo.t
@@ -90,7 +113,7 @@ def main() -> None:
     true_R_pc = np.asarray(projector_from_camera.R)
     true_t_pc = np.asarray(projector_from_camera.t)
     lines = [
-        f"Board captures: {POSES} poses; projector corners from local homographies: RMS error "
+        f"Camera: RMS {camera_cal.rms:.3f} px over 15 views. Board captures: {POSES} poses; projector corners from local homographies: RMS error "
         f"{np.sqrt(np.mean(np.concatenate(corner_errors) ** 2)):.3f} px, max {np.concatenate(corner_errors).max():.3f} px "
         "(against the simulator's truth).",
         "",

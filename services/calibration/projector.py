@@ -10,7 +10,6 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-import cv2
 import numpy as np
 
 from services.calibration.camera import CameraCalibration, calibrate_camera
@@ -32,6 +31,7 @@ def projector_corners(
     projector_x: np.ndarray,
     projector_y: np.ndarray,
     half_window: int,
+    modulation: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Projector pixels of board corners from decoded projector coordinates around them.
 
@@ -44,6 +44,10 @@ def projector_corners(
     half_window : int
         The homography of each corner is fitted on the camera pixels within this many pixels
         (a square window); about half the imaged square size.
+    modulation : (H, W) array, optional
+        Amplitude of the decoded signal per pixel; pixels are weighted by its square (the
+        inverse variance of a phase-shift coordinate), so that pixels on dark squares count
+        little. Equal weights when omitted.
 
     Returns
     -------
@@ -54,14 +58,18 @@ def projector_corners(
     Notes
     -----
     Around corner c, the decoded pixels p_i -> q_i (camera to projector) are fitted by the
-    homography H minimising sum ||q_i - H(p_i)||^2 (``cv2.findHomography``, least squares); the
+    homography H of the weighted direct linear transform, minimising sum w_i ||A_i h||^2 with
+    A_i the two DLT rows of p_i -> q_i and ||h|| = 1 (smallest right singular vector). The
     board is locally planar, so H is exact up to lens distortion over the window, and the
-    corner's projector pixel is H(c) [1]_. Pixels are centred on c and scaled for conditioning.
+    corner's projector pixel is H(c) [1]_. Camera pixels are centred on c and projector pixels
+    on their weighted mean, both scaled to unit size, for conditioning [2]_.
 
     References
     ----------
     .. [1] D. Moreno, G. Taubin, "Simple, accurate, and robust projector-camera calibration",
        3DIMPVT 2012, 464-471.
+    .. [2] R. Hartley, A. Zisserman, "Multiple View Geometry in Computer Vision", 2nd ed., 2004,
+       section 4.4 (normalised DLT).
     """
     image_points = np.asarray(image_points, dtype=np.float64).reshape(-1, 2)
     if projector_x.shape != projector_y.shape or projector_x.ndim != 2:
@@ -82,12 +90,27 @@ def projector_corners(
         grid_v, grid_u = np.meshgrid(rows, columns, indexing="ij")
         camera = (np.column_stack([grid_u[decoded], grid_v[decoded]]) - (u, v)) / half_window
         projector = np.column_stack([window_x[decoded], window_y[decoded]])
-        homography, _ = cv2.findHomography(camera, projector, 0)
-        if homography is None:
-            continue
-        mapped = homography @ np.array([0.0, 0.0, 1.0])
-        result[index] = mapped[:2] / mapped[2]
+        weights = np.ones(len(camera)) if modulation is None else modulation[np.ix_(rows, columns)][decoded] ** 2
+        result[index] = _weighted_homography_image(camera, projector, weights)
     return result, np.isfinite(result[:, 0])
+
+
+def _weighted_homography_image(camera: np.ndarray, projector: np.ndarray, weights: np.ndarray) -> np.ndarray:
+    """Where the weighted-DLT homography camera -> projector maps the camera origin."""
+    centre = np.average(projector, axis=0, weights=weights)
+    scale = np.sqrt(np.average(np.sum((projector - centre) ** 2, axis=1), weights=weights)) or 1.0
+    target = (projector - centre) / scale
+    x, y = camera[:, 0], camera[:, 1]
+    X, Y = target[:, 0], target[:, 1]
+    zeros, ones = np.zeros_like(x), np.ones_like(x)
+    rows = np.concatenate([
+        np.column_stack([x, y, ones, zeros, zeros, zeros, -X * x, -X * y, -X]),
+        np.column_stack([zeros, zeros, zeros, x, y, ones, -Y * x, -Y * y, -Y]),
+    ]) * np.sqrt(np.concatenate([weights, weights]))[:, None]
+    homography = np.linalg.svd(rows, full_matrices=False)[2][-1].reshape(3, 3)
+    if abs(homography[2, 2]) < 1e-12:
+        return np.full(2, np.nan)
+    return homography[:2, 2] / homography[2, 2] * scale + centre
 
 
 def calibrate_projector(

@@ -190,7 +190,7 @@ def run_projector(args: argparse.Namespace) -> int:
             continue
         half_window = max(2, int(0.5 * _corner_spacing(detection.image_points)))
         corners, found = projector_corners(detection.image_points, decoded.projector_x, decoded.projector_y,
-                                           half_window)
+                                           half_window, decoded.modulation)
         if found.sum() < 6:
             problems.append(f"{directory}: only {found.sum()} board corners were decoded (is the board lit?)")
             continue

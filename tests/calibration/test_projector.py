@@ -24,7 +24,7 @@ def _corners_of(capture, board):
     detection = detect_board(lit, board)
     spacing = np.median(np.linalg.norm(np.diff(detection.image_points.reshape(6, 9, 2), axis=1), axis=2))
     corners, found = projector_corners(detection.image_points, decoded.projector_x, decoded.projector_y,
-                                       int(spacing / 2))
+                                       int(spacing / 2), decoded.modulation)
     return detection.image_points, corners, found
 
 
