@@ -76,10 +76,14 @@ def _write_png_atomically(path: Path, image: np.ndarray) -> None:
 
 
 def _run_register(args: argparse.Namespace) -> int:
-    for option in ("overlay", "checkerboard"):
+    for option in ("out", "overlay", "checkerboard"):
         path = getattr(args, option)
-        if path is not None and path.suffix.lower() != ".png":
+        if path is None:
+            continue
+        if option != "out" and path.suffix.lower() != ".png":
             raise InputError(f"--{option} {path}: the picture must be a .png file")
+        if not path.parent.is_dir():
+            raise InputError(f"--{option} {path}: the directory {path.parent} does not exist")
     fixed = _read_image(args.fixed)
     moving = _read_image(args.moving)
     try:

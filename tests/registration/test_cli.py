@@ -56,6 +56,7 @@ def test_register_reads_a_float_tiff_infrared_image(pair_files, tmp_path):
         ({"--moving": "missing.png"}, "missing.png: frame file is missing"),
         ({"--moving": "bad.npy"}, "bad.npy: the image must be a 2-D numeric array"),
         ({"--overlay": "overlay.jpg"}, "--overlay"),
+        ({"--out": "absent/REG.json"}, "does not exist"),
         ({"--bins": "2"}, "at least 4 histogram bins"),
         ({"--scale": "-1"}, "nominal scale must be positive"),
     ],
@@ -66,7 +67,7 @@ def test_bad_input_exits_2_with_a_message_and_no_traceback(pair_files, tmp_path,
     options = {"--fixed": str(directory / "visible.png"), "--moving": str(directory / "infrared.png"),
                "--out": str(tmp_path / "REG.json")}
     for key, value in change.items():
-        options[key] = str(tmp_path / value) if value.endswith((".png", ".npy", ".jpg")) else value
+        options[key] = str(tmp_path / value) if value.endswith((".png", ".npy", ".jpg", ".json")) else value
     code = main(["register"] + [item for pair in options.items() for item in pair])
     error = capsys.readouterr().err
     assert code == 2
