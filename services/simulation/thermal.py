@@ -164,7 +164,7 @@ def forging_temperatures() -> TemperatureScene:
 
     Billet: 1040 C at its centre, rising 0.2 K/mm toward +x (the end last out of the furnace), a
     +45 K hot spot (sigma 30 mm) on its front and a -80 K spot (sigma 25 mm) where it was gripped,
-    so 950-1100 C. Flange: thinner, cooler, 960 C falling 0.4 K/mm toward its top (y < 0). Back wall:
+    so 950-1090 C. Flange: thinner, cooler, 960 C falling 0.4 K/mm toward its top (y < 0). Back wall:
     45 C warmed to 120 C (sigma 150 mm) behind the part. Misses see 25 C.
     """
     return TemperatureScene(background=25.0, surfaces=[
