@@ -5,7 +5,8 @@ Run: ``.venv/bin/python experiments/coding_comparison.py`` (a few minutes on 2 c
 Each coding is projected onto the paper's plane (at 430 and 570 mm) and sphere (radius 100 mm),
 filmed by the simulated camera (sensor noise 1.5 grey levels, camera blur sigma 1 px, projector blur
 0.5 px, 8 bits) with a linear projector and with a projector gamma of 2.2, decoded by
-``services.structured_light.decode`` with default thresholds and triangulated. Errors are measured
+``services.structured_light.decode`` with default thresholds and triangulated as decoded (no
+point-cloud filtering, so that the codings are compared as they decode). Errors are measured
 against the simulator's ground truth: the projector column of each fully lit camera pixel's centre
 (pixel errors, coverage), and the 3D surface point of every reconstructed pixel whose centre ray meets
 the object (3D errors; this includes the object's outline). Points whose pixel centre misses the object
@@ -21,7 +22,7 @@ from services.simulation.presets import paper_plane, paper_rig, paper_sphere
 from services.simulation.render import CameraEffects, ProjectorEffects, render_frames, render_view
 from services.structured_light.decode import decode
 from services.structured_light.patterns import render_patterns
-from services.structured_light.reconstruct import reconstruct_points
+from services.structured_light.triangulate import camera_ray_table, triangulate
 
 WIDTH, HEIGHT = 1024, 768
 TOP_BIT = 9  # Gray code of 1024 columns: bits 9..0
@@ -76,16 +77,19 @@ def _unique_frames() -> dict[str, np.ndarray]:
     return patterns
 
 
-def _measure(sequence, captured, view, camera, projector) -> dict[str, float]:
+def _measure(sequence, captured, view, camera, projector, rays) -> dict[str, float]:
     frames = np.stack([captured[frame.file] for frame in sequence.frames])
     decoded = decode(frames, sequence)
     truth = view.truth
     decoded_lit = decoded.valid & truth.lit
     error_px = np.abs(decoded.projector_x - truth.projector_pixels[..., 0])[decoded_lit]
-    cloud = reconstruct_points(frames, sequence, camera, projector)
-    u, v = cloud["u"].astype(int), cloud["v"].astype(int)
+    decoded_pixels = np.flatnonzero(decoded.valid)
+    points = triangulate(rays.reshape(-1, 2)[decoded_pixels], decoded.projector_x.ravel()[decoded_pixels], "x",
+                         camera.R_array, camera.t_array, projector.K_array, projector.dist_array,
+                         projector.R_array, projector.t_array)
+    v, u = np.divmod(decoded_pixels, camera.width)
     on_surface = truth.surface[v, u] >= 0
-    points = np.stack([cloud["x"], cloud["y"], cloud["z"]], axis=1)[on_surface]
+    points = points[on_surface]
     error_mm = np.linalg.norm(points - truth.points[v[on_surface], u[on_surface]], axis=1)
     return {
         "frames": len(sequence.frames),
@@ -102,6 +106,7 @@ def _measure(sequence, captured, view, camera, projector) -> dict[str, float]:
 def main() -> None:
     rig = paper_rig()
     camera, projector = rig.devices["camera"], rig.devices["projector"]
+    rays = camera_ray_table(camera.K_array, camera.dist_array, camera.width, camera.height)
     patterns = _unique_frames()
     names = list(patterns)
     stack = np.stack([patterns[name] for name in names])
@@ -113,7 +118,7 @@ def main() -> None:
             rng = np.random.default_rng(0)
             captured = dict(zip(names, render_frames(view, stack, rng, CAMERA, effects)))
             for coding_name, sequence in CODINGS.items():
-                measured = _measure(sequence, captured, view, camera, projector)
+                measured = _measure(sequence, captured, view, camera, projector, rays)
                 results.setdefault((coding_name, condition_name), []).append(measured)
                 if condition_name == "linear projector":
                     by_scene[coding_name, scene_name] = measured
