@@ -106,6 +106,8 @@ def test_documented_1824_example_gives_stripe_centres():
     truth_x, _ = _truth(2, 1824)
     assert decoded.valid.all()
     np.testing.assert_array_equal(decoded.projector_x, 2 * (truth_x // 2) + 0.5)
+    np.testing.assert_allclose(decoded.modulation, 105.0)  # every plane 105 grey levels from the mid level
+    np.testing.assert_allclose(decoded.quality, 1.0)
 
 
 def _rejection_scene():
