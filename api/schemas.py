@@ -90,7 +90,8 @@ class CalibrationSetOut(BaseModel):
     name: str
     station: str
     active: bool
-    source: str = Field(description="upload, or simulator (the simulated rig's true calibration).")
+    source: str = Field(description="upload, calibration (a calibrate job), or simulator (the simulated rig's "
+                                    "true calibration).")
     created_at: datetime
     links: dict[str, str]
 

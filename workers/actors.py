@@ -10,10 +10,12 @@ device and network trouble is retried, bad input (``ValueError``, including
 - ``reconstruct``, ``fuse``, ``register``: one step again on a stored scan, e.g. with
   another calibration set (reconstruct then fuse its cloud) or to check the thermal
   camera's alignment by mutual information (register).
+- ``calibrate``: a new calibration set with a device re-placed from paired board images.
 """
 
 from __future__ import annotations
 
+import argparse
 import io
 import tempfile
 import time
@@ -30,7 +32,9 @@ from device_gateway.client import GatewayClient
 from services.db.models import CalibrationSet, Job, Scan
 from services.formats.ply import read_cloud, write_cloud
 from services.formats.registration import registration_to_file
-from services.formats.rig import Rig, parse_rig
+from services.cli.calibrate import run_stereo
+from services.db.calibrations import activate_calibration
+from services.formats.rig import Rig, load_rig, parse_rig, rig_to_json, save_rig
 from services.formats.sequence import Sequence, parse_sequence, sequence_to_json
 from services.fusion.field import temperature_field
 from services.fusion.fuse import ThermalView
@@ -137,7 +141,45 @@ def register(job_id: str) -> dict[str, Any]:
             "nmi": registration.nmi}
 
 
-ACTORS = {actor.actor_name: actor for actor in (scan, reconstruct, fuse, register)}
+@dramatiq.actor(actor_name="calibrate", **_options(max_retries=0, time_limit_s=300))
+def calibrate(job_id: str) -> dict[str, Any]:
+    """Place a device (e.g. the thermal camera) relative to the camera from paired board images.
+
+    Runs the stereo calibration of ``thermofield calibrate stereo`` on the uploaded pairs,
+    starting from the job's calibration set, and stores the result as a new calibration set.
+    """
+    runtime = current_runtime()
+    params = _job_params(runtime, job_id)
+    _, rig = _calibration_rig(runtime, params["calibration_set_id"])
+    camera_name, _ = rig.device(None, "camera")
+    runtime.tracker.progress(job_id, "calibrate", 0.1)
+    with tempfile.TemporaryDirectory() as directory:
+        work = Path(directory)
+        (work / "board.json").write_bytes(runtime.store.read_bytes(params["board"]))
+        save_rig(rig, work / "rig.json")
+        for device, images in ((camera_name, params["reference_images"]), (params["device"], params["device_images"])):
+            (work / "pairs" / device).mkdir(parents=True)
+            for index, (digest, suffix) in enumerate(images):
+                (work / "pairs" / device / f"{index:03d}{suffix}").write_bytes(runtime.store.read_bytes(digest))
+        out = work / "out" / "rig.json"
+        run_stereo(argparse.Namespace(board=work / "board.json", rig=work / "rig.json", pairs=work / "pairs",
+                                      device=params["device"], intrinsics=None, camera=camera_name, out=out))
+        calibrated = load_rig(out)
+        report = out.with_name(f"{out.stem}_stereo_{params['device']}.json").read_bytes()
+    rig_digest = runtime.store.put_bytes(rig_to_json(calibrated).encode())
+    with runtime.sessions.begin() as session:
+        calibration = CalibrationSet(name=params["name"], station=params["station"], rig_sha256=rig_digest,
+                                     source="calibration")
+        session.add(calibration)
+        session.flush()
+        if params["activate"]:
+            activate_calibration(session, calibration)
+        calibration_id = calibration.id
+    return {"calibration_set_id": calibration_id,
+            "artifacts": {"rig.json": rig_digest, "stereo.json": runtime.store.put_bytes(report)}}
+
+
+ACTORS = {actor.actor_name: actor for actor in (scan, reconstruct, fuse, register, calibrate)}
 
 
 def _reconstruct(frames: np.ndarray, sequence: Sequence, rig: Rig, rig_digest: str) -> dict[str, np.ndarray]:

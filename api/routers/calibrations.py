@@ -1,21 +1,28 @@
-"""Calibration sets: upload a rig file; list, get, download as a rig file, activate one per station."""
+"""Calibration sets: upload a rig file or calibrate a device from board images; list, get, download, activate."""
 
 from __future__ import annotations
 
+import hashlib
 import json
+from pathlib import PurePath
 from typing import Annotated
 
 from fastapi import APIRouter, Depends, File, Form, Request, UploadFile
 from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import Response
-from sqlalchemy import select, update
+from sqlalchemy import select
 
 from api.deps import AdminKey, ReaderKey, RuntimeDep, SessionDep
 from api.idempotency import IdempotencyKeyHeader, Outcome, request_digest, respond_once
 from api.problems import Problem
-from api.schemas import CalibrationSetOut
+from api.schemas import Accepted, CalibrationSetOut
+from services.db.calibrations import activate_calibration
 from services.db.models import CalibrationSet
+from services.calibration.camera import MIN_VIEWS
+from services.formats.board import parse_board
+from services.formats.images import FRAME_SUFFIXES
 from services.formats.rig import parse_rig, rig_to_json
+from workers.broker import send_job
 
 router = APIRouter(prefix="/calibration-sets", tags=["calibration"])
 _MAX_RIG_BYTES = 1 << 20
@@ -59,12 +66,67 @@ async def create_calibration_set(request: Request, session: SessionDep, runtime:
         session.add(calibration)
         session.flush()
         if activate:
-            _activate(session, calibration)
+            activate_calibration(session, calibration)
         out = calibration_out(calibration)
         return Outcome(201, out.model_dump(mode="json"), out.links["self"])
 
     request_sha256 = request_digest(request, json.dumps({"name": name, "activate": activate}).encode() + text)
     return await run_in_threadpool(respond_once, session, key, idempotency_key, request_sha256, create)
+
+
+@router.post("/{calibration_set_id}/stereo", name="start_stereo_calibration", status_code=202,
+             response_model=Accepted, responses={202: {"headers": {"Location": {"description": "The job."}}}})
+async def start_stereo_calibration(
+    request: Request, calibration: ExistingCalibration, session: SessionDep, runtime: RuntimeDep, key: AdminKey,
+    board: Annotated[UploadFile, File(description="Board specification JSON (docs/calibration.md).")],
+    reference_images: Annotated[list[UploadFile], File(description="Board images of the rig's camera.")],
+    device_images: Annotated[list[UploadFile], File(description="The same board poses seen by the device, "
+                                                                 "in the same order.")],
+    name: Annotated[str, Form(min_length=1, max_length=200)],
+    device: Annotated[str, Form(min_length=1, max_length=100)] = "thermal",
+    activate: Annotated[bool, Form()] = False,
+    idempotency_key: IdempotencyKeyHeader = None,
+):
+    """Re-place a device (default the thermal camera) relative to the camera from paired board images: a
+    ``calibrate`` job that creates a new calibration set from this one (``result.calibration_set_id``)."""
+    rig = parse_rig(runtime.store.read_bytes(calibration.rig_sha256).decode(), f"calibration set {calibration.id}")
+    if device not in rig.devices or rig.devices[device].kind != "thermal":
+        raise Problem(422, "invalid-input", f"device: calibration set {calibration.id} has no thermal device "
+                                            f"{device!r} to place (it has {sorted(rig.devices)}).")
+    if len(reference_images) != len(device_images) or len(reference_images) < MIN_VIEWS:
+        raise Problem(422, "invalid-input", f"reference_images, device_images: give the same number of images, at "
+                                            f"least {MIN_VIEWS}; got {len(reference_images)} and {len(device_images)}.")
+    board_text = await board.read(_MAX_RIG_BYTES)
+    parse_board(board_text.decode("utf-8", errors="replace"), f"board ({board.filename})")
+    hasher = hashlib.sha256(board_text)
+    images = {}
+    for field, uploads in (("reference_images", reference_images), ("device_images", device_images)):
+        images[field] = []
+        for upload in uploads:
+            suffix = PurePath(upload.filename or "").suffix.lower()
+            if suffix not in FRAME_SUFFIXES:
+                raise Problem(422, "invalid-input", f"{field}: {upload.filename!r} is not one of "
+                                                    f"{', '.join(FRAME_SUFFIXES)}.")
+            content = await upload.read()
+            hasher.update(content)
+            images[field].append([runtime.store.put_bytes(content), suffix])
+    params = {"calibration_set_id": calibration.id, "station": calibration.station, "device": device,
+              "name": name, "activate": activate, "board": runtime.store.put_bytes(board_text), **images}
+
+    def start() -> Outcome:
+        job = runtime.tracker.create(session, "calibrate", params)
+
+        def dispatch() -> None:
+            runtime.tracker.announce(job)
+            send_job("calibrate", job.id)
+
+        accepted = Accepted(job_id=job.id, status="queued",
+                            links={"job": f"/v1/jobs/{job.id}", "events": f"/v1/jobs/{job.id}/events"})
+        return Outcome(202, accepted.model_dump(mode="json"), f"/v1/jobs/{job.id}", dispatch)
+
+    form = json.dumps({"name": name, "device": device, "activate": activate}).encode() + hasher.digest()
+    request_sha256 = request_digest(request, form)
+    return await run_in_threadpool(respond_once, session, key, idempotency_key, request_sha256, start)
 
 
 @router.get("", name="list_calibration_sets")
@@ -95,12 +157,6 @@ def activate_calibration_set(calibration: ExistingCalibration, session: SessionD
     """Make this the station's active calibration set (new scans use it)."""
     if calibration.rig_sha256 is None:
         raise Problem(409, "not-ready", f"Calibration set {calibration.id} has no rig yet and cannot be active.")
-    _activate(session, calibration)
+    activate_calibration(session, calibration)
     session.commit()
     return calibration_out(calibration)
-
-
-def _activate(session, calibration: CalibrationSet) -> None:
-    session.execute(update(CalibrationSet).where(CalibrationSet.station == calibration.station,
-                                                 CalibrationSet.id != calibration.id).values(active=False))
-    calibration.active = True

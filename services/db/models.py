@@ -52,7 +52,7 @@ class CalibrationSet(Base):
     station: Mapped[str] = mapped_column(String(100), index=True)
     rig_sha256: Mapped[str | None] = mapped_column(String(64), default=None)
     active: Mapped[bool] = mapped_column(Boolean, default=False)
-    source: Mapped[str] = mapped_column(String(20), doc="upload or simulator.")
+    source: Mapped[str] = mapped_column(String(20), doc="upload, calibration or simulator.")
     created_at: Mapped[datetime] = mapped_column(default=utc_now)
 
 

@@ -223,3 +223,28 @@ def test_a_lost_artifact_is_a_server_problem_not_a_traceback(client, auth, runti
     response = client.get(f"/v1/scans/{scan_id}/cloud.ply", headers=auth["read"])
     assert response.status_code == 500 and response.headers["content-type"] == PROBLEM
     assert response.json()["type"].endswith("/artifact-missing") and "Traceback" not in response.text
+
+
+def test_stereo_calibration_checks_its_uploads_and_queues_a_calibrate_job(client, auth, runtime):
+    calibration_id = upload_rig(client, auth["admin"]).json()["calibration_set_id"]
+    url = f"/v1/calibration-sets/{calibration_id}/stereo"
+    board = ("board.json", '{"type": "chessboard", "inner_corners": [9, 6], "square_mm": 25.0}')
+
+    def post(references=3, pairs=3, suffix=".png", board_file=board, **form):
+        files = [("board", board_file)]
+        files += [("reference_images", (f"c{i}{suffix}", b"img")) for i in range(references)]
+        files += [("device_images", (f"t{i}{suffix}", b"img")) for i in range(pairs)]
+        return client.post(url, headers=auth["admin"], files=files, data={"name": "recalibrated", **form})
+
+    assert "same number" in post(pairs=2).json()["detail"]
+    assert "not one of" in post(suffix=".gif").json()["detail"]
+    wrong_device = post(device="camera")
+    assert wrong_device.status_code == 422 and "no thermal device 'camera'" in wrong_device.json()["detail"]
+    bad_board = post(board_file=("board.json", '{"type": "chessboard"}'))
+    assert bad_board.status_code == 422 and "board (board.json)" in bad_board.json()["detail"]
+    accepted = post(activate="true")
+    assert accepted.status_code == 202 and accepted.headers["location"].startswith("/v1/jobs/")
+    with runtime.sessions() as session:
+        job = session.get(Job, accepted.json()["job_id"])
+        assert job.kind == "calibrate" and job.params["device"] == "thermal" and job.params["activate"]
+        assert len(job.params["reference_images"]) == 3 and job.params["calibration_set_id"] == calibration_id

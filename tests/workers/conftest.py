@@ -6,7 +6,12 @@ import uuid
 import pytest
 from sqlalchemy import text
 
-from services.db.engine import make_engine, migrate
+from services.db.engine import make_engine, make_sessions, migrate
+from services.jobs.tracker import JobTracker
+from services.settings import Settings
+from services.storage.artifacts import ArtifactStore
+from workers.broker import setup_broker
+from workers.runtime import Runtime, use_runtime
 
 POSTGRES_URL = "postgresql+psycopg://postgres@127.0.0.1:5432/test"
 
@@ -26,3 +31,12 @@ def engine(request, tmp_path):
     engine.dispose()
     with make_engine(POSTGRES_URL).begin() as connection:
         connection.execute(text(f"DROP SCHEMA {schema} CASCADE"))
+
+
+@pytest.fixture
+def broker(engine, tmp_path):
+    """The embedded broker with the service middleware, its runtime on the test database."""
+    settings = Settings(data_dir=tmp_path, broker_url="", mqtt_host="", compute_threads=1)
+    sessions = make_sessions(engine)
+    use_runtime(Runtime(settings, engine, sessions, ArtifactStore(tmp_path / "artifacts"), JobTracker(sessions)))
+    return setup_broker(settings)
