@@ -9,8 +9,7 @@ _MIN_NEIGHBOURS = 6
 _OUTLIER_SIGMAS = 4.0
 
 
-def phase_noise_sigma(modulation: np.ndarray, quality: np.ndarray, steps: int, period: float,
-                      camera_noise: float) -> np.ndarray:
+def phase_noise_sigma(modulation: np.ndarray, steps: int, period: float, camera_noise: float) -> np.ndarray:
     """Predicted standard deviation, in projector pixels, of an N-step phase-shift coordinate.
 
     Notes
@@ -34,11 +33,11 @@ def estimate_camera_noise(modulation: np.ndarray, quality: np.ndarray, steps: in
     -----
     A pixel's fitted AC energy is N B^2 / 2 and ``quality`` q is its share of the total AC energy, so
     the residual energy is N B^2 (1 - q) / (2 q), spread over N - 3 degrees of freedom. The median over
-    well-fitted pixels is robust to edges and motion.
+    the pixels is robust to edges and motion.
     """
     if steps <= 3:
         raise ValueError("Estimating the camera noise needs more than 3 phase steps.")
-    usable = np.isfinite(modulation) & (quality > 0.5) & (quality < 1.0) & (modulation > 0)
+    usable = np.isfinite(modulation) & np.isfinite(quality) & (quality > 0) & (modulation > 0)
     if not usable.any():
         raise ValueError("No pixel has a usable sinusoid fit to estimate the camera noise from.")
     b, q = modulation[usable].astype(np.float64), quality[usable].astype(np.float64)

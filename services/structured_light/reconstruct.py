@@ -7,7 +7,8 @@ import numpy as np
 
 from services.formats.rig import Device
 from services.formats.sequence import Sequence
-from services.structured_light.decode import DecodedCapture, decode
+from services.structured_light.decode import DecodedCapture, Rejection, decode
+from services.structured_light.low_snr import estimate_camera_noise, phase_noise_sigma, refine_low_snr
 from services.structured_light.triangulate import camera_ray_table, triangulate
 
 
@@ -33,6 +34,42 @@ def _coordinate_step_limit(sequence: Sequence, axis: str) -> float:
     if groups:
         return min(group.period for group in groups) / 2
     return 4.0 * (1 << sequence.gray_planes(axis)[0].bit)
+
+
+# Decoding thresholds for reconstruction: weak signals (grazing light) are kept and refined by
+# ``refine_low_snr`` instead of rejected; the outline margin is seeded only where there is no signal.
+_MIN_QUALITY = 0.3
+_MIN_MODULATION_OF_FULL_SCALE = 0.004  # 1 grey level at 8 bits
+_OUTLINE_MARGIN_PX = 3  # about four times the camera blur sigma
+_OUTLINE_RAMP = 0.9
+
+
+def _outline_margin(decoded: DecodedCapture) -> np.ndarray:
+    """Pixels whose blur footprint reaches past the object's outline (as the camera sees it), or a deep
+    shadow or saturation: the neighbours of a pixel without signal, and the pixels within
+    ``_OUTLINE_MARGIN_PX`` of one whose brightness is still pulled down by the dark side (below
+    ``_OUTLINE_RAMP`` of the brightest pixel around). Mixing with the dark side biases the phase."""
+    no_signal = ((decoded.rejection == Rejection.DARK) | (decoded.rejection == Rejection.SATURATED)).astype(np.uint8)
+    neighbours = cv2.dilate(no_signal, np.ones((3, 3), np.uint8)).astype(bool)
+    window = 2 * _OUTLINE_MARGIN_PX + 1
+    near = cv2.dilate(no_signal, np.ones((window, window), np.uint8)).astype(bool)
+    intensity = np.nan_to_num(decoded.intensity.astype(np.float32))
+    ramp = intensity < _OUTLINE_RAMP * cv2.dilate(intensity, np.ones((window, window), np.uint8))
+    return neighbours | (near & ramp)
+
+
+def _refined_coordinates(decoded: DecodedCapture, sequence: Sequence, axis: str) -> np.ndarray:
+    """The decoded coordinates off the outline, with weak-signal pixels refined when the axis is phase coded."""
+    coordinates = np.where(_outline_margin(decoded), np.float32(np.nan),
+                           getattr(decoded, f"projector_{axis}"))
+    groups = sequence.phase_groups(axis)
+    if not groups or len(groups[-1].frames) <= 3 or not np.isfinite(coordinates).any():
+        return coordinates
+    finest = groups[-1]
+    steps = len(finest.frames)
+    noise = estimate_camera_noise(decoded.modulation, decoded.quality, steps)
+    sigma = phase_noise_sigma(decoded.modulation, steps, finest.period, noise)
+    return refine_low_snr(coordinates, decoded.modulation, sigma, max_step=finest.period / 4)
 
 
 def remove_speckles(coordinates: np.ndarray, axis_size: int, max_step: float, max_speckle_px: int = 25) -> np.ndarray:
@@ -142,9 +179,11 @@ def reconstruct_points(
         )
     if rays is None:
         rays = camera_ray_table(camera.K_array, camera.dist_array, width, height)
-    decoded = decode(frames, sequence)
+    full_scale = np.iinfo(frames.dtype).max
+    decoded = decode(frames, sequence, min_quality=_MIN_QUALITY, edge_margin=0,
+                     min_modulation=_MIN_MODULATION_OF_FULL_SCALE * full_scale)
     axis = coded_axis(decoded, camera, projector)
-    coordinates = getattr(decoded, f"projector_{axis}")
+    coordinates = _refined_coordinates(decoded, sequence, axis)
     valid = remove_speckles(coordinates, sequence.axis_size(axis), _coordinate_step_limit(sequence, axis))
     flat_index = np.flatnonzero(valid)
     points = triangulate(rays.reshape(-1, 2)[flat_index], coordinates.ravel()[flat_index], axis,

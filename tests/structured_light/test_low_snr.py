@@ -30,7 +30,7 @@ def test_predicted_sigma_matches_the_spread_of_decoded_phase():
     samples = amplitude * np.cos(1.0 - shifts[:, None]) + rng.normal(0, noise, (steps, 20000))
     phase = np.arctan2(np.sin(shifts) @ samples, np.cos(shifts) @ samples)
     spread = np.std(phase) * period / (2 * np.pi)
-    predicted = phase_noise_sigma(np.array(amplitude), np.array(1.0), steps, period, noise)
+    predicted = phase_noise_sigma(np.array(amplitude), steps, period, noise)
     assert predicted == pytest.approx(spread, rel=0.1)
 
 
@@ -39,7 +39,7 @@ def test_refinement_reduces_noise_without_bias_and_rejects_outliers():
     v, u = np.mgrid[0:80, 0:120]
     truth = 100 + 1.5 * u + 0.2 * v
     modulation = np.clip(2 + 0.5 * u, 0, 60).astype(float)  # a terminator: the signal fades to the left
-    sigma = phase_noise_sigma(modulation, np.ones_like(modulation), 12, 16.0, 1.5)
+    sigma = phase_noise_sigma(modulation, 12, 16.0, 1.5)
     noisy = truth + rng.normal(0, 1, truth.shape) * sigma
     noisy[40, 10] += 16  # a period slip in the weak region
     refined = refine_low_snr(noisy, modulation, sigma, threshold=0.1)
