@@ -4,7 +4,7 @@
    ``thermofield calibrate camera``: the calibration JSON and its report PNGs are written to
    docs/figures/calibration/opencv_left*; the left/right pairs give the stereo RMS.
 2. Simulated hollow-board infrared views at 320x256 (blur 1 px, noise 2 grey levels, lens
-   distortion k1 = -0.2, k2 = 0.1), 10 views per calibration, 10 seeds: detection rate, focal
+   distortion k1 = -0.2, k2 = 0.1), 15 views per calibration, 10 seeds: detection rate, focal
    length and principal point errors against the simulator's truth.
 3. Monte-Carlo check of the predicted standard deviations: 200 calibrations from 8 exact views
    plus 0.2 px corner noise; predicted sigma (mean) over the spread of the estimates.
@@ -70,7 +70,7 @@ def real_images() -> list[str]:
     ]
 
 
-def infrared(seeds: int = 10, views: int = 10) -> list[str]:
+def infrared(seeds: int = 10, views: int = 15) -> list[str]:
     focal, principal, detected = [], [], 0
     for seed in range(seeds):
         rng = np.random.default_rng(seed)

@@ -3,8 +3,8 @@
 The true rig is ``presets.paper_rig()`` (projector at the origin, camera at (400, 0, 0) mm rotated
 20 degrees, 1024x768 both). As in practice, the camera is calibrated first on its own: 15 views of
 a 13x9-corner chessboard (20 mm squares) filling its view (``calibrate_camera``, k1 k2 model). Then
-a 9x6-corner chessboard of 18 mm squares is shown in 16 poses across the projector's field at the
-measuring depths (430..570 mm, tilts of 25 degrees), lit by the project's default pattern sequence
+a 9x6-corner chessboard of 18 mm squares is shown in 24 poses across the projector's field at the
+measuring depths (430..570 mm, tilts of 35 degrees), lit by the project's default pattern sequence
 with both axes coded (camera blur 0.7 px, noise 1.5 grey levels). From these captures:
 
 1. the projector corners, by local homographies of the decoded coordinates (``projector_corners``);
@@ -40,7 +40,7 @@ from services.structured_light.reconstruct import reconstruct_points
 
 BOARD = parse_board('{"type": "chessboard", "inner_corners": [9, 6], "square_mm": 18.0}')
 CAMERA_BOARD = parse_board('{"type": "chessboard", "inner_corners": [13, 9], "square_mm": 20.0}')
-POSES = 16
+POSES = 24
 DEPTHS_MM = list(range(430, 571, 20))
 OUT = Path(__file__).parents[1] / "docs" / "figures" / "calibration" / "projector.md"
 
@@ -55,9 +55,9 @@ def _turning_tilts(count: int, tilt_deg: float) -> list[np.ndarray]:
 def projector_board_poses() -> list[tuple[np.ndarray, np.ndarray]]:
     """World-from-board poses across the projector's field at the measuring depths (430..570 mm)."""
     angles = 2 * np.pi * np.arange(POSES) / POSES
-    centres = np.column_stack([15 + 30 * np.cos(3 * angles), 20 * np.sin(2 * angles), 500 + 70 * np.cos(5 * angles)])
+    centres = np.column_stack([22 + 30 * np.cos(3 * angles), 20 * np.sin(2 * angles), 500 + 70 * np.cos(5 * angles)])
     middle = BOARD.object_points().mean(axis=0)
-    return [(R, centre - R @ middle) for R, centre in zip(_turning_tilts(POSES, 25.0), centres)]
+    return [(R, centre - R @ middle) for R, centre in zip(_turning_tilts(POSES, 35.0), centres)]
 
 
 def camera_board_poses(camera_R: np.ndarray, camera_centre: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
@@ -95,6 +95,8 @@ def main() -> None:
         decoded = decode(frames, sequence)
         lit = np.clip(np.round(decoded.intensity), 0, 255).astype(np.uint8)
         detection = detect_board(lit, BOARD)
+        if detection is None:
+            continue
         spacing = np.median(np.linalg.norm(np.diff(detection.image_points.reshape(6, 9, 2), axis=1), axis=2))
         corners, found = projector_corners(detection.image_points, decoded.projector_x, decoded.projector_y,
                                            int(spacing / 2), decoded.modulation)
@@ -113,7 +115,8 @@ def main() -> None:
     true_R_pc = np.asarray(projector_from_camera.R)
     true_t_pc = np.asarray(projector_from_camera.t)
     lines = [
-        f"Camera: RMS {camera_cal.rms:.3f} px over 15 views. Board captures: {POSES} poses; projector corners from local homographies: RMS error "
+        f"Camera: RMS {camera_cal.rms:.3f} px over 15 views. Board captures: {len(detections)} of {POSES} poses "
+        "found; projector corners from local homographies: RMS error "
         f"{np.sqrt(np.mean(np.concatenate(corner_errors) ** 2)):.3f} px, max {np.concatenate(corner_errors).max():.3f} px "
         "(against the simulator's truth).",
         "",

@@ -136,3 +136,20 @@ def test_calibrate_stereo_needs_the_device_intrinsics(tmp_path, capsys, opencv_b
     _expect_error(capsys, ["calibrate", "stereo", "--board", str(opencv_board_file), "--pairs", str(tmp_path),
                            "--rig", str(tmp_path / "rig.json"), "--device", "thermal", "--out",
                            str(tmp_path / "out.json")], "no device 'thermal'", "--intrinsics")
+
+
+def test_calibrate_camera_on_simulated_infrared_frames(tmp_path, visible_infrared_pairs, chessboard_9x6):
+    (tmp_path / "board.json").write_text(chessboard_9x6.model_dump_json())
+    images = tmp_path / "thermal"
+    images.mkdir()
+    for index, (_, infrared) in enumerate(visible_infrared_pairs):
+        write_png(images / f"ir{index:02d}.png", infrared.astype(np.uint16) * 257)  # as a 16-bit camera writes
+    out = tmp_path / "thermal.json"
+    assert main(["calibrate", "camera", "--board", str(tmp_path / "board.json"), "--images", str(images), "--out",
+                 str(out), "--kind", "thermal", "--name", "ir", "--distortion", "radial"]) == 0
+    result = json.loads(out.read_text())
+    assert result["kind"] == "thermal" and result["name"] == "ir" and len(result["dist"]) == 5
+    assert len(result["views"]) + len(result["rejected"]) == len(visible_infrared_pairs)
+    K = np.asarray(result["K"])
+    assert np.abs(np.diag(K)[:2] / np.diag(THERMAL_K)[:2] - 1).max() < 5e-3
+    assert result["std"]["fx"] > 0 and "p1" not in result["std"]
