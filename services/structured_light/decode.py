@@ -302,17 +302,18 @@ def _decode_kernel(frames, saturation_level, white, black, mean_frames, axis_siz
             rejection[row, col] = reason
 
 
-@njit(parallel=True, cache=True, fastmath=False)
+# Serial: a few passes over bytes cost about a millisecond, less than waking threads for them.
+@njit(cache=True, fastmath=False)
 def _edge_kernel(coordinates, rejection, margin, max_jump):
     """Mark valid pixels within ``margin`` pixels of a rejected one, or beside a jump above ``max_jump``."""
     height, width = rejection.shape
     near_row = np.zeros((height, width), np.bool_)  # a rejected pixel within margin along the row
-    for row in prange(height):
+    for row in range(height):
         for col in range(width):
             if rejection[row, col] != 0:
                 near_row[row, max(0, col - margin):min(width, col + margin + 1)] = True
     jumps = np.isfinite(max_jump)
-    for row in prange(height):
+    for row in range(height):
         edge = np.zeros(width, np.bool_)
         for r in range(max(0, row - margin), min(height, row + margin + 1)):
             edge |= near_row[r]
@@ -330,7 +331,7 @@ def _edge_kernel(coordinates, rejection, margin, max_jump):
         for col in range(width):
             if edge[col] and rejection[row, col] == 0:
                 rejection[row, col] = 6
-    for row in prange(height):  # a pass of its own: the jump test above reads the neighbouring rows
+    for row in range(height):  # after the jump test, which reads the neighbouring rows' coordinates
         for col in range(width):
             if rejection[row, col] == 6:
                 coordinates[0, row, col] = np.nan
