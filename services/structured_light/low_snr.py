@@ -7,6 +7,7 @@ import numpy as np
 
 _MIN_NEIGHBOURS = 6
 _OUTLIER_SIGMAS = 4.0
+_NOISE_SAMPLE_STRIDE = 7  # a median over every 7th pixel is as good and 7x cheaper
 
 
 def phase_noise_sigma(modulation: np.ndarray, steps: int, period: float, camera_noise: float) -> np.ndarray:
@@ -37,6 +38,7 @@ def estimate_camera_noise(modulation: np.ndarray, quality: np.ndarray, steps: in
     """
     if steps <= 3:
         raise ValueError("Estimating the camera noise needs more than 3 phase steps.")
+    modulation, quality = modulation.ravel()[::_NOISE_SAMPLE_STRIDE], quality.ravel()[::_NOISE_SAMPLE_STRIDE]
     usable = np.isfinite(modulation) & np.isfinite(quality) & (quality > 0) & (modulation > 0)
     if not usable.any():
         raise ValueError("No pixel has a usable sinusoid fit to estimate the camera noise from.")
@@ -88,12 +90,12 @@ def _refine_kernel(coordinates, weights, sigma, threshold, radius, max_step, out
                 kept += 1
             determinant = (s00 * (s11 * s22 - s12 * s12) - s01 * (s01 * s22 - s12 * s02)
                            + s02 * (s01 * s12 - s11 * s02))
-            if kept < 6 or determinant <= 0.0:
+            if kept < _MIN_NEIGHBOURS or determinant <= 0.0:
                 out[row, col] = np.nan
                 continue
             intercept = (b0 * (s11 * s22 - s12 * s12) - s01 * (b1 * s22 - s12 * b2)
                          + s02 * (b1 * s12 - s11 * b2)) / determinant
-            if abs(centre - intercept) > 4.0 * sigma[row, col]:
+            if abs(centre - intercept) > _OUTLIER_SIGMAS * sigma[row, col]:
                 out[row, col] = np.nan
             else:
                 out[row, col] = intercept

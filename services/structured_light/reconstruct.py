@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import cv2
+import numba
 import numpy as np
 
 from services.formats.rig import Device
@@ -18,7 +19,7 @@ def coded_axis(decoded: DecodedCapture, camera: Device, projector: Device) -> st
     A coded projector column constrains depth when the camera-projector baseline runs across the
     columns (along projector x); a row when it runs along projector y.
     """
-    available = [axis for axis in ("x", "y") if getattr(decoded, f"projector_{axis}") is not None]
+    available = list(decoded.coded_axes)
     if not available:
         raise ValueError("The capture codes neither projector axis, so nothing can be triangulated.")
     camera_centre = -camera.R_array.T @ camera.t_array
@@ -112,7 +113,33 @@ def remove_speckles(coordinates: np.ndarray, axis_size: int, max_step: float, ma
     return quantised != invalid
 
 
-def surface_normals(points_map: np.ndarray, camera_centre: np.ndarray) -> np.ndarray:
+# Hand-written with numba: normals are needed only at the valid pixels, and numpy's cross products over
+# the whole map cost ten times more.
+@numba.njit(parallel=True, cache=True)
+def _normals_kernel(points_map, camera_centre, flat_index, out):
+    height, width = points_map.shape[:2]
+    for i in numba.prange(flat_index.shape[0]):
+        row, col = flat_index[i] // width, flat_index[i] % width
+        out[i, 0] = out[i, 1] = out[i, 2] = np.nan
+        if row == 0 or col == 0 or row == height - 1 or col == width - 1:
+            continue
+        ax = points_map[row, col + 1, 0] - points_map[row, col - 1, 0]
+        ay = points_map[row, col + 1, 1] - points_map[row, col - 1, 1]
+        az = points_map[row, col + 1, 2] - points_map[row, col - 1, 2]
+        bx = points_map[row + 1, col, 0] - points_map[row - 1, col, 0]
+        by = points_map[row + 1, col, 1] - points_map[row - 1, col, 1]
+        bz = points_map[row + 1, col, 2] - points_map[row - 1, col, 2]
+        nx, ny, nz = ay * bz - az * by, az * bx - ax * bz, ax * by - ay * bx
+        norm = np.sqrt(nx * nx + ny * ny + nz * nz)
+        if not norm > 0.0:  # also NaN: a neighbour is missing
+            continue
+        facing = (nx * (camera_centre[0] - points_map[row, col, 0]) + ny * (camera_centre[1] - points_map[row, col, 1])
+                  + nz * (camera_centre[2] - points_map[row, col, 2]))
+        sign = 1.0 if facing >= 0 else -1.0
+        out[i, 0], out[i, 1], out[i, 2] = sign * nx / norm, sign * ny / norm, sign * nz / norm
+
+
+def surface_normals(points_map: np.ndarray, camera_centre: np.ndarray, flat_index: np.ndarray | None = None) -> np.ndarray:
     """Unit normals of an organised point map from central differences, facing the camera.
 
     Parameters
@@ -121,10 +148,12 @@ def surface_normals(points_map: np.ndarray, camera_centre: np.ndarray) -> np.nda
         World points per camera pixel, NaN where there is none.
     camera_centre : (3,) array
         Camera centre in world coordinates, used to orient the normals.
+    flat_index : (N,) int array, optional
+        Raster indices of the pixels wanted; all pixels when None.
 
     Returns
     -------
-    normals : (H, W, 3) float32 array
+    normals : (N, 3) float32 array, or (H, W, 3) when ``flat_index`` is None
         NaN where a neighbour is missing.
 
     Notes
@@ -132,15 +161,12 @@ def surface_normals(points_map: np.ndarray, camera_centre: np.ndarray) -> np.nda
     n = (P(u+1, v) - P(u-1, v)) x (P(u, v+1) - P(u, v-1)), normalised and flipped so that
     n . (C - P) > 0.
     """
-    normals = np.full(points_map.shape, np.nan, dtype=np.float32)
-    along_u = points_map[1:-1, 2:] - points_map[1:-1, :-2]
-    along_v = points_map[2:, 1:-1] - points_map[:-2, 1:-1]
-    inner = np.cross(along_u, along_v)
-    inner /= np.linalg.norm(inner, axis=2, keepdims=True)
-    facing = np.einsum("ijk,ijk->ij", inner, camera_centre - points_map[1:-1, 1:-1])
-    inner[facing < 0] *= -1
-    normals[1:-1, 1:-1] = inner
-    return normals
+    height, width = points_map.shape[:2]
+    wanted = np.arange(height * width) if flat_index is None else np.asarray(flat_index)
+    normals = np.empty((len(wanted), 3), dtype=np.float32)
+    _normals_kernel(np.ascontiguousarray(points_map, dtype=np.float32), np.asarray(camera_centre, np.float64),
+                    wanted.astype(np.int64), normals)
+    return normals if flat_index is not None else normals.reshape(height, width, 3)
 
 
 def reconstruct_points(
@@ -194,7 +220,7 @@ def reconstruct_points(
 
     points_map = np.full((height, width, 3), np.nan, dtype=np.float32)
     points_map.reshape(-1, 3)[flat_index] = points
-    normals = surface_normals(points_map, -camera.R_array.T @ camera.t_array).reshape(-1, 3)[flat_index]
+    normals = surface_normals(points_map, -camera.R_array.T @ camera.t_array, flat_index)
     v, u = np.divmod(flat_index, width)
     return {
         "x": points[:, 0], "y": points[:, 1], "z": points[:, 2],

@@ -8,7 +8,7 @@ import numpy as np
 from services.geometry.camera import normalized_coordinates, pixel_grid
 
 _NEWTON_ITERATIONS = 8
-_NEWTON_TOLERANCE_PX = 1e-7
+_NEWTON_TOLERANCE_PX = 1e-5  # a hundredth of the decoding noise
 _AXES = {"x": 0, "y": 1}
 
 
