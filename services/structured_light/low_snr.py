@@ -10,21 +10,21 @@ _OUTLIER_SIGMAS = 4.0
 _NOISE_SAMPLE_STRIDE = 7  # a median over every 7th pixel is as good and 7x cheaper
 
 
-def phase_noise_sigma(modulation: np.ndarray, steps: int, period: float, camera_noise: float) -> np.ndarray:
-    """Predicted standard deviation, in projector pixels, of an N-step phase-shift coordinate.
+def phase_noise_scale(steps: int, period: float, camera_noise: float) -> float:
+    """Standard deviation, in projector pixels, of an N-step phase-shift coordinate times its modulation.
 
     Notes
     -----
     With intensity noise sigma_I and modulation B, N-step phase shifting gives
-    sigma_phi = sigma_I sqrt(2 / N) / B, so sigma_x = P sigma_phi / (2 pi) [1]_.
+    sigma_phi = sigma_I sqrt(2 / N) / B, so sigma_x = P sigma_phi / (2 pi) = scale / B with
+    scale = P sigma_I sqrt(2 / N) / (2 pi) [1]_.
 
     References
     ----------
     .. [1] C. Zuo et al., "Phase shifting algorithms for fringe projection profilometry: a review",
        Optics and Lasers in Engineering 109, 2018, section 5.
     """
-    with np.errstate(divide="ignore", invalid="ignore"):
-        return (period / (2 * np.pi)) * camera_noise * np.sqrt(2.0 / steps) / modulation
+    return float(period / (2 * np.pi) * camera_noise * np.sqrt(2.0 / steps))
 
 
 def estimate_camera_noise(modulation: np.ndarray, quality: np.ndarray, steps: int) -> float:
@@ -48,18 +48,19 @@ def estimate_camera_noise(modulation: np.ndarray, quality: np.ndarray, steps: in
 
 # Hand-written with numba: a robust weighted plane fit per weak pixel has no vectorised library form.
 @numba.njit(parallel=True, cache=True)
-def _refine_kernel(coordinates, weights, sigma, threshold, radius, max_step, out):
+def _refine_kernel(coordinates, modulation, noise_scale, threshold, radius, max_step, out):
     height, width = coordinates.shape
     window = (2 * radius + 1) ** 2
     for row in numba.prange(height):
-        values = np.empty(window)
+        values = np.empty(window, dtype=np.float32)
         dxs = np.empty(window)
         dys = np.empty(window)
         ws = np.empty(window)
         for col in range(width):
             centre = coordinates[row, col]
             out[row, col] = centre
-            if not (np.isfinite(centre) and sigma[row, col] > threshold):
+            sigma = noise_scale / modulation[row, col]
+            if not (np.isfinite(centre) and sigma > threshold):
                 continue
             n = 0
             for r in range(max(0, row - radius), min(height, row + radius + 1)):
@@ -69,7 +70,7 @@ def _refine_kernel(coordinates, weights, sigma, threshold, radius, max_step, out
                         values[n] = value
                         dxs[n] = c - col
                         dys[n] = r - row
-                        ws[n] = weights[r, c]
+                        ws[n] = modulation[r, c] * modulation[r, c]
                         n += 1
             median = np.median(values[:n])
             s00 = s01 = s02 = s11 = s12 = s22 = b0 = b1 = b2 = 0.0
@@ -95,13 +96,13 @@ def _refine_kernel(coordinates, weights, sigma, threshold, radius, max_step, out
                 continue
             intercept = (b0 * (s11 * s22 - s12 * s12) - s01 * (b1 * s22 - s12 * b2)
                          + s02 * (b1 * s12 - s11 * b2)) / determinant
-            if abs(centre - intercept) > _OUTLIER_SIGMAS * sigma[row, col]:
+            if abs(centre - intercept) > _OUTLIER_SIGMAS * sigma:
                 out[row, col] = np.nan
             else:
                 out[row, col] = intercept
 
 
-def refine_low_snr(coordinates: np.ndarray, modulation: np.ndarray, sigma: np.ndarray, *,
+def refine_low_snr(coordinates: np.ndarray, modulation: np.ndarray, noise_scale: float, *,
                    threshold: float = 0.1, radius: int = 2, max_step: float = 4.0) -> np.ndarray:
     """Replace noisy projector coordinates by a robust, inverse-variance weighted local plane fit.
 
@@ -111,8 +112,9 @@ def refine_low_snr(coordinates: np.ndarray, modulation: np.ndarray, sigma: np.nd
         Decoded projector coordinates, NaN where invalid.
     modulation : (H, W) float array
         Signal amplitude B per pixel; the fit weights are B^2 (inverse phase variance).
-    sigma : (H, W) float array
-        Predicted coordinate noise per pixel (:func:`phase_noise_sigma`), projector pixels.
+    noise_scale : float
+        Predicted coordinate noise times modulation (:func:`phase_noise_scale`): a pixel's noise is
+        ``noise_scale / B`` projector pixels.
     threshold : float
         Only pixels noisier than this many projector pixels are refined; the rest are returned unchanged.
     radius : int
@@ -138,12 +140,12 @@ def refine_low_snr(coordinates: np.ndarray, modulation: np.ndarray, sigma: np.nd
     .. [1] W. S. Cleveland, S. J. Devlin, "Locally weighted regression", Journal of the American
        Statistical Association 83(403), 1988.
     """
-    if coordinates.shape != modulation.shape or coordinates.shape != sigma.shape:
-        raise ValueError("coordinates, modulation and sigma must have the same shape.")
+    if coordinates.shape != modulation.shape:
+        raise ValueError("coordinates and modulation must have the same shape.")
     if radius < 1:
         raise ValueError(f"The window radius must be at least 1 pixel; got {radius}.")
     refined = np.empty(coordinates.shape, dtype=np.float32)
-    weights = np.nan_to_num(np.asarray(modulation, dtype=np.float64) ** 2)
-    _refine_kernel(np.asarray(coordinates, dtype=np.float64), weights, np.nan_to_num(np.asarray(sigma, np.float64)),
-                   float(threshold), int(radius), float(max_step), refined)
+    _refine_kernel(np.ascontiguousarray(coordinates, dtype=np.float32),
+                   np.ascontiguousarray(np.nan_to_num(modulation), dtype=np.float32),
+                   float(noise_scale), float(threshold), int(radius), float(max_step), refined)
     return refined

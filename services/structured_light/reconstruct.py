@@ -9,7 +9,7 @@ import numpy as np
 from services.formats.rig import Device
 from services.formats.sequence import Sequence
 from services.structured_light.decode import DecodedCapture, Rejection, decode
-from services.structured_light.low_snr import estimate_camera_noise, phase_noise_sigma, refine_low_snr
+from services.structured_light.low_snr import estimate_camera_noise, phase_noise_scale, refine_low_snr
 from services.structured_light.triangulate import camera_ray_table, triangulate
 
 
@@ -69,8 +69,8 @@ def _refined_coordinates(decoded: DecodedCapture, sequence: Sequence, axis: str)
     finest = groups[-1]
     steps = len(finest.frames)
     noise = estimate_camera_noise(decoded.modulation, decoded.quality, steps)
-    sigma = phase_noise_sigma(decoded.modulation, steps, finest.period, noise)
-    return refine_low_snr(coordinates, decoded.modulation, sigma, max_step=finest.period / 4)
+    return refine_low_snr(coordinates, decoded.modulation, phase_noise_scale(steps, finest.period, noise),
+                          max_step=finest.period / 4)
 
 
 def remove_speckles(coordinates: np.ndarray, axis_size: int, max_step: float, max_speckle_px: int = 25) -> np.ndarray:

@@ -7,7 +7,7 @@ import numpy as np
 
 from services.geometry.camera import normalized_coordinates, pixel_grid
 
-_NEWTON_ITERATIONS = 8
+_NEWTON_ITERATIONS = 12
 _NEWTON_TOLERANCE_PX = 1e-5  # a hundredth of the decoding noise
 _AXES = {"x": 0, "y": 1}
 
@@ -79,18 +79,16 @@ def _triangulate_kernel(rays, coordinates, origin, rotation, camera_to_world, ce
             if Z <= 0.0:
                 s = np.nan
                 break
+            A = o_axis + s * d_axis
             f = _project_coordinate(origin[0] + s * dx, origin[1] + s * dy, Z, fx, fy, cx, cy, k, tilt, axis) - target
-            h = 1e-6 * s
-            Z2 = origin[2] + (s + h) * dz
-            f2 = _project_coordinate(origin[0] + (s + h) * dx, origin[1] + (s + h) * dy, Z2,
-                                     fx, fy, cx, cy, k, tilt, axis) - target
-            slope = (f2 - f) / h
+            # quasi-Newton: the slope of the undistorted projection, which differs from the true slope
+            # by the (small) distortion, so each step still gains a factor of about 1 / distortion
+            slope = focal * (d_axis * Z - A * dz) / (Z * Z)
             if slope == 0.0:
                 s = np.nan
                 break
-            step = f / slope
-            s -= step
-            if abs(step * slope) < _NEWTON_TOLERANCE_PX:
+            s -= f / slope
+            if abs(f) < _NEWTON_TOLERANCE_PX:
                 break
         for j in range(3):
             out[i, j] = centre_world[j] + s * (
@@ -135,8 +133,9 @@ def triangulate(
     -----
     A point on the camera ray is X(s) = C + s R_c^T [x, y, 1]^T. With projector distortion the set of
     projector rays that share one coded column is a curved surface, not a plane, so the ray parameter
-    solves u_p(R_p X(s) + t_p) = u (the full OpenCV projection of the projector) by Newton's method,
-    started from the undistorted plane x_p - n z_p = 0 with n = (u - c_x) / f_x. This is the
+    solves u_p(R_p X(s) + t_p) = u (the full OpenCV projection of the projector) by a quasi-Newton
+    iteration whose slope is that of the undistorted projection, started from the undistorted plane
+    x_p - n z_p = 0 with n = (u - c_x) / f_x. This is the
     projector-as-inverse-camera model of structured light [1]_, and replaces the linear plane
     intersection of the paper's two-step method, which ignores lens distortion.
 

@@ -1,7 +1,7 @@
 import numpy as np
 import pytest
 
-from services.structured_light.low_snr import estimate_camera_noise, phase_noise_sigma, refine_low_snr
+from services.structured_light.low_snr import estimate_camera_noise, phase_noise_scale, refine_low_snr
 
 
 def _phase_shift_fit(amplitude, noise, steps, rng, size=(60, 80)):
@@ -30,7 +30,7 @@ def test_predicted_sigma_matches_the_spread_of_decoded_phase():
     samples = amplitude * np.cos(1.0 - shifts[:, None]) + rng.normal(0, noise, (steps, 20000))
     phase = np.arctan2(np.sin(shifts) @ samples, np.cos(shifts) @ samples)
     spread = np.std(phase) * period / (2 * np.pi)
-    predicted = phase_noise_sigma(np.array(amplitude), steps, period, noise)
+    predicted = phase_noise_scale(steps, period, noise) / amplitude
     assert predicted == pytest.approx(spread, rel=0.1)
 
 
@@ -39,10 +39,11 @@ def test_refinement_reduces_noise_without_bias_and_rejects_outliers():
     v, u = np.mgrid[0:80, 0:120]
     truth = 100 + 1.5 * u + 0.2 * v
     modulation = np.clip(2 + 0.5 * u, 0, 60).astype(float)  # a terminator: the signal fades to the left
-    sigma = phase_noise_sigma(modulation, 12, 16.0, 1.5)
+    scale = phase_noise_scale(12, 16.0, 1.5)
+    sigma = scale / modulation
     noisy = truth + rng.normal(0, 1, truth.shape) * sigma
     noisy[40, 10] += 16  # a period slip in the weak region
-    refined = refine_low_snr(noisy, modulation, sigma, threshold=0.1)
+    refined = refine_low_snr(noisy, modulation, scale, threshold=0.1)
     weak = (sigma > 0.1)[2:-2, 2:-2]
     before = (noisy - truth)[2:-2, 2:-2][weak]
     after = (refined - truth)[2:-2, 2:-2][weak]
@@ -57,4 +58,4 @@ def test_refinement_reduces_noise_without_bias_and_rejects_outliers():
 
 def test_shapes_must_match():
     with pytest.raises(ValueError, match="same shape"):
-        refine_low_snr(np.zeros((3, 3)), np.zeros((3, 4)), np.zeros((3, 3)))
+        refine_low_snr(np.zeros((3, 3)), np.zeros((3, 4)), 1.0)
