@@ -100,6 +100,8 @@ def main() -> None:
         spacing = np.median(np.linalg.norm(np.diff(detection.image_points.reshape(6, 9, 2), axis=1), axis=2))
         corners, found = projector_corners(detection.image_points, decoded.projector_x, decoded.projector_y,
                                            int(spacing / 2), decoded.modulation)
+        if found.sum() < 6:
+            continue
         truth = project_points(BOARD.object_points() @ R_wb.T + t_wb, projector.K_array, projector.dist_array,
                                projector.R_array, projector.t_array)
         corner_errors.append(np.linalg.norm(corners[found] - truth[found], axis=1))
