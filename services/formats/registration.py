@@ -21,9 +21,9 @@ from pathlib import Path
 from typing import Annotated, Literal
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
+from pydantic import BaseModel, ConfigDict, Field, field_validator
 
-from services.errors import InputError
+from services.formats.json_files import read_text, validate_json, write_text_atomically
 from services.registration.models import MODELS
 from services.registration.register import Registration
 
@@ -74,29 +74,14 @@ def registration_to_file(registration: Registration) -> RegistrationFile:
 
 def parse_registration(text: str, source: str = "registration") -> RegistrationFile:
     """Validate REG.json text; errors name ``source`` and the field."""
-    try:
-        return RegistrationFile.model_validate_json(text)
-    except ValidationError as error:
-        lines = []
-        for item in error.errors():
-            location = ".".join(str(part) for part in item["loc"]) or "(top level)"
-            lines.append(f"{source}: {location}: {item['msg'].removeprefix('Value error, ')}")
-        raise InputError("\n".join(lines)) from None
+    return validate_json(RegistrationFile, text, source)
 
 
 def load_registration(path: str | Path) -> RegistrationFile:
     """Read and validate a REG.json file."""
-    path = Path(path)
-    try:
-        text = path.read_text()
-    except OSError as error:
-        raise InputError(f"{path}: cannot read the registration file ({error.strerror or error})") from None
-    return parse_registration(text, str(path))
+    return parse_registration(read_text(path, "registration file"), str(path))
 
 
 def save_registration(registration: RegistrationFile, path: str | Path) -> None:
     """Write REG.json atomically (a reader never sees half a file)."""
-    path = Path(path)
-    temporary = path.with_name(path.name + ".part")
-    temporary.write_text(json.dumps(registration.model_dump(), indent=2) + "\n")
-    temporary.replace(path)
+    write_text_atomically(path, json.dumps(registration.model_dump(), indent=2) + "\n")

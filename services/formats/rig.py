@@ -22,9 +22,10 @@ from pathlib import Path
 from typing import Annotated, Literal
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
+from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 from services.errors import InputError
+from services.formats.json_files import read_text, validate_json, write_text_atomically
 from services.geometry.camera import VALID_DISTORTION_LENGTHS
 
 DeviceKind = Literal["camera", "projector", "thermal"]
@@ -137,31 +138,14 @@ class Rig(BaseModel):
         return matching[0], self.devices[matching[0]]
 
 
-def _describe_validation_error(source: str, error: ValidationError) -> str:
-    lines = []
-    for item in error.errors():
-        location = ".".join(str(part) for part in item["loc"]) or "(top level)"
-        message = item["msg"].removeprefix("Value error, ")
-        lines.append(f"{source}: {location}: {message}")
-    return "\n".join(lines)
-
-
 def parse_rig(text: str, source: str = "rig") -> Rig:
     """Validate rig JSON text; errors name ``source``, the device and the field."""
-    try:
-        return Rig.model_validate_json(text)
-    except ValidationError as error:
-        raise InputError(_describe_validation_error(source, error)) from None
+    return validate_json(Rig, text, source)
 
 
 def load_rig(path: str | Path) -> Rig:
     """Read and validate a rig file."""
-    path = Path(path)
-    try:
-        text = path.read_text()
-    except OSError as error:
-        raise InputError(f"{path}: cannot read the rig file ({error.strerror or error})") from None
-    return parse_rig(text, str(path))
+    return parse_rig(read_text(path, "rig file"), str(path))
 
 
 def rig_to_json(rig: Rig) -> str:
@@ -170,7 +154,4 @@ def rig_to_json(rig: Rig) -> str:
 
 def save_rig(rig: Rig, path: str | Path) -> None:
     """Write a rig file atomically (a reader never sees half a file)."""
-    path = Path(path)
-    temporary = path.with_name(path.name + ".part")
-    temporary.write_text(rig_to_json(rig) + "\n")
-    temporary.replace(path)
+    write_text_atomically(path, rig_to_json(rig) + "\n")

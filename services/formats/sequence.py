@@ -32,10 +32,11 @@ from pathlib import Path
 from typing import Annotated, Literal
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from services.errors import InputError
 from services.formats.images import read_frame_stack
+from services.formats.json_files import read_text, validate_json, write_text_atomically
 
 MANIFEST_NAME = "sequence.json"
 Axis = Literal["x", "y"]
@@ -269,33 +270,12 @@ class Sequence(BaseModel):
         ]
 
 
-def _field_path(location: tuple) -> str:
-    path = ""
-    for previous, part in zip((None,) + location[:-1], location):
-        if isinstance(part, int):
-            path += f"[{part}]"
-        elif isinstance(previous, int) and part in ("white", "black", "gray", "phase"):
-            continue  # the discriminator tag pydantic inserts after a list index
-        else:
-            path += f".{part}" if path else str(part)
-    return path
-
-
-def _describe_validation_error(source: str, error: ValidationError) -> str:
-    lines = []
-    for item in error.errors():
-        message = item["msg"].removeprefix("Value error, ")
-        field = _field_path(item["loc"])
-        lines.append(f"{source}: {field}: {message}" if field else f"{source}: {message}")
-    return "\n".join(lines)
+_FRAME_KINDS = frozenset({"white", "black", "gray", "phase"})
 
 
 def parse_sequence(text: str, source: str = MANIFEST_NAME) -> Sequence:
     """Validate manifest JSON text; errors name ``source`` and the field."""
-    try:
-        return Sequence.model_validate_json(text)
-    except ValidationError as error:
-        raise InputError(_describe_validation_error(source, error)) from None
+    return validate_json(Sequence, text, source, tags=_FRAME_KINDS)
 
 
 def sequence_to_json(sequence: Sequence) -> str:
@@ -305,20 +285,12 @@ def sequence_to_json(sequence: Sequence) -> str:
 def load_sequence(directory: str | Path) -> Sequence:
     """Read and validate ``directory/sequence.json``."""
     path = Path(directory) / MANIFEST_NAME
-    try:
-        text = path.read_text()
-    except OSError as error:
-        raise InputError(f"{path}: cannot read the sequence manifest ({error.strerror or error})") from None
-    return parse_sequence(text, str(path))
+    return parse_sequence(read_text(path, "sequence manifest"), str(path))
 
 
 def save_sequence(sequence: Sequence, directory: str | Path) -> Path:
     """Write ``directory/sequence.json`` atomically and return its path."""
-    path = Path(directory) / MANIFEST_NAME
-    temporary = path.with_name(path.name + ".part")
-    temporary.write_text(sequence_to_json(sequence) + "\n")
-    temporary.replace(path)
-    return path
+    return write_text_atomically(Path(directory) / MANIFEST_NAME, sequence_to_json(sequence) + "\n")
 
 
 def read_capture(directory: str | Path) -> tuple[Sequence, np.ndarray]:

@@ -28,9 +28,10 @@ from typing import Literal
 import cv2
 import numpy as np
 import tifffile
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from services.errors import InputError
+from services.formats.json_files import read_text, validate_json
 from services.fusion.radiometry import KELVIN_OFFSET, PlanckConstants, correct_emissivity, counts_to_temperature
 
 THERMAL_SUFFIXES = (".npy", ".tif", ".tiff", ".png")
@@ -77,16 +78,7 @@ def sidecar_path(frame_path: str | Path) -> Path:
 def _read_sidecar(path: Path) -> ThermalSidecar | None:
     if not path.is_file():
         return None
-    try:
-        return ThermalSidecar.model_validate_json(path.read_text())
-    except ValidationError as error:
-        details = "; ".join(
-            (f"{'.'.join(str(part) for part in item['loc'])}: " if item["loc"] else "")
-            + item["msg"].removeprefix("Value error, ") for item in error.errors()
-        )
-        raise InputError(f"{path}: invalid thermal sidecar ({details})") from None
-    except OSError as error:
-        raise InputError(f"{path}: cannot read the thermal sidecar ({error.strerror or error})") from None
+    return validate_json(ThermalSidecar, read_text(path, "thermal sidecar"), f"{path}: invalid thermal sidecar")
 
 
 def _read_array(path: Path) -> np.ndarray:

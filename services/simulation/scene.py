@@ -26,6 +26,7 @@ from plyfile import PlyData
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 from services.errors import InputError
+from services.formats.json_files import describe_validation_error, read_text, validate_json
 
 Vector3 = Annotated[list[float], Field(min_length=3, max_length=3)]
 _TEXTURE_WAVES = 8
@@ -171,12 +172,7 @@ def surface_albedo(scene: Scene, points: np.ndarray, surface_index: np.ndarray) 
     return albedo
 
 
-def _describe_validation_error(source: str, error: ValidationError) -> str:
-    lines = []
-    for item in error.errors():
-        location = ".".join(str(part) for part in item["loc"]) or "(top level)"
-        lines.append(f"{source}: {location}: {item['msg'].removeprefix('Value error, ')}")
-    return "\n".join(lines)
+_SURFACE_TYPES = frozenset({"plane", "sphere", "cylinder", "mesh"})
 
 
 def _read_ply_mesh(path: Path, field: str) -> tuple[list[list[float]], list[list[int]]]:
@@ -199,10 +195,7 @@ def parse_scene(text: str, source: str = "scene", base_directory: str | Path = "
 
     Errors raise ``InputError`` naming ``source`` and the field.
     """
-    try:
-        scene = Scene.model_validate_json(text)
-    except ValidationError as error:
-        raise InputError(_describe_validation_error(source, error)) from None
+    scene = validate_json(Scene, text, source, tags=_SURFACE_TYPES)
     surfaces = []
     for index, surface in enumerate(scene.surfaces):
         if isinstance(surface, Mesh) and surface.ply is not None:
@@ -211,7 +204,7 @@ def parse_scene(text: str, source: str = "scene", base_directory: str | Path = "
             try:
                 surface = Mesh(vertices=vertices, faces=faces, albedo=surface.albedo)
             except ValidationError as error:
-                raise InputError(_describe_validation_error(field, error)) from None
+                raise InputError(describe_validation_error(field, error)) from None
         surfaces.append(surface)
     return Scene(surfaces=surfaces, ambient=scene.ambient)
 
@@ -219,8 +212,4 @@ def parse_scene(text: str, source: str = "scene", base_directory: str | Path = "
 def load_scene(path: str | Path) -> Scene:
     """Read and validate a scene file."""
     path = Path(path)
-    try:
-        text = path.read_text()
-    except OSError as error:
-        raise InputError(f"{path}: cannot read the scene file ({error.strerror or error})") from None
-    return parse_scene(text, str(path), path.parent)
+    return parse_scene(read_text(path, "scene file"), str(path), path.parent)

@@ -118,8 +118,8 @@ def _bad_frames(tmp_path):
     ("nodata.png", "no finite value"),
     ("corrupt.tif", "cannot read the thermal frame"),
     ("frame.jpg", "thermal frames must be .npy, .tif, .tiff, .png files"),
-    ("counts.npy", "counts.json: invalid thermal sidecar (raw counts need the camera's 'planck' constants"),
-    ("typo.npy", "typo.json: invalid thermal sidecar (emisivity: Extra inputs are not permitted"),
+    ("counts.npy", "counts.json: invalid thermal sidecar: raw counts need the camera's 'planck' constants"),
+    ("typo.npy", "typo.json: invalid thermal sidecar: emisivity: Extra inputs are not permitted"),
     ("cold.npy", "no pixel of the thermal frame gives a temperature"),
 ])
 def test_bad_frames_are_refused_naming_the_file(tmp_path, name, message):

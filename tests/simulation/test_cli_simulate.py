@@ -74,7 +74,7 @@ def test_simulate_accepts_preset_scene_and_rig(tmp_path):
 @pytest.mark.parametrize("change, message", [
     (lambda d: (d / "scene.json").unlink(), "scene.json: cannot read the scene file"),
     (lambda d: (d / "scene.json").write_text('{"surfaces": [{"type": "sphere", "center": [0, 0, 1]}]}'),
-     "scene.json: surfaces.0.sphere.radius"),
+     "scene.json: surfaces[0].radius"),
     (lambda d: (d / "rig.json").write_text('{"devices": {}}'), "exactly one camera"),
     (lambda d: (d / "patterns" / "sequence.json").unlink(), "sequence.json: cannot read the sequence manifest"),
     (lambda d: (d / "patterns" / "00_white.png").unlink(), "00_white.png: frame file is missing"),
