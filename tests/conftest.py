@@ -1,5 +1,4 @@
-"""Service databases for tests: SQLite in a temporary directory and the machine's PostgreSQL
-(database ``test``, a fresh schema per test, dropped afterwards)."""
+"""Fixtures shared across test folders: the service databases, on SQLite and on the machine's PostgreSQL."""
 
 import uuid
 
@@ -8,11 +7,13 @@ from sqlalchemy import text
 
 from services.db.engine import make_engine, migrate
 
+# The machine's PostgreSQL (trust auth); each test gets a fresh schema in database ``test``, dropped afterwards.
 POSTGRES_URL = "postgresql+psycopg://postgres@127.0.0.1:5432/test"
 
 
 @pytest.fixture(params=["sqlite", "postgresql"])
 def engine(request, tmp_path):
+    """A migrated service database: SQLite in a temporary directory, then a fresh PostgreSQL schema."""
     if request.param == "sqlite":
         engine = make_engine(f"sqlite:///{tmp_path / 'service.db'}")
         migrate(engine)
