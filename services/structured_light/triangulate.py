@@ -6,6 +6,7 @@ import numba
 import numpy as np
 
 from services.geometry.camera import normalized_coordinates, pixel_grid
+from services.geometry.distortion import distorted_pixel, opencv_distortion_terms
 
 _NEWTON_ITERATIONS = 12
 _NEWTON_TOLERANCE_PX = 1e-5  # a hundredth of the decoding noise
@@ -25,32 +26,12 @@ def camera_ray_table(K: np.ndarray, dist: np.ndarray, width: int, height: int) -
     return table.astype(np.float32)
 
 
-def _tilt_matrix(tau_x: float, tau_y: float) -> np.ndarray:
-    """OpenCV's tilted-sensor projection matrix for the 13th and 14th distortion coefficients."""
-    cx, sx, cy, sy = np.cos(tau_x), np.sin(tau_x), np.cos(tau_y), np.sin(tau_y)
-    rot_x = np.array([[1, 0, 0], [0, cx, sx], [0, -sx, cx]])
-    rot_y = np.array([[cy, 0, -sy], [0, 1, 0], [sy, 0, cy]])
-    rot_xy = rot_y @ rot_x
-    proj_z = np.array([[rot_xy[2, 2], 0, -rot_xy[0, 2]], [0, rot_xy[2, 2], -rot_xy[1, 2]], [0, 0, 1]])
-    return proj_z @ rot_xy
-
-
 # Hand-written with numba because each point needs a few Newton steps of the full OpenCV distortion
 # model; cv2.projectPoints per step costs about 10x more on a million points.
 @numba.njit(cache=True, inline="always")
 def _project_coordinate(X, Y, Z, fx, fy, cx, cy, k, tilt, axis):
-    x = X / Z
-    y = Y / Z
-    r2 = x * x + y * y
-    r4 = r2 * r2
-    r6 = r4 * r2
-    radial = (1.0 + k[0] * r2 + k[1] * r4 + k[4] * r6) / (1.0 + k[5] * r2 + k[6] * r4 + k[7] * r6)
-    xd = x * radial + 2.0 * k[2] * x * y + k[3] * (r2 + 2.0 * x * x) + k[8] * r2 + k[9] * r4
-    yd = y * radial + k[2] * (r2 + 2.0 * y * y) + 2.0 * k[3] * x * y + k[10] * r2 + k[11] * r4
-    w = tilt[2, 0] * xd + tilt[2, 1] * yd + tilt[2, 2]
-    if axis == 0:
-        return fx * (tilt[0, 0] * xd + tilt[0, 1] * yd + tilt[0, 2]) / w + cx
-    return fy * (tilt[1, 0] * xd + tilt[1, 1] * yd + tilt[1, 2]) / w + cy
+    u, v = distorted_pixel(X / Z, Y / Z, fx, fy, cx, cy, k, tilt)
+    return u if axis == 0 else v
 
 
 @numba.njit(parallel=True, cache=True)
@@ -161,15 +142,11 @@ def triangulate(
     camera_centre = -camera_R.T @ np.asarray(camera_t, dtype=np.float64).ravel()
     origin = projector_R @ camera_centre + np.asarray(projector_t, dtype=np.float64).ravel()
     rotation = projector_R @ camera_R.T
-    coefficients = np.zeros(14)
-    dist = np.asarray(projector_dist, dtype=np.float64).ravel()
-    coefficients[: dist.size] = dist
-    # OpenCV order k1 k2 p1 p2 k3 k4 k5 k6 s1..s4 tx ty -> kernel order k1 k2 p1 p2 k3 k4 k5 k6 s1..s4
-    tilt = _tilt_matrix(coefficients[12], coefficients[13])
+    terms, tilt = opencv_distortion_terms(projector_dist)
     K = np.asarray(projector_K, dtype=np.float64)
     points = np.empty((camera_rays.shape[0], 3), dtype=np.float32)
     _triangulate_kernel(camera_rays, projector_coordinates, origin, np.ascontiguousarray(rotation),
                         np.ascontiguousarray(camera_R.T), camera_centre,
-                        K[0, 0], K[1, 1], K[0, 2], K[1, 2], coefficients[:12].copy(), tilt, _AXES[axis],
+                        K[0, 0], K[1, 1], K[0, 2], K[1, 2], terms, tilt, _AXES[axis],
                         points)
     return points
