@@ -80,7 +80,7 @@ def project_points(
     rvec, _ = cv2.Rodrigues(R)
     pixels, _ = cv2.projectPoints(points_world, rvec, t, np.asarray(K, np.float64), _as_distortion(dist))
     pixels = pixels.reshape(-1, 2)
-    behind = (points_world @ R.T + t)[:, 2] <= 0
+    behind = np.einsum("ij,j->i", points_world, R[2]) + t[2] <= 0  # einsum: no threaded BLAS for a (N,3) product
     pixels[behind] = np.nan
     return pixels
 
