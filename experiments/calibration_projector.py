@@ -3,7 +3,7 @@
 The true rig is ``presets.paper_rig()`` (projector at the origin, camera at (400, 0, 0) mm rotated
 20 degrees, 1024x768 both). As in practice, the camera is calibrated first on its own: 15 views of
 a 13x9-corner chessboard (20 mm squares) filling its view (``calibrate_camera``, k1 k2 model). Then
-a 9x6-corner chessboard of 18 mm squares is shown in 24 poses across the projector's field at the
+a 9x6-corner chessboard of 18 mm squares is shown in 40 poses across the projector's field at the
 measuring depths (430..570 mm, tilts of 35 degrees), lit by the project's default pattern sequence
 with both axes coded (camera blur 0.7 px, noise 1.5 grey levels). From these captures:
 
@@ -40,7 +40,7 @@ from services.structured_light.reconstruct import reconstruct_points
 
 BOARD = parse_board('{"type": "chessboard", "inner_corners": [9, 6], "square_mm": 18.0}')
 CAMERA_BOARD = parse_board('{"type": "chessboard", "inner_corners": [13, 9], "square_mm": 20.0}')
-POSES = 24
+POSES = 40
 DEPTHS_MM = list(range(430, 571, 20))
 OUT = Path(__file__).parents[1] / "docs" / "figures" / "calibration" / "projector.md"
 
