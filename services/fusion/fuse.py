@@ -16,8 +16,6 @@ from services.geometry.camera import camera_center, project_points
 DEFAULT_MAX_VIEW_ANGLE_DEG = 75.0
 DEFAULT_DEPTH_TOLERANCE_MM = 2.0
 DEFAULT_OCCLUSION_MARGIN_PX = 6
-# cv2.projectPoints slows down several-fold on very large inputs; chunks keep it fast.
-_PROJECTION_CHUNK = 65536
 
 
 @dataclass(frozen=True)
@@ -57,11 +55,7 @@ def view_angles(points: np.ndarray, normals: np.ndarray, centre: np.ndarray) -> 
 
 def _project(points: np.ndarray, device: Device) -> np.ndarray:
     """Distorted pixel coordinates of world points in the device."""
-    return np.concatenate([
-        project_points(points[start:start + _PROJECTION_CHUNK], device.K_array, device.dist_array,
-                       device.R_array, device.t_array)
-        for start in range(0, max(len(points), 1), _PROJECTION_CHUNK)
-    ])
+    return project_points(points, device.K_array, device.dist_array, device.R_array, device.t_array)
 
 
 def _bilinear_samples(

@@ -57,6 +57,29 @@ def _reprojection_errors(normalized, pixels, fx, fy, cx, cy, k, tilt, out):
         out[i] = max(abs(u - pixels[i, 0]), abs(v - pixels[i, 1]))
 
 
+@numba.njit(parallel=True, cache=True)
+def _project_kernel(points, R, t, fx, fy, cx, cy, k, tilt, out):
+    for i in numba.prange(points.shape[0]):
+        X = R[0, 0] * points[i, 0] + R[0, 1] * points[i, 1] + R[0, 2] * points[i, 2] + t[0]
+        Y = R[1, 0] * points[i, 0] + R[1, 1] * points[i, 1] + R[1, 2] * points[i, 2] + t[1]
+        Z = R[2, 0] * points[i, 0] + R[2, 1] * points[i, 1] + R[2, 2] * points[i, 2] + t[2]
+        if Z <= 0.0:
+            out[i, 0] = out[i, 1] = np.nan
+        else:
+            out[i, 0], out[i, 1] = distorted_pixel(X / Z, Y / Z, fx, fy, cx, cy, k, tilt)
+
+
+def project_with_distortion(points: np.ndarray, K: np.ndarray, dist: np.ndarray, R: np.ndarray,
+                            t: np.ndarray) -> np.ndarray:
+    """Pixels of world points (NaN behind the device) by the compiled model; see ``camera.project_points``."""
+    k, tilt = opencv_distortion_terms(dist)
+    K = np.asarray(K, dtype=np.float64)
+    out = np.empty((len(points), 2))
+    _project_kernel(np.ascontiguousarray(points, dtype=np.float64), np.ascontiguousarray(R, dtype=np.float64),
+                    np.asarray(t, dtype=np.float64).ravel(), K[0, 0], K[1, 1], K[0, 2], K[1, 2], k, tilt, out)
+    return out
+
+
 def reprojection_errors(normalized: np.ndarray, pixels: np.ndarray, K: np.ndarray, dist: np.ndarray) -> np.ndarray:
     """Largest of |du|, |dv| between the projection of normalised points and the given pixels."""
     k, tilt = opencv_distortion_terms(dist)
