@@ -7,6 +7,9 @@ from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field
 
+from services.calibration.camera import MIN_VIEWS
+from services.formats.board import BoardSpec
+
 JobStatus = Literal["queued", "running", "succeeded", "failed"]
 
 
@@ -49,6 +52,22 @@ class ScanJobRequest(BaseModel):
                           "default the scan's cloud.")
     model: Literal["translation", "rigid", "similarity", "affine", "homography"] = Field(
         "similarity", description="register: the geometric model mapping thermal to camera pixels.")
+
+
+class StereoCaptureRequest(BaseModel):
+    """A calibration capture job: the gateway films a board with the camera and the device, then the device is
+    placed relative to the camera from those views (``calibrate stereo``)."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    board: BoardSpec = Field(description="The board both devices see (docs/calibration.md): for the thermal camera "
+                                         "a hollowed chessboard before a heater.")
+    views: int = Field(12, ge=MIN_VIEWS, le=100, description="Board poses to film.")
+    interval_s: float = Field(2.0, ge=0, le=60, description="Seconds the operator has to move the board between "
+                                                            "views (the simulated station moves it at once).")
+    name: str = Field(min_length=1, max_length=200, description="Name of the new calibration set.")
+    device: str = Field("thermal", min_length=1, max_length=100, description="The rig's device to place.")
+    activate: bool = Field(False, description="Make the new calibration set the station's active one.")
 
 
 class Accepted(BaseModel):

@@ -5,6 +5,8 @@
 - ``GET /v1/sequence``: the sequence manifest every capture projects.
 - ``POST /v1/captures`` ``{"thermal_frames": 1}``: runs one capture and answers the
   ``.npz`` archive of :mod:`device_gateway.transfer`.
+- ``POST /v1/board-views`` ``{"board": {...}, "views": 12, "interval_s": 2}``: films a
+  calibration board in that many poses with both cameras (``.npz`` board views).
 
 Errors are RFC 9457 ``application/problem+json``: 422 for a bad request, 503 when a
 device is unavailable or was lost during the capture (it is re-opened; retry).
@@ -26,7 +28,8 @@ from pydantic import BaseModel, Field
 
 from device_gateway.devices import DeviceError
 from device_gateway.station import Station
-from device_gateway.transfer import MEDIA_TYPE, encode_capture
+from device_gateway.transfer import BOARD_VIEWS_MEDIA_TYPE, MEDIA_TYPE, encode_board_views, encode_capture
+from services.formats.board import BoardSpec
 from services.formats.sequence import Sequence
 
 logger = logging.getLogger(__name__)
@@ -35,6 +38,12 @@ PROBLEM_MEDIA_TYPE = "application/problem+json"
 
 class CaptureRequest(BaseModel):
     thermal_frames: int = Field(1, ge=1, le=64, description="Thermal frames grabbed after the last pattern.")
+
+
+class BoardViewsRequest(BaseModel):
+    board: BoardSpec = Field(description="The board (docs/calibration.md), as in a board file.")
+    views: int = Field(12, ge=3, le=100, description="Board poses to film.")
+    interval_s: float = Field(2.0, ge=0, le=60, description="Seconds a person has to move the board between views.")
 
 
 class DeviceStatus(BaseModel):
@@ -112,5 +121,11 @@ def create_app(station: Station, sequence: Sequence, patterns: np.ndarray) -> Fa
         request = body or CaptureRequest()
         result = station.capture(sequence, patterns, thermal_frames=request.thermal_frames)
         return Response(encode_capture(result), media_type=MEDIA_TYPE)
+
+    @app.post("/v1/board-views", operation_id="boardViews", response_class=Response,
+              responses={200: {"content": {BOARD_VIEWS_MEDIA_TYPE: {}}, "description": "The board views archive."}})
+    def board_views(station: StationDep, body: BoardViewsRequest) -> Response:
+        views = station.board_views(body.board, body.views, body.interval_s)
+        return Response(encode_board_views(views), media_type=BOARD_VIEWS_MEDIA_TYPE)
 
     return app

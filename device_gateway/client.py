@@ -7,8 +7,8 @@ from typing import Any
 import httpx
 
 from device_gateway.devices import DeviceError
-from device_gateway.station import Capture
-from device_gateway.transfer import MEDIA_TYPE, decode_capture
+from device_gateway.station import BoardViews, Capture
+from device_gateway.transfer import BOARD_VIEWS_MEDIA_TYPE, MEDIA_TYPE, decode_board_views, decode_capture
 from services.formats.sequence import Sequence
 
 
@@ -58,6 +58,15 @@ class GatewayClient:
             raise GatewayError(f"gateway {self.base_url} answered {response.headers.get('content-type')!r}, "
                                f"not a capture archive", response.status_code)
         return decode_capture(response.content)
+
+    def board_views(self, board: dict[str, Any], views: int, interval_s: float = 2.0) -> BoardViews:
+        """Film a calibration board (a board file's JSON) in ``views`` poses with both cameras."""
+        response = self._request("POST", "/v1/board-views",
+                                 json={"board": board, "views": views, "interval_s": interval_s})
+        if response.headers.get("content-type") != BOARD_VIEWS_MEDIA_TYPE:
+            raise GatewayError(f"gateway {self.base_url} answered {response.headers.get('content-type')!r}, "
+                               f"not board views", response.status_code)
+        return decode_board_views(response.content)
 
     def _request(self, method: str, path: str, accept: tuple[int, ...] = (200,), **kwargs: Any) -> httpx.Response:
         try:

@@ -18,7 +18,8 @@ def build_station(settings: Settings) -> Station:
         from device_gateway.drivers.simulated import SimulatedStation
 
         simulated = SimulatedStation()
-        return Station(simulated.camera, simulated.thermal, simulated.projector, settle_s=settle_s)
+        return Station(simulated.camera, simulated.thermal, simulated.projector, settle_s=settle_s,
+                       board_holder=simulated)
     from device_gateway.drivers.display import DisplayProjector
     from device_gateway.drivers.oak import OakCamera, OakThermal
 

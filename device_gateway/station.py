@@ -5,6 +5,11 @@ frame, and after the last pattern grabs the thermal frame(s). Captures are
 serialised (the devices can do one at a time). If a device is lost mid-capture the
 capture fails with :class:`DeviceLost` and every device is closed and re-opened, so
 the next capture starts clean.
+
+Board views for calibration: the projector lights the scene white and, for each
+view, the board holder puts the board in a new pose (a person, given
+``interval_s`` seconds; the simulated rig, at once), then the camera and the
+thermal camera grab one frame each.
 """
 
 from __future__ import annotations
@@ -13,11 +18,12 @@ import logging
 import threading
 import time
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, Protocol
 
 import numpy as np
 
 from device_gateway.devices import Camera, Device, DeviceInfo, DeviceLost, DeviceUnavailable, Projector, ThermalCamera
+from services.formats.board import BoardSpec
 from services.formats.sequence import Sequence
 
 logger = logging.getLogger(__name__)
@@ -43,14 +49,38 @@ class Capture:
     devices: list[DeviceInfo]
 
 
+@dataclass(frozen=True)
+class BoardViews:
+    """Paired views of a calibration board: ``camera`` (N, H, W) grey frames, ``thermal`` (N, h, w) float32
+    degrees Celsius, wall-clock ``timestamps`` (N,) of the camera frames."""
+
+    camera: np.ndarray
+    thermal: np.ndarray
+    timestamps: np.ndarray
+    devices: list[DeviceInfo]
+
+
+class BoardHolder(Protocol):
+    """Who moves the calibration board between views."""
+
+    def present(self, board: BoardSpec | None, view: int) -> None:
+        """Hold ``board`` in the pose of view number ``view`` (returns when it is in place); None takes it away."""
+
+
 class Station:
-    """The devices of one station, owned by the gateway process."""
+    """The devices of one station, owned by the gateway process.
+
+    ``board_holder`` moves the board between calibration views; None means a person does, given
+    ``interval_s`` seconds per view.
+    """
 
     def __init__(self, camera: Camera, thermal: ThermalCamera, projector: Projector,
-                 settle_s: float | None = None, grab_timeout_s: float = 2.0) -> None:
+                 settle_s: float | None = None, grab_timeout_s: float = 2.0,
+                 board_holder: BoardHolder | None = None) -> None:
         self.camera = camera
         self.thermal = thermal
         self.projector = projector
+        self.board_holder = board_holder
         self.settle_s = projector.settle_s if settle_s is None else settle_s
         self.grab_timeout_s = grab_timeout_s
         self._lock = threading.Lock()
@@ -134,6 +164,42 @@ class Station:
             thermal_metadata=[frame.metadata for frame in thermal],
             devices=[device.info for device in self.devices],
         )
+
+    def board_views(self, board: BoardSpec, views: int, interval_s: float = 2.0) -> BoardViews:
+        """Film a calibration board in ``views`` poses with the camera and the thermal camera together.
+
+        Raises
+        ------
+        ValueError
+            When ``views`` < 1 or ``interval_s`` < 0.
+        DeviceUnavailable, DeviceLost
+            As :meth:`capture`.
+        """
+        if views < 1 or interval_s < 0:
+            raise ValueError(f"Board views need views >= 1 and interval_s >= 0; got {views} and {interval_s}.")
+        info = self.projector.info
+        with self._lock:
+            self.open()
+            try:
+                self.projector.show(np.full((info.height, info.width), 255, np.uint8))
+                camera, thermal = [], []
+                for view in range(views):
+                    if self.board_holder is not None:
+                        self.board_holder.present(board, view)
+                    else:
+                        time.sleep(interval_s)
+                    camera.append(self.camera.grab(self.grab_timeout_s))
+                    thermal.append(self.thermal.grab(self.grab_timeout_s))
+            except DeviceLost:
+                self._reopen()
+                raise
+            finally:
+                if self.board_holder is not None:
+                    self.board_holder.present(None, -1)
+        return BoardViews(camera=np.stack([frame.image for frame in camera]),
+                          thermal=np.stack([frame.image for frame in thermal]).astype(np.float32, copy=False),
+                          timestamps=np.array([frame.timestamp for frame in camera]),
+                          devices=[device.info for device in self.devices])
 
     def _reopen(self) -> None:
         self.close()

@@ -17,11 +17,13 @@ import zipfile
 import numpy as np
 
 from device_gateway.devices import DeviceInfo
-from device_gateway.station import Capture
+from device_gateway.station import BoardViews, Capture
 from services.formats.sequence import Sequence
 
 MEDIA_TYPE = "application/vnd.thermofield.capture+npz"
+BOARD_VIEWS_MEDIA_TYPE = "application/vnd.thermofield.board-views+npz"
 _ARRAYS = ("frames", "frame_timestamps", "thermal", "thermal_timestamps")
+_BOARD_ARRAYS = ("camera", "thermal", "timestamps")
 
 
 def encode_capture(capture: Capture) -> bytes:
@@ -59,3 +61,23 @@ def decode_capture(data: bytes) -> Capture:
         devices=[DeviceInfo(**info) for info in metadata["devices"]],
         **arrays,
     )
+
+
+def encode_board_views(views: BoardViews) -> bytes:
+    """Serialise calibration board views to ``.npz`` bytes (arrays plus the devices as JSON metadata)."""
+    metadata = {"devices": [dataclasses.asdict(info) for info in views.devices]}
+    buffer = io.BytesIO()
+    np.savez(buffer, metadata=np.frombuffer(json.dumps(metadata).encode(), dtype=np.uint8),
+             **{name: getattr(views, name) for name in _BOARD_ARRAYS})
+    return buffer.getvalue()
+
+
+def decode_board_views(data: bytes) -> BoardViews:
+    """Read ``.npz`` bytes written by :func:`encode_board_views`; ``ValueError`` when they are not such an archive."""
+    try:
+        with np.load(io.BytesIO(data), allow_pickle=False) as archive:
+            arrays = {name: archive[name] for name in _BOARD_ARRAYS}
+            metadata = json.loads(archive["metadata"].tobytes())
+    except (OSError, KeyError, ValueError, zipfile.BadZipFile) as error:
+        raise ValueError(f"The gateway's answer is not a board-views archive: {error}.") from None
+    return BoardViews(devices=[DeviceInfo(**info) for info in metadata["devices"]], **arrays)

@@ -10,13 +10,15 @@ device and network trouble is retried, bad input (``ValueError``, including
 - ``reconstruct``, ``fuse``, ``register``: one step again on a stored scan, e.g. with
   another calibration set (reconstruct then fuse its cloud) or to check the thermal
   camera's alignment by mutual information (register).
-- ``calibrate``: a new calibration set with a device re-placed from paired board images.
+- ``calibrate``: a new calibration set with a device re-placed from paired board images, uploaded or
+  filmed by the gateway (a calibration capture job).
 """
 
 from __future__ import annotations
 
 import argparse
 import io
+import json
 import tempfile
 import time
 from collections.abc import Iterator
@@ -141,26 +143,38 @@ def register(job_id: str) -> dict[str, Any]:
             "nmi": registration.nmi}
 
 
-@dramatiq.actor(actor_name="calibrate", **_options(max_retries=0, time_limit_s=300))
+@dramatiq.actor(actor_name="calibrate", **_options(max_retries=0, time_limit_s=600))
 def calibrate(job_id: str) -> dict[str, Any]:
     """Place a device (e.g. the thermal camera) relative to the camera from paired board images.
 
-    Runs the stereo calibration of ``thermofield calibrate stereo`` on the uploaded pairs,
+    The pairs are the job's uploaded images, or, for a calibration capture job (``params["capture"]``),
+    board views the gateway films first. Runs the stereo calibration of ``thermofield calibrate stereo``
     starting from the job's calibration set, and stores the result as a new calibration set.
     """
     runtime = current_runtime()
     params = _job_params(runtime, job_id)
     _, rig = _calibration_rig(runtime, params["calibration_set_id"])
     camera_name, _ = rig.device(None, "camera")
-    runtime.tracker.progress(job_id, "calibrate", 0.1)
+    board_json = runtime.store.read_bytes(params["board"])
+    if "capture" in params:
+        runtime.tracker.progress(job_id, "capture", 0.05)
+        with GatewayClient(runtime.settings.gateway_url, timeout_s=600) as gateway:
+            views = gateway.board_views(json.loads(board_json), params["capture"]["views"],
+                                        params["capture"]["interval_s"])
+        reference_images = [(_png(frame), ".png") for frame in views.camera]
+        device_images = [(_png(_thermal_board_image(frame)), ".png") for frame in views.thermal]
+    else:
+        reference_images = [(runtime.store.read_bytes(digest), suffix) for digest, suffix in params["reference_images"]]
+        device_images = [(runtime.store.read_bytes(digest), suffix) for digest, suffix in params["device_images"]]
+    runtime.tracker.progress(job_id, "calibrate", 0.5)
     with tempfile.TemporaryDirectory() as directory:
         work = Path(directory)
-        (work / "board.json").write_bytes(runtime.store.read_bytes(params["board"]))
+        (work / "board.json").write_bytes(board_json)
         save_rig(rig, work / "rig.json")
-        for device, images in ((camera_name, params["reference_images"]), (params["device"], params["device_images"])):
+        for device, images in ((camera_name, reference_images), (params["device"], device_images)):
             (work / "pairs" / device).mkdir(parents=True)
-            for index, (digest, suffix) in enumerate(images):
-                (work / "pairs" / device / f"{index:03d}{suffix}").write_bytes(runtime.store.read_bytes(digest))
+            for index, (content, suffix) in enumerate(images):
+                (work / "pairs" / device / f"{index:03d}{suffix}").write_bytes(content)
         out = work / "out" / "rig.json"
         run_stereo(argparse.Namespace(board=work / "board.json", rig=work / "rig.json", pairs=work / "pairs",
                                       device=params["device"], intrinsics=None, camera=camera_name, out=out))
@@ -177,6 +191,13 @@ def calibrate(job_id: str) -> dict[str, Any]:
         calibration_id = calibration.id
     return {"calibration_set_id": calibration_id,
             "artifacts": {"rig.json": rig_digest, "stereo.json": runtime.store.put_bytes(report)}}
+
+
+def _thermal_board_image(temperature: np.ndarray) -> np.ndarray:
+    """A thermal frame in degrees Celsius as a 16-bit image spanning its own range, for board detection."""
+    low, high = np.nanpercentile(temperature, [0.5, 99.5])
+    scaled = np.clip((temperature - low) / max(high - low, 1e-6), 0.0, 1.0)
+    return np.round(np.nan_to_num(scaled) * 65535).astype(np.uint16)
 
 
 ACTORS = {actor.actor_name: actor for actor in (scan, reconstruct, fuse, register, calibrate)}

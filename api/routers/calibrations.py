@@ -11,18 +11,20 @@ from fastapi import APIRouter, Depends, File, Form, Request, UploadFile
 from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import Response
 from sqlalchemy import select
+from sqlalchemy.orm import Session
 
 from api.deps import AdminKey, ReaderKey, RuntimeDep, SessionDep
 from api.idempotency import IdempotencyKeyHeader, Outcome, request_digest, respond_once
 from api.problems import Problem
-from api.schemas import Accepted, CalibrationSetOut
+from api.schemas import Accepted, CalibrationSetOut, StereoCaptureRequest
 from services.db.calibrations import activate_calibration
 from services.db.models import CalibrationSet
 from services.calibration.camera import MIN_VIEWS
 from services.formats.board import parse_board
 from services.formats.images import FRAME_SUFFIXES
-from services.formats.rig import parse_rig, rig_to_json
+from services.formats.rig import Rig, parse_rig, rig_to_json
 from workers.broker import send_job
+from workers.runtime import Runtime
 
 router = APIRouter(prefix="/calibration-sets", tags=["calibration"])
 _MAX_RIG_BYTES = 1 << 20
@@ -90,9 +92,7 @@ async def start_stereo_calibration(
     """Re-place a device (default the thermal camera) relative to the camera from paired board images: a
     ``calibrate`` job that creates a new calibration set from this one (``result.calibration_set_id``)."""
     rig = parse_rig(runtime.store.read_bytes(calibration.rig_sha256).decode(), f"calibration set {calibration.id}")
-    if device not in rig.devices or rig.devices[device].kind != "thermal":
-        raise Problem(422, "invalid-input", f"device: calibration set {calibration.id} has no thermal device "
-                                            f"{device!r} to place (it has {sorted(rig.devices)}).")
+    _require_thermal_device(rig, calibration, device)
     if len(reference_images) != len(device_images) or len(reference_images) < MIN_VIEWS:
         raise Problem(422, "invalid-input", f"reference_images, device_images: give the same number of images, at "
                                             f"least {MIN_VIEWS}; got {len(reference_images)} and {len(device_images)}.")
@@ -113,20 +113,47 @@ async def start_stereo_calibration(
     params = {"calibration_set_id": calibration.id, "station": calibration.station, "device": device,
               "name": name, "activate": activate, "board": runtime.store.put_bytes(board_text), **images}
 
-    def start() -> Outcome:
-        job = runtime.tracker.create(session, "calibrate", params)
-
-        def dispatch() -> None:
-            runtime.tracker.announce(job)
-            send_job("calibrate", job.id)
-
-        accepted = Accepted(job_id=job.id, status="queued",
-                            links={"job": f"/v1/jobs/{job.id}", "events": f"/v1/jobs/{job.id}/events"})
-        return Outcome(202, accepted.model_dump(mode="json"), f"/v1/jobs/{job.id}", dispatch)
-
     form = json.dumps({"name": name, "device": device, "activate": activate}).encode() + hasher.digest()
     request_sha256 = request_digest(request, form)
-    return await run_in_threadpool(respond_once, session, key, idempotency_key, request_sha256, start)
+    return await run_in_threadpool(respond_once, session, key, idempotency_key, request_sha256,
+                                   lambda: _start_calibrate_job(runtime, session, params))
+
+
+@router.post("/{calibration_set_id}/stereo-captures", name="start_stereo_capture", status_code=202,
+             response_model=Accepted, responses={202: {"headers": {"Location": {"description": "The job."}}}})
+async def start_stereo_capture(request: Request, calibration: ExistingCalibration, body: StereoCaptureRequest,
+                               session: SessionDep, runtime: RuntimeDep, key: AdminKey,
+                               idempotency_key: IdempotencyKeyHeader = None):
+    """A calibration capture job: the gateway films the board in ``views`` poses with the camera and the device
+    (default the thermal camera), which is then placed relative to the camera: a ``calibrate`` job that creates a
+    new calibration set from this one (``result.calibration_set_id``)."""
+    rig = parse_rig(runtime.store.read_bytes(calibration.rig_sha256).decode(), f"calibration set {calibration.id}")
+    _require_thermal_device(rig, calibration, body.device)
+    board = runtime.store.put_bytes(json.dumps(body.model_dump(mode="json")["board"]).encode())
+    params = {"calibration_set_id": calibration.id, "station": calibration.station, "device": body.device,
+              "name": body.name, "activate": body.activate, "board": board,
+              "capture": {"views": body.views, "interval_s": body.interval_s}}
+    digest = request_digest(request, await request.body())
+    return await run_in_threadpool(respond_once, session, key, idempotency_key, digest,
+                                   lambda: _start_calibrate_job(runtime, session, params))
+
+
+def _require_thermal_device(rig: Rig, calibration: CalibrationSet, device: str) -> None:
+    if device not in rig.devices or rig.devices[device].kind != "thermal":
+        raise Problem(422, "invalid-input", f"device: calibration set {calibration.id} has no thermal device "
+                                            f"{device!r} to place (it has {sorted(rig.devices)}).")
+
+
+def _start_calibrate_job(runtime: Runtime, session: Session, params: dict) -> Outcome:
+    job = runtime.tracker.create(session, "calibrate", params)
+
+    def dispatch() -> None:
+        runtime.tracker.announce(job)
+        send_job("calibrate", job.id)
+
+    accepted = Accepted(job_id=job.id, status="queued",
+                        links={"job": f"/v1/jobs/{job.id}", "events": f"/v1/jobs/{job.id}/events"})
+    return Outcome(202, accepted.model_dump(mode="json"), f"/v1/jobs/{job.id}", dispatch)
 
 
 @router.get("", name="list_calibration_sets")

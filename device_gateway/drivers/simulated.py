@@ -8,6 +8,11 @@ geometry is traced once, when the devices are first opened (seconds for a
 1280x800 view); every frame after that is one cheap pass plus fresh noise.
 By default it is the forging station of ``services.simulation.presets``: the
 rig's true calibration is ``presets.forging_rig()``.
+
+For calibration views the station is also the board holder: it puts the board in
+a new pose before each view (``present``), and both cameras then film the board
+(``services.simulation.boards``: printed for the camera, hollowed before a heater
+for the thermal camera) instead of the part.
 """
 
 from __future__ import annotations
@@ -19,8 +24,10 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from device_gateway.devices import Camera, DeviceInfo, DeviceUnavailable, Frame, Projector, ThermalCamera
-from services.formats.rig import Rig
+from services.formats.board import BoardSpec
+from services.formats.rig import Device, Rig
 from services.simulation import presets
+from services.simulation.boards import render_board
 from services.simulation.render import CameraEffects, ProjectorEffects, ViewGeometry, render_frames, render_view
 from services.simulation.scene import Scene
 from services.simulation.thermal import TemperatureScene, ThermalEffects, forging_temperatures, render_thermal
@@ -39,6 +46,31 @@ class SimulationOptions:
     thermal_effects: ThermalEffects = field(default_factory=ThermalEffects)
     camera_supersample: int = 1
     seed: int = 0
+
+
+# The hollowed board before its heater as the thermal camera sees it: holes at the heater's temperature.
+_BOARD_COOL_C = 25.0
+_BOARD_HEATER_C = 180.0
+_BOARD_TILT_DEG = 22.0
+_BOARD_SPREAD_MM = 40.0
+
+
+def board_pose(board: BoardSpec, view: int, centre: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """World-from-board pose (R, t) of calibration view ``view``: the board centred near ``centre``, facing the
+    devices (its z axis along +z), tilted by 22 degrees about an axis that turns from view to view."""
+    import cv2
+
+    turn = 2.4 * view  # radians: successive views spread their tilt axes around the circle
+    axis = np.array([np.cos(turn), np.sin(turn), 0.0])
+    R = cv2.Rodrigues(axis * np.radians(_BOARD_TILT_DEG))[0]
+    offset = _BOARD_SPREAD_MM * np.array([np.cos(1.7 * view), np.sin(1.3 * view), 0.5 * np.sin(0.9 * view)])
+    middle = board.object_points().mean(axis=0)
+    return R, centre + offset - R @ middle
+
+
+def _board_in_device(pose: tuple[np.ndarray, np.ndarray], device: Device) -> tuple[np.ndarray, np.ndarray]:
+    R_wb, t_wb = pose
+    return device.R_array @ R_wb, device.R_array @ t_wb + device.t_array
 
 
 class SimulatedStation:
@@ -67,6 +99,7 @@ class SimulatedStation:
         self._lock = threading.Lock()
         self._view: ViewGeometry | None = None
         self._clean_thermal: np.ndarray | None = None
+        self._board: tuple[BoardSpec, tuple[np.ndarray, np.ndarray]] | None = None
         self.shown: np.ndarray | None = None
         camera_name, _ = self.rig.device(camera, "camera")
         projector_name, _ = self.rig.device(projector, "projector")
@@ -98,6 +131,24 @@ class SimulatedStation:
         pattern = self.shown if self.shown is not None else np.zeros((projector.height, projector.width), np.uint8)
         return render_frames(self.view(), pattern[None], self._rng, self.options.camera_effects,
                              self.options.projector_effects)[0]
+
+    def present(self, board: BoardSpec | None, view: int) -> None:
+        """Hold ``board`` in the pose of calibration view ``view`` before the devices, or take it away."""
+        aim = np.asarray(presets.FORGING_AIM, dtype=np.float64)
+        self._board = None if board is None else (board, board_pose(board, view, aim))
+
+    def board_frame(self, device_name: str, modality: str) -> np.ndarray | None:
+        """The device's view of the held board (None when no board is held): 8-bit for the camera,
+        16-bit radiance for the thermal camera."""
+        if self._board is None:
+            return None
+        board, pose = self._board
+        device = self.rig.devices[device_name]
+        R, t = _board_in_device(pose, device)
+        effects = self.options.camera_effects
+        return render_board(board, device.K_array, device.dist_array, R, t, device.size, modality=modality,
+                            blur_sigma=max(effects.blur_sigma, 0.3), noise_sigma=effects.noise_sigma,
+                            bit_depth=8 if modality == "visible" else 16, rng=self._rng)
 
     def thermal_noise(self, shape: tuple[int, ...]) -> np.ndarray:
         return self._rng.normal(0.0, self.options.thermal_effects.netd, shape)
@@ -138,7 +189,8 @@ class SimulatedCamera(_SimulatedDevice, Camera):
     def grab(self, timeout_s: float) -> Frame:
         self._require_open()
         exposed = time.time()
-        return Frame(self.station.film(), exposed, {"driver": "simulated"})
+        board = self.station.board_frame(self.name, "visible")
+        return Frame(self.station.film() if board is None else board, exposed, {"driver": "simulated"})
 
 
 class SimulatedThermal(_SimulatedDevice, ThermalCamera):
@@ -150,7 +202,11 @@ class SimulatedThermal(_SimulatedDevice, ThermalCamera):
 
     def grab(self, timeout_s: float) -> Frame:
         self._require_open()
-        clean = self.station.clean_thermal()
+        board = self.station.board_frame(self.name, "infrared")
+        if board is not None:
+            clean = _BOARD_COOL_C + (_BOARD_HEATER_C - _BOARD_COOL_C) * board.astype(np.float64) / 65535.0
+        else:
+            clean = self.station.clean_thermal()
         image = (clean + self.station.thermal_noise(clean.shape)).astype(np.float32)
         return Frame(image, time.time(), {"driver": "simulated", "units": "degC"})
 

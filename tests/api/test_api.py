@@ -248,3 +248,26 @@ def test_stereo_calibration_checks_its_uploads_and_queues_a_calibrate_job(client
         job = session.get(Job, accepted.json()["job_id"])
         assert job.kind == "calibrate" and job.params["device"] == "thermal" and job.params["activate"]
         assert len(job.params["reference_images"]) == 3 and job.params["calibration_set_id"] == calibration_id
+
+
+def test_calibration_capture_checks_its_request_and_queues_a_calibrate_job(client, auth, runtime):
+    calibration_id = upload_rig(client, auth["admin"]).json()["calibration_set_id"]
+    url = f"/v1/calibration-sets/{calibration_id}/stereo-captures"
+    board = {"type": "chessboard", "inner_corners": [9, 6], "square_mm": 30.0}
+    request = {"board": board, "views": 10, "interval_s": 1.5, "name": "captured", "activate": True}
+
+    assert client.post(url, headers=auth["operate"], json=request).status_code == 403
+    wrong_device = client.post(url, headers=auth["admin"], json={**request, "device": "camera"})
+    assert wrong_device.status_code == 422 and "no thermal device 'camera'" in wrong_device.json()["detail"]
+    bad_board = client.post(url, headers=auth["admin"], json={**request, "board": {"type": "chessboard"}})
+    assert bad_board.status_code == 422 and bad_board.headers["content-type"] == PROBLEM
+    assert "square_mm" in bad_board.json()["detail"]
+    too_few = client.post(url, headers=auth["admin"], json={**request, "views": 2})
+    assert too_few.status_code == 422 and "views" in too_few.json()["detail"]
+    accepted = client.post(url, headers=auth["admin"], json=request)
+    assert accepted.status_code == 202 and accepted.headers["location"].startswith("/v1/jobs/")
+    with runtime.sessions() as session:
+        job = session.get(Job, accepted.json()["job_id"])
+        assert job.kind == "calibrate" and job.params["capture"] == {"views": 10, "interval_s": 1.5}
+        assert job.params["activate"] and job.params["calibration_set_id"] == calibration_id
+    assert json.loads(runtime.store.read_bytes(job.params["board"]))["square_mm"] == 30.0

@@ -100,3 +100,54 @@ def test_images_without_a_board_fail_the_job_at_once_with_the_reason(broker, wro
         "reference_images": stored(blank), "device_images": stored(blank_thermal)})
     assert (job.status, job.attempts) == ("failed", 1)
     assert job.error.startswith("InputError")
+
+
+@pytest.fixture(scope="module")
+def simulated_gateway():
+    """The gateway's HTTP API on the simulated station (it holds the board in its poses), on a free port."""
+    import socket
+    import threading
+    import time
+
+    import uvicorn
+
+    from device_gateway.app import create_app
+    from device_gateway.drivers.simulated import SimulatedStation
+    from device_gateway.station import Station
+    from services.structured_light.patterns import generate_sequence
+
+    simulated = SimulatedStation()
+    station = Station(simulated.camera, simulated.thermal, simulated.projector, board_holder=simulated)
+    with socket.socket() as probe:
+        probe.bind(("127.0.0.1", 0))
+        port = probe.getsockname()[1]
+    server = uvicorn.Server(uvicorn.Config(create_app(station, *generate_sequence(1280, 800)), host="127.0.0.1",
+                                           port=port, log_level="warning"))
+    thread = threading.Thread(target=server.run, daemon=True)
+    thread.start()
+    deadline = time.monotonic() + 120
+    while not server.started and time.monotonic() < deadline:
+        time.sleep(0.1)
+    assert server.started
+    yield f"http://127.0.0.1:{port}"
+    server.should_exit = True
+    thread.join(timeout=30)
+
+
+def test_calibration_capture_job_films_the_board_and_replaces_the_thermal_camera(
+        broker, wrong_thermal_pose, simulated_gateway):
+    runtime = current_runtime()
+    runtime.settings.gateway_url = simulated_gateway
+    job = run_calibration(broker, {
+        "calibration_set_id": wrong_thermal_pose, "station": "station1", "device": "thermal", "name": "captured",
+        "activate": True, "board": runtime.store.put_bytes(board_to_json(BOARD).encode()),
+        "capture": {"views": 8, "interval_s": 0.0}})
+    assert job.status == "succeeded", job.error
+    with runtime.sessions() as session:
+        calibration = session.get(CalibrationSet, job.result["calibration_set_id"])
+        assert calibration.active
+    placed = parse_rig(runtime.store.read_bytes(calibration.rig_sha256).decode()).devices["thermal"]
+    truth = forging_rig().devices["thermal"]
+    assert np.abs(placed.t_array - truth.t_array).max() < 0.5  # mm; it started 5..15 mm off
+    angle = np.degrees(np.arccos(np.clip((np.trace(placed.R_array @ truth.R_array.T) - 1) / 2, -1, 1)))
+    assert angle < 0.05
