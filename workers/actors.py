@@ -275,6 +275,13 @@ def _station_view(host: str, port: int, station: str) -> StationView:
 _station_views: dict[tuple[str, int, str], StationView] = {}
 
 
+def close_station_views() -> None:
+    """Send what the live station views buffered and disconnect them (before the Rerun proxy stops)."""
+    for view in _station_views.values():
+        view.close()
+    _station_views.clear()
+
+
 def _store_cloud(store: ArtifactStore, cloud: dict[str, np.ndarray]) -> str:
     with tempfile.TemporaryDirectory() as directory:
         path = Path(directory) / "cloud.ply"

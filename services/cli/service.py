@@ -54,6 +54,7 @@ def _serve(args: argparse.Namespace) -> int:
 
     from api.app import create_app
     from services.streaming.proxy import RerunProxy
+    from workers.actors import close_station_views
     from workers.broker import send_job, setup_broker
     from workers.runtime import build_runtime, use_runtime
 
@@ -78,6 +79,7 @@ def _serve(args: argparse.Namespace) -> int:
             _run_uvicorn(create_app(runtime), settings)
         finally:
             worker.stop()
+            close_station_views()
     return 0
 
 

@@ -37,7 +37,7 @@ def test_gateway_projects_the_default_sequence_at_the_projector_size(station, sm
     paths = {route.path for route in app.routes}
     assert {"/healthz", "/v1/devices", "/v1/sequence", "/v1/captures"} <= paths
     operations = {route.operation_id for route in app.routes if getattr(route, "operation_id", None)}
-    assert operations == {"health", "listDevices", "getSequence", "capture"}
+    assert operations == {"health", "listDevices", "getSequence", "capture", "boardViews"}
     sequence_route = next(route for route in app.routes if route.path == "/v1/sequence")
     sequence = sequence_route.endpoint()
     projector = small_rig.devices["projector"]
