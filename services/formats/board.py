@@ -21,9 +21,9 @@ from typing import Annotated, Literal, Union
 
 import cv2
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, TypeAdapter, ValidationError, field_validator, model_validator
+from pydantic import BaseModel, ConfigDict, Field, TypeAdapter, field_validator, model_validator
 
-from services.errors import InputError
+from services.formats.json_files import read_text, validate_json
 
 Polarity = Literal["normal", "inverted", "auto"]
 GridSize = Annotated[list[Annotated[int, Field(ge=2, le=200)]], Field(min_length=2, max_length=2)]
@@ -117,6 +117,7 @@ class CirclesSpec(_BoardBase):
 
 BoardSpec = Annotated[Union[ChessboardSpec, CharucoSpec, CirclesSpec], Field(discriminator="type")]
 _BOARD_ADAPTER = TypeAdapter(BoardSpec)
+_BOARD_TYPES = frozenset({"chessboard", "charuco", "circles"})
 
 
 def _grid_points(cols: int, rows: int, step_x: float, step_y: float) -> np.ndarray:
@@ -126,24 +127,12 @@ def _grid_points(cols: int, rows: int, step_x: float, step_y: float) -> np.ndarr
 
 def parse_board(text: str, source: str = "board") -> BoardSpec:
     """Validate board JSON text; errors name ``source`` and the field."""
-    try:
-        return _BOARD_ADAPTER.validate_json(text)
-    except ValidationError as error:
-        lines = []
-        for item in error.errors():
-            location = ".".join(str(part) for part in item["loc"]) or "(top level)"
-            lines.append(f"{source}: {location}: {item['msg'].removeprefix('Value error, ')}")
-        raise InputError("\n".join(lines)) from None
+    return validate_json(_BOARD_ADAPTER, text, source, tags=_BOARD_TYPES)
 
 
 def load_board(path: str | Path) -> BoardSpec:
     """Read and validate a board specification file."""
-    path = Path(path)
-    try:
-        text = path.read_text()
-    except OSError as error:
-        raise InputError(f"{path}: cannot read the board file ({error.strerror or error})") from None
-    return parse_board(text, str(path))
+    return parse_board(read_text(path, "board file"), str(path))
 
 
 def board_to_json(board: BoardSpec) -> str:

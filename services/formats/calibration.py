@@ -16,14 +16,13 @@
 
 from __future__ import annotations
 
-from collections.abc import Callable
 from pathlib import Path
 
 from matplotlib.figure import Figure
-from pydantic import BaseModel, ConfigDict, ValidationError
+from pydantic import BaseModel, ConfigDict
 
-from services.errors import InputError
 from services.formats.board import BoardSpec
+from services.formats.json_files import read_text, validate_json, write_model
 from services.formats.rig import Device, DeviceKind, Matrix3
 
 
@@ -97,40 +96,28 @@ class StereoCalibrationFile(BaseModel):
 
 def load_camera_calibration(path: str | Path) -> CameraCalibrationFile:
     """Read and validate a camera calibration file."""
-    path = Path(path)
-    try:
-        text = path.read_text()
-    except OSError as error:
-        raise InputError(f"{path}: cannot read the camera calibration ({error.strerror or error})") from None
-    try:
-        return CameraCalibrationFile.model_validate_json(text)
-    except ValidationError as error:
-        problems = "; ".join(f"{'.'.join(map(str, e['loc']))}: {e['msg']}" for e in error.errors())
-        raise InputError(f"{path}: not a camera calibration file ({problems})") from None
+    return validate_json(CameraCalibrationFile, read_text(path, "camera calibration"),
+                         f"{path}: not a camera calibration file")
 
 
 def save_camera_calibration(calibration: CameraCalibrationFile, path: str | Path) -> None:
     """Write the calibration atomically (a reader never sees half a file)."""
-    _write_atomically(path, lambda temporary: temporary.write_text(calibration.model_dump_json(indent=2) + "\n"))
+    write_model(calibration, path)
 
 
 def save_projector_calibration(report: ProjectorCalibrationFile, path: str | Path) -> None:
     """Write the projector calibration report atomically."""
-    _write_atomically(path, lambda temporary: temporary.write_text(report.model_dump_json(indent=2) + "\n"))
+    write_model(report, path)
 
 
 def save_stereo_calibration(report: StereoCalibrationFile, path: str | Path) -> None:
     """Write the stereo calibration report atomically."""
-    _write_atomically(path, lambda temporary: temporary.write_text(report.model_dump_json(indent=2) + "\n"))
+    write_model(report, path)
 
 
 def save_figure(figure: Figure, path: str | Path) -> None:
     """Write a report figure as PNG atomically."""
-    _write_atomically(path, lambda temporary: figure.savefig(temporary, format="png", dpi=100))
-
-
-def _write_atomically(path: str | Path, write: Callable[[Path], object]) -> None:
     path = Path(path)
     temporary = path.with_name(path.name + ".part")
-    write(temporary)
+    figure.savefig(temporary, format="png", dpi=100)
     temporary.replace(path)
