@@ -33,6 +33,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--data-dir", type=Path, default=Path("demo-output"),
                         help="service data directory (default ./demo-output)")
     parser.add_argument("--port", type=int, default=8000, help="API port (default 8000)")
+    parser.add_argument("--gateway-port", type=int, default=8001, help="simulated gateway port (default 8001)")
     parser.add_argument("--rerun-port", type=int, default=9876, help="Rerun gRPC proxy port (default 9876)")
     parser.add_argument("--keep-running", action="store_true",
                         help="leave the service running after the scan (stop it with Ctrl-C)")
@@ -97,6 +98,7 @@ def _run(args: argparse.Namespace) -> int:
     secret = key.stdout.splitlines()[0].strip()
     environment = dict(os.environ, PYTHONUNBUFFERED="1")
     server = subprocess.Popen(_thermofield("serve", "--data-dir", str(args.data_dir), "--port", str(args.port),
+                                           "--gateway-port", str(args.gateway_port),
                                            "--rerun-port", str(args.rerun_port)), env=environment)
     base_url = f"http://127.0.0.1:{args.port}"
     try:
@@ -112,7 +114,8 @@ def _run(args: argparse.Namespace) -> int:
                 raise InputError(f"the scan job failed: {job.get('error')}")
             scan_id = accepted.json()["scan_id"]
             scan = client.get(f"/v1/scans/{scan_id}").json()
-            print(f"  done in {time.monotonic() - started:.1f} s")
+            print(f"  done in {time.monotonic() - started:.1f} s (a first scan after a start also compiles the "
+                  "numba kernels and the camera's ray table)")
             _print_summary(scan)
             for artifact in ("field.ply", "field.rrd"):
                 target = args.data_dir / f"{scan_id}-{artifact}"
