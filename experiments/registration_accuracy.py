@@ -2,7 +2,7 @@
 
 Pairs: (a) rendered scenes, 1024x768 visible / 320x256 infrared of hot and
 cold parts, each band with its own intensity mapping; (b) the real visible
-photographs of /work/shared/data/opencv-chessboard (640x480) with a synthetic
+photographs of ../shared/data/opencv-chessboard (640x480) with a synthetic
 infrared modality change (negative, gamma 0.6, heat blobs, blur, 320x256,
 noise). Every pair is moved by a random similarity: centre shift up to 40 px
 per axis, rotation up to 5 degrees, scale change up to 10 %.
@@ -46,7 +46,7 @@ from services.registration.synthetic_pairs import (  # noqa: E402
 )
 from services.simulation.boards import render_board  # noqa: E402
 
-CHESSBOARD_DIR = Path("/work/shared/data/opencv-chessboard")
+CHESSBOARD_DIR = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "opencv-chessboard"  # shared/ beside the clone
 FIGURES = Path(__file__).resolve().parents[1] / "docs" / "figures" / "registration"
 INFRARED_SIZE = (320, 256)
 

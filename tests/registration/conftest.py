@@ -11,7 +11,7 @@ import pytest
 
 from services.registration.synthetic_pairs import infrared_from_visible, random_transform, render_scene_pair
 
-CHESSBOARD_DIR = Path("/work/shared/data/opencv-chessboard")
+CHESSBOARD_DIR = Path(__file__).resolve().parents[2].parent / "shared" / "data" / "opencv-chessboard"  # shared/ beside the clone
 INFRARED_SIZE = (320, 256)
 
 
