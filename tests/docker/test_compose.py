@@ -69,8 +69,7 @@ def test_the_image_installs_the_rerun_proxy_and_runs_thermofield():
 @pytest.mark.parametrize("files", [[COMPOSE], [COMPOSE, OAK_OVERRIDE]], ids=["compose", "compose+oak"])
 def test_docker_compose_accepts_the_files(files):
     binary = shutil.which("docker-compose")
-    if binary is None:
-        pytest.skip("docker-compose is not installed (`make test` installs Debian's package)")
+    assert binary is not None, "docker-compose is not installed: run the suite with `make test`, which installs it"
     arguments = [item for path in files for item in ("-f", str(path))]
     result = subprocess.run([binary, *arguments, "config", "--quiet"], capture_output=True, text=True, timeout=60)
     assert result.returncode == 0, result.stderr
