@@ -48,12 +48,7 @@ def decode_capture(data: bytes) -> Capture:
     ValueError
         When the bytes are not such an archive.
     """
-    try:
-        with np.load(io.BytesIO(data), allow_pickle=False) as archive:
-            arrays = {name: archive[name] for name in _ARRAYS}
-            metadata = json.loads(archive["metadata"].tobytes())
-    except (OSError, KeyError, ValueError, zipfile.BadZipFile) as error:
-        raise ValueError(f"The gateway's answer is not a capture archive: {error}.") from None
+    arrays, metadata = _load_archive(data, _ARRAYS, "a capture archive")
     return Capture(
         sequence=Sequence.model_validate(metadata["sequence"]),
         frame_metadata=metadata["frame_metadata"],
@@ -74,10 +69,14 @@ def encode_board_views(views: BoardViews) -> bytes:
 
 def decode_board_views(data: bytes) -> BoardViews:
     """Read ``.npz`` bytes written by :func:`encode_board_views`; ``ValueError`` when they are not such an archive."""
+    arrays, metadata = _load_archive(data, _BOARD_ARRAYS, "a board-views archive")
+    return BoardViews(devices=[DeviceInfo(**info) for info in metadata["devices"]], **arrays)
+
+
+def _load_archive(data: bytes, names: tuple[str, ...], what: str) -> tuple[dict[str, np.ndarray], dict]:
+    """The named arrays and the JSON metadata of an ``.npz`` archive, read without pickle."""
     try:
         with np.load(io.BytesIO(data), allow_pickle=False) as archive:
-            arrays = {name: archive[name] for name in _BOARD_ARRAYS}
-            metadata = json.loads(archive["metadata"].tobytes())
+            return {name: archive[name] for name in names}, json.loads(archive["metadata"].tobytes())
     except (OSError, KeyError, ValueError, zipfile.BadZipFile) as error:
-        raise ValueError(f"The gateway's answer is not a board-views archive: {error}.") from None
-    return BoardViews(devices=[DeviceInfo(**info) for info in metadata["devices"]], **arrays)
+        raise ValueError(f"The gateway's answer is not {what}: {error}.") from None
