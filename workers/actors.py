@@ -16,7 +16,6 @@ device and network trouble is retried, bad input (``ValueError``, including
 
 from __future__ import annotations
 
-import argparse
 import io
 import json
 import tempfile
@@ -34,7 +33,7 @@ from device_gateway.client import GatewayClient
 from services.db.models import CalibrationSet, Job, Scan
 from services.formats.ply import read_cloud, write_cloud
 from services.formats.registration import registration_to_file
-from services.cli.calibrate import run_stereo
+from services.cli.calibrate import place_device, stereo_report_path
 from services.db.calibrations import activate_calibration
 from services.formats.rig import Rig, load_rig, parse_rig, rig_to_json, save_rig
 from services.formats.sequence import Sequence, parse_sequence, sequence_to_json
@@ -176,10 +175,10 @@ def calibrate(job_id: str) -> dict[str, Any]:
             for index, (content, suffix) in enumerate(images):
                 (work / "pairs" / device / f"{index:03d}{suffix}").write_bytes(content)
         out = work / "out" / "rig.json"
-        run_stereo(argparse.Namespace(board=work / "board.json", rig=work / "rig.json", pairs=work / "pairs",
-                                      device=params["device"], intrinsics=None, camera=camera_name, out=out))
+        place_device(work / "board.json", work / "rig.json", work / "pairs", params["device"], out,
+                     camera_name=camera_name)
         calibrated = load_rig(out)
-        report = out.with_name(f"{out.stem}_stereo_{params['device']}.json").read_bytes()
+        report = stereo_report_path(out, params["device"]).read_bytes()
     rig_digest = runtime.store.put_bytes(rig_to_json(calibrated).encode())
     with runtime.sessions.begin() as session:
         calibration = CalibrationSet(name=params["name"], station=params["station"], rig_sha256=rig_digest,

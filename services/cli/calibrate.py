@@ -231,21 +231,35 @@ def _corner_spacing(points: np.ndarray) -> float:
 
 
 def run_stereo(args: argparse.Namespace) -> int:
-    board = load_board(args.board)
-    rig = load_rig(args.rig)
-    camera_name, camera = rig.device(args.camera, "camera")
-    device = _device_to_place(rig, args)
-    reference_dir, device_dir = args.pairs / camera_name, args.pairs / args.device
+    report = place_device(args.board, args.rig, args.pairs, args.device, args.out, camera_name=args.camera,
+                          intrinsics=args.intrinsics)
+    print(f"{report.device}: stereo RMS {report.stereo_rms_px:.3f} px over {len(report.pairs)} pairs; "
+          f"baseline {report.baseline_mm:.2f} mm from {report.reference}")
+    return 0
+
+
+def place_device(board_path: Path, rig_path: Path, pairs: Path, device_name: str, out: Path, *,
+                 camera_name: str | None = None, intrinsics: Path | None = None) -> StereoCalibrationFile:
+    """Place ``device_name`` relative to the rig's camera from paired board images (``pairs/<camera>/``,
+    ``pairs/<device>/``, paired by file name); write the new rig to ``out`` and the stereo report beside it.
+
+    Every error is an ``InputError`` naming the image or file at fault.
+    """
+    board = load_board(board_path)
+    rig = load_rig(rig_path)
+    camera_name, camera = rig.device(camera_name, "camera")
+    device = _device_to_place(rig, rig_path, device_name, intrinsics)
+    reference_dir, device_dir = pairs / camera_name, pairs / device_name
     reference_paths = list_frames(reference_dir)
     device_names = {p.name for p in list_frames(device_dir)}
     paired = [p for p in reference_paths if p.name in device_names]
     if not paired:
-        raise InputError(f"{args.pairs}: no file name appears in both {camera_name}/ and {args.device}/")
+        raise InputError(f"{pairs}: no file name appears in both {camera_name}/ and {device_name}/")
     reference, reference_size = detect_in_frames(paired, board)
     seen, device_size = detect_in_frames([device_dir / p.name for p in paired], board)
-    for label, size, expected in ((camera_name, reference_size, camera), (args.device, device_size, device)):
+    for label, size, expected in ((camera_name, reference_size, camera), (device_name, device_size, device)):
         if size != expected.size:
-            raise InputError(f"{args.pairs / label}: images are {size[0]}x{size[1]} but the calibration of "
+            raise InputError(f"{pairs / label}: images are {size[0]}x{size[1]} but the calibration of "
                              f"{label} is for {expected.width}x{expected.height}")
     object_points, first, second, pair_names = [], [], [], []
     for path, a, b in zip(paired, reference, seen):
@@ -260,20 +274,23 @@ def run_stereo(args: argparse.Namespace) -> int:
     R = result.R @ camera.R_array
     t = result.R @ camera.t_array + result.t
     placed = device.model_copy(update={"R": R.tolist(), "t": t.tolist()})
-    report = StereoCalibrationFile(device=args.device, reference=camera_name, stereo_rms_px=result.rms,
+    report = StereoCalibrationFile(device=device_name, reference=camera_name, stereo_rms_px=result.rms,
                                    baseline_mm=result.baseline_mm, pairs=pair_names,
                                    per_view_rms_px=result.per_view_rms.tolist())
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    save_stereo_calibration(report, args.out.with_name(f"{args.out.stem}_stereo_{args.device}.json"))
-    save_rig(Rig(units=rig.units, devices={**rig.devices, args.device: placed}), args.out)
-    print(f"{args.device}: stereo RMS {result.rms:.3f} px over {len(object_points)} pairs; "
-          f"baseline {result.baseline_mm:.2f} mm from {camera_name}")
-    return 0
+    out.parent.mkdir(parents=True, exist_ok=True)
+    save_stereo_calibration(report, stereo_report_path(out, device_name))
+    save_rig(Rig(units=rig.units, devices={**rig.devices, device_name: placed}), out)
+    return report
 
 
-def _device_to_place(rig: Rig, args: argparse.Namespace) -> Device:
-    if args.intrinsics is not None:
-        return load_camera_calibration(args.intrinsics).device()
-    if args.device not in rig.devices:
-        raise InputError(f"{args.rig}: has no device {args.device!r}; pass its calibration with --intrinsics")
-    return rig.devices[args.device]
+def stereo_report_path(rig_out: Path, device_name: str) -> Path:
+    """Where ``place_device`` writes its stereo report: ``RIG_stereo_DEVICE.json`` beside the rig."""
+    return rig_out.with_name(f"{rig_out.stem}_stereo_{device_name}.json")
+
+
+def _device_to_place(rig: Rig, rig_path: Path, device_name: str, intrinsics: Path | None) -> Device:
+    if intrinsics is not None:
+        return load_camera_calibration(intrinsics).device()
+    if device_name not in rig.devices:
+        raise InputError(f"{rig_path}: has no device {device_name!r}; pass its calibration with --intrinsics")
+    return rig.devices[device_name]
