@@ -61,16 +61,15 @@ def _science_alone_seconds(gateway_url: str) -> float:
     from services.fusion.fuse import ThermalView
     from services.geometry.camera import camera_center
     from services.simulation.presets import forging_rig
-    from services.structured_light.reconstruct import reconstruct_points
-    from services.structured_light.triangulate import camera_ray_table
+    from services.structured_light.reconstruct import reconstruct_points, rig_triangulation_table
 
     rig = forging_rig()
     camera, projector, thermal = rig.devices["camera"], rig.devices["projector"], rig.devices["thermal"]
-    rays = camera_ray_table(camera.K_array, camera.dist_array, camera.width, camera.height)
+    table = rig_triangulation_table(camera, projector, "x")
     start = time.perf_counter()
     with GatewayClient(gateway_url) as gateway:
         capture = gateway.capture()
-    cloud = reconstruct_points(capture.frames, capture.sequence, camera, projector, rays=rays)
+    cloud = reconstruct_points(capture.frames, capture.sequence, camera, projector, table=table)
     temperature_field(cloud, [ThermalView(thermal, capture.thermal)], camera_center(camera.R_array, camera.t_array))
     return time.perf_counter() - start
 

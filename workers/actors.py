@@ -45,8 +45,8 @@ from services.registration.register import register as register_images
 from services.storage.artifacts import ArtifactStore
 from services.streaming.proxy import proxy_url
 from services.streaming.recording import StationView, scan_recording
-from services.structured_light.reconstruct import reconstruct_points
-from services.structured_light.triangulate import camera_ray_table
+from services.structured_light.reconstruct import coded_axis, reconstruct_points, rig_triangulation_table
+from services.structured_light.triangulate import TriangulationTable
 from workers.runtime import Runtime, current_runtime
 from workers.summary import field_summary
 
@@ -204,8 +204,12 @@ ACTORS = {actor.actor_name: actor for actor in (scan, reconstruct, fuse, registe
 
 def _reconstruct(frames: np.ndarray, sequence: Sequence, rig: Rig, rig_digest: str) -> dict[str, np.ndarray]:
     camera_name, camera = rig.device(None, "camera")
-    _, projector = rig.device(None, "projector")
-    return reconstruct_points(frames, sequence, camera, projector, rays=_ray_table(rig_digest, camera_name, rig))
+    projector_name, projector = rig.device(None, "projector")
+    axis = coded_axis(sequence.coded_axes, camera, projector)
+    key = (rig_digest, camera_name, projector_name, axis)
+    if key not in _triangulation_tables:
+        _triangulation_tables[key] = rig_triangulation_table(camera, projector, axis)
+    return reconstruct_points(frames, sequence, camera, projector, table=_triangulation_tables[key])
 
 
 def _fuse(cloud: dict[str, np.ndarray], thermal_frames: np.ndarray, rig: Rig) -> dict[str, np.ndarray]:
@@ -246,16 +250,9 @@ def _calibration_rig(runtime: Runtime, calibration_set_id: str) -> tuple[str, Ri
     return digest, parse_rig(runtime.store.read_bytes(digest).decode(), f"calibration set {calibration_set_id}")
 
 
-_ray_tables: dict[tuple[str, str], np.ndarray] = {}
-
-
-def _ray_table(rig_digest: str, camera_name: str, rig: Rig) -> np.ndarray:
-    """The camera's undistorted ray table, computed once per calibration and process (it is the slow part)."""
-    if (rig_digest, camera_name) not in _ray_tables:
-        camera = rig.devices[camera_name]
-        _ray_tables[rig_digest, camera_name] = camera_ray_table(camera.K_array, camera.dist_array,
-                                                                camera.width, camera.height)
-    return _ray_tables[rig_digest, camera_name]
+# Triangulation tables per (rig digest, camera, projector, coded axis): computed once per calibration and
+# process, since they take longer than a scan.
+_triangulation_tables: dict[tuple[str, str, str, str], TriangulationTable] = {}
 
 
 def _white_frame_index(sequence: Sequence) -> int:

@@ -7,7 +7,7 @@ import numpy as np
 
 _MIN_NEIGHBOURS = 6
 _OUTLIER_SIGMAS = 4.0
-_NOISE_SAMPLE_STRIDE = 7  # a median over every 7th pixel is as good and 7x cheaper
+_NOISE_SAMPLE_STRIDE = 4  # a median over every 4th row and column is as good and 16x cheaper
 
 
 def phase_noise_scale(steps: int, period: float, camera_noise: float) -> float:
@@ -38,12 +38,27 @@ def estimate_camera_noise(modulation: np.ndarray, quality: np.ndarray, steps: in
     """
     if steps <= 3:
         raise ValueError("Estimating the camera noise needs more than 3 phase steps.")
-    modulation, quality = modulation.ravel()[::_NOISE_SAMPLE_STRIDE], quality.ravel()[::_NOISE_SAMPLE_STRIDE]
+    step = _NOISE_SAMPLE_STRIDE
+    modulation, quality = modulation[::step, ::step].ravel(), quality[::step, ::step].ravel()
     usable = np.isfinite(modulation) & np.isfinite(quality) & (quality > 0) & (modulation > 0)
     if not usable.any():
         raise ValueError("No pixel has a usable sinusoid fit to estimate the camera noise from.")
     b, q = modulation[usable].astype(np.float64), quality[usable].astype(np.float64)
     return float(np.sqrt(np.median(steps * b**2 * (1 - q) / (2 * q * (steps - 3)))))
+
+
+@numba.njit(cache=True, inline="always")
+def _median_in_place(values, n):
+    """Median of values[:n], sorting them in place: an insertion sort of at most 25 values costs less
+    than the copy that ``np.median`` allocates per call."""
+    for i in range(1, n):
+        value = values[i]
+        j = i - 1
+        while j >= 0 and values[j] > value:
+            values[j + 1] = values[j]
+            j -= 1
+        values[j + 1] = value
+    return values[n // 2] if n % 2 else 0.5 * (values[n // 2 - 1] + values[n // 2])
 
 
 # Hand-written with numba: a robust weighted plane fit per weak pixel has no vectorised library form.
@@ -53,13 +68,14 @@ def _refine_kernel(coordinates, modulation, noise_scale, threshold, radius, max_
     window = (2 * radius + 1) ** 2
     for row in numba.prange(height):
         values = np.empty(window, dtype=np.float32)
+        ordered = np.empty(window, dtype=np.float32)
         dxs = np.empty(window)
         dys = np.empty(window)
         ws = np.empty(window)
         for col in range(width):
             centre = coordinates[row, col]
             out[row, col] = centre
-            sigma = noise_scale / modulation[row, col]
+            sigma = noise_scale / modulation[row, col]  # NaN modulation: not refined
             if not (np.isfinite(centre) and sigma > threshold):
                 continue
             n = 0
@@ -70,9 +86,10 @@ def _refine_kernel(coordinates, modulation, noise_scale, threshold, radius, max_
                         values[n] = value
                         dxs[n] = c - col
                         dys[n] = r - row
-                        ws[n] = modulation[r, c] * modulation[r, c]
+                        ws[n] = modulation[r, c] * modulation[r, c] if np.isfinite(modulation[r, c]) else 0.0
+                        ordered[n] = value
                         n += 1
-            median = np.median(values[:n])
+            median = _median_in_place(ordered, n)
             s00 = s01 = s02 = s11 = s12 = s22 = b0 = b1 = b2 = 0.0
             kept = 0
             for i in range(n):
@@ -91,7 +108,7 @@ def _refine_kernel(coordinates, modulation, noise_scale, threshold, radius, max_
                 kept += 1
             determinant = (s00 * (s11 * s22 - s12 * s12) - s01 * (s01 * s22 - s12 * s02)
                            + s02 * (s01 * s12 - s11 * s02))
-            if kept < _MIN_NEIGHBOURS or determinant <= 0.0:
+            if kept < _MIN_NEIGHBOURS or not determinant > 0.0:
                 out[row, col] = np.nan
                 continue
             intercept = (b0 * (s11 * s22 - s12 * s12) - s01 * (b1 * s22 - s12 * b2)
@@ -145,7 +162,6 @@ def refine_low_snr(coordinates: np.ndarray, modulation: np.ndarray, noise_scale:
     if radius < 1:
         raise ValueError(f"The window radius must be at least 1 pixel; got {radius}.")
     refined = np.empty(coordinates.shape, dtype=np.float32)
-    _refine_kernel(np.ascontiguousarray(coordinates, dtype=np.float32),
-                   np.ascontiguousarray(np.nan_to_num(modulation), dtype=np.float32),
+    _refine_kernel(np.ascontiguousarray(coordinates, dtype=np.float32), np.ascontiguousarray(modulation, dtype=np.float32),
                    float(noise_scale), float(threshold), int(radius), float(max_step), refined)
     return refined

@@ -10,21 +10,28 @@ from services.formats.rig import Device
 from services.formats.sequence import Sequence
 from services.structured_light.decode import DecodedCapture, Rejection, decode
 from services.structured_light.low_snr import estimate_camera_noise, phase_noise_scale, refine_low_snr
-from services.structured_light.triangulate import camera_ray_table, triangulate
+from services.structured_light.triangulate import TriangulationTable, triangulate_map, triangulation_table
 
 
-def coded_axis(decoded: DecodedCapture, camera: Device, projector: Device) -> str:
+def coded_axis(coded_axes: tuple[str, ...], camera: Device, projector: Device) -> str:
     """The projector axis to triangulate against: the coded one that best crosses the baseline.
 
     A coded projector column constrains depth when the camera-projector baseline runs across the
     columns (along projector x); a row when it runs along projector y.
     """
-    available = list(decoded.coded_axes)
+    available = list(coded_axes)
     if not available:
         raise ValueError("The capture codes neither projector axis, so nothing can be triangulated.")
     camera_centre = -camera.R_array.T @ camera.t_array
     baseline = projector.R_array @ camera_centre + projector.t_array
     return max(available, key=lambda axis: abs(baseline[0 if axis == "x" else 1]))
+
+
+def rig_triangulation_table(camera: Device, projector: Device, axis: str) -> TriangulationTable:
+    """:func:`triangulation_table` of a rig's camera and projector, once per calibration and coded axis."""
+    return triangulation_table(camera.K_array, camera.dist_array, camera.R_array, camera.t_array, camera.size,
+                               projector.K_array, projector.dist_array, projector.R_array, projector.t_array,
+                               projector.size, axis)
 
 
 def _coordinate_step_limit(sequence: Sequence, axis: str) -> float:
@@ -45,24 +52,32 @@ _OUTLINE_MARGIN_PX = 3  # about four times the camera blur sigma
 _OUTLINE_RAMP = 0.9
 
 
-def _outline_margin(decoded: DecodedCapture) -> np.ndarray:
-    """Pixels whose blur footprint reaches past the object's outline (as the camera sees it), or a deep
-    shadow or saturation: the neighbours of a pixel without signal, and the pixels within
-    ``_OUTLINE_MARGIN_PX`` of one whose brightness is still pulled down by the dark side (below
-    ``_OUTLINE_RAMP`` of the brightest pixel around). Mixing with the dark side biases the phase."""
-    no_signal = ((decoded.rejection == Rejection.DARK) | (decoded.rejection == Rejection.SATURATED)).astype(np.uint8)
-    neighbours = cv2.dilate(no_signal, np.ones((3, 3), np.uint8)).astype(bool)
-    window = 2 * _OUTLINE_MARGIN_PX + 1
-    near = cv2.dilate(no_signal, np.ones((window, window), np.uint8)).astype(bool)
-    intensity = np.nan_to_num(decoded.intensity.astype(np.float32))
-    ramp = intensity < _OUTLINE_RAMP * cv2.dilate(intensity, np.ones((window, window), np.uint8))
-    return neighbours | (near & ramp)
+@numba.njit(parallel=True, cache=True)
+def _outside_outline_kernel(coordinates, intensity, brightest_around, no_signal_beside, no_signal_near, out):
+    height, width = coordinates.shape
+    for row in numba.prange(height):
+        for col in range(width):
+            pulled_down = no_signal_near[row, col] and intensity[row, col] < _OUTLINE_RAMP * brightest_around[row, col]
+            out[row, col] = np.nan if no_signal_beside[row, col] or pulled_down else coordinates[row, col]
+
+
+def _outside_outline(decoded: DecodedCapture, coordinates: np.ndarray) -> np.ndarray:
+    """The coordinates without the outline margin: the pixels whose blur footprint reaches past the
+    object's outline (as the camera sees it), a deep shadow or saturation, namely the neighbours of a
+    pixel without signal and the pixels within ``_OUTLINE_MARGIN_PX`` of one whose brightness is still
+    pulled down by the dark side (below ``_OUTLINE_RAMP`` of the brightest pixel around). Mixing with the
+    dark side biases the phase."""
+    no_signal = ((decoded.rejection == Rejection.DARK) | (decoded.rejection == Rejection.SATURATED)).view(np.uint8)
+    window = np.ones((2 * _OUTLINE_MARGIN_PX + 1, 2 * _OUTLINE_MARGIN_PX + 1), np.uint8)
+    outside = np.empty_like(coordinates)
+    _outside_outline_kernel(coordinates, decoded.intensity, cv2.dilate(decoded.intensity, window),
+                            cv2.dilate(no_signal, np.ones((3, 3), np.uint8)), cv2.dilate(no_signal, window), outside)
+    return outside
 
 
 def _refined_coordinates(decoded: DecodedCapture, sequence: Sequence, axis: str) -> np.ndarray:
     """The decoded coordinates off the outline, with weak-signal pixels refined when the axis is phase coded."""
-    coordinates = np.where(_outline_margin(decoded), np.float32(np.nan),
-                           getattr(decoded, f"projector_{axis}"))
+    coordinates = _outside_outline(decoded, getattr(decoded, f"projector_{axis}"))
     groups = sequence.phase_groups(axis)
     if not groups or len(groups[-1].frames) <= 3 or not np.isfinite(coordinates).any():
         return coordinates
@@ -73,12 +88,32 @@ def _refined_coordinates(decoded: DecodedCapture, sequence: Sequence, axis: str)
                           max_step=finest.period / 4)
 
 
+_SPECKLE_INVALID = -32768
+
+
+@numba.njit(parallel=True, cache=True)
+def _quantise_kernel(coordinates, scale, out):
+    height, width = coordinates.shape
+    for row in numba.prange(height):
+        for col in range(width):
+            value = coordinates[row, col]
+            out[row, col] = np.int16(round((value + 0.5) * scale)) if np.isfinite(value) else _SPECKLE_INVALID
+
+
+@numba.njit(parallel=True, cache=True)
+def _drop_speckles_kernel(coordinates, quantised, out):
+    height, width = coordinates.shape
+    for row in numba.prange(height):
+        for col in range(width):
+            out[row, col] = np.nan if quantised[row, col] == _SPECKLE_INVALID else coordinates[row, col]
+
+
 def remove_speckles(coordinates: np.ndarray, axis_size: int, max_step: float, max_speckle_px: int = 25) -> np.ndarray:
     """Reject small islands of decoded pixels that disagree with everything around them.
 
     Parameters
     ----------
-    coordinates : (H, W) float array
+    coordinates : (H, W) float32 array
         Decoded projector coordinates, NaN where invalid.
     axis_size : int
         Projector pixels along the coded axis.
@@ -89,8 +124,8 @@ def remove_speckles(coordinates: np.ndarray, axis_size: int, max_step: float, ma
 
     Returns
     -------
-    keep : (H, W) bool array
-        Valid pixels that belong to a region larger than ``max_speckle_px``.
+    coordinates : (H, W) float32 array
+        The coordinates, NaN on the removed islands.
 
     Notes
     -----
@@ -104,42 +139,48 @@ def remove_speckles(coordinates: np.ndarray, axis_size: int, max_step: float, ma
     .. [1] H. Hirschmuller, "Stereo processing by semiglobal matching and mutual information",
        IEEE TPAMI 30(2), 2008 (the speckle filter of OpenCV's ``filterSpeckles``).
     """
-    invalid = np.int16(-32768)
+    coordinates = np.ascontiguousarray(coordinates, dtype=np.float32)
     scale = 32000.0 / (axis_size + 1)
-    valid = np.isfinite(coordinates)
-    quantised = np.full(coordinates.shape, invalid, dtype=np.int16)
-    quantised[valid] = np.rint((coordinates[valid] + 0.5) * scale).astype(np.int16)
-    cv2.filterSpeckles(quantised, int(invalid), max_speckle_px, max(1, int(max_step * scale)))
-    return quantised != invalid
+    quantised = np.empty(coordinates.shape, dtype=np.int16)
+    _quantise_kernel(coordinates, scale, quantised)
+    cv2.filterSpeckles(quantised, _SPECKLE_INVALID, max_speckle_px, max(1, int(max_step * scale)))
+    kept = np.empty_like(coordinates)
+    _drop_speckles_kernel(coordinates, quantised, kept)
+    return kept
 
 
-# Hand-written with numba: normals are needed only at the valid pixels, and numpy's cross products over
-# the whole map cost ten times more.
-@numba.njit(parallel=True, cache=True)
-def _normals_kernel(points_map, camera_centre, flat_index, out):
+@numba.njit(cache=True, inline="always")
+def _normal_at(points_map, row, col, camera_centre, out):
+    """Central-difference normal at one pixel of an organised point map, facing the camera; NaN when a
+    neighbour is missing or the pixel is on the border."""
     height, width = points_map.shape[:2]
-    for i in numba.prange(flat_index.shape[0]):
-        row, col = flat_index[i] // width, flat_index[i] % width
-        out[i, 0] = out[i, 1] = out[i, 2] = np.nan
-        if row == 0 or col == 0 or row == height - 1 or col == width - 1:
-            continue
-        ax = points_map[row, col + 1, 0] - points_map[row, col - 1, 0]
-        ay = points_map[row, col + 1, 1] - points_map[row, col - 1, 1]
-        az = points_map[row, col + 1, 2] - points_map[row, col - 1, 2]
-        bx = points_map[row + 1, col, 0] - points_map[row - 1, col, 0]
-        by = points_map[row + 1, col, 1] - points_map[row - 1, col, 1]
-        bz = points_map[row + 1, col, 2] - points_map[row - 1, col, 2]
-        nx, ny, nz = ay * bz - az * by, az * bx - ax * bz, ax * by - ay * bx
-        norm = np.sqrt(nx * nx + ny * ny + nz * nz)
-        if not norm > 0.0:  # also NaN: a neighbour is missing
-            continue
-        facing = (nx * (camera_centre[0] - points_map[row, col, 0]) + ny * (camera_centre[1] - points_map[row, col, 1])
-                  + nz * (camera_centre[2] - points_map[row, col, 2]))
-        sign = 1.0 if facing >= 0 else -1.0
-        out[i, 0], out[i, 1], out[i, 2] = sign * nx / norm, sign * ny / norm, sign * nz / norm
+    out[0] = out[1] = out[2] = np.nan
+    if row == 0 or col == 0 or row == height - 1 or col == width - 1:
+        return
+    ax = points_map[row, col + 1, 0] - points_map[row, col - 1, 0]
+    ay = points_map[row, col + 1, 1] - points_map[row, col - 1, 1]
+    az = points_map[row, col + 1, 2] - points_map[row, col - 1, 2]
+    bx = points_map[row + 1, col, 0] - points_map[row - 1, col, 0]
+    by = points_map[row + 1, col, 1] - points_map[row - 1, col, 1]
+    bz = points_map[row + 1, col, 2] - points_map[row - 1, col, 2]
+    nx, ny, nz = ay * bz - az * by, az * bx - ax * bz, ax * by - ay * bx
+    norm = np.sqrt(nx * nx + ny * ny + nz * nz)
+    if not norm > 0.0:  # also NaN: a neighbour is missing
+        return
+    facing = (nx * (camera_centre[0] - points_map[row, col, 0]) + ny * (camera_centre[1] - points_map[row, col, 1])
+              + nz * (camera_centre[2] - points_map[row, col, 2]))
+    scale = (1.0 if facing >= 0 else -1.0) / norm
+    out[0], out[1], out[2] = scale * nx, scale * ny, scale * nz
 
 
-def surface_normals(points_map: np.ndarray, camera_centre: np.ndarray, flat_index: np.ndarray | None = None) -> np.ndarray:
+@numba.njit(parallel=True, cache=True)
+def _normals_kernel(points_map, camera_centre, out):
+    for row in numba.prange(points_map.shape[0]):
+        for col in range(points_map.shape[1]):
+            _normal_at(points_map, row, col, camera_centre, out[row, col])
+
+
+def surface_normals(points_map: np.ndarray, camera_centre: np.ndarray) -> np.ndarray:
     """Unit normals of an organised point map from central differences, facing the camera.
 
     Parameters
@@ -148,12 +189,10 @@ def surface_normals(points_map: np.ndarray, camera_centre: np.ndarray, flat_inde
         World points per camera pixel, NaN where there is none.
     camera_centre : (3,) array
         Camera centre in world coordinates, used to orient the normals.
-    flat_index : (N,) int array, optional
-        Raster indices of the pixels wanted; all pixels when None.
 
     Returns
     -------
-    normals : (N, 3) float32 array, or (H, W, 3) when ``flat_index`` is None
+    normals : (H, W, 3) float32 array
         NaN where a neighbour is missing.
 
     Notes
@@ -161,12 +200,51 @@ def surface_normals(points_map: np.ndarray, camera_centre: np.ndarray, flat_inde
     n = (P(u+1, v) - P(u-1, v)) x (P(u, v+1) - P(u, v-1)), normalised and flipped so that
     n . (C - P) > 0.
     """
-    height, width = points_map.shape[:2]
-    wanted = np.arange(height * width) if flat_index is None else np.asarray(flat_index)
-    normals = np.empty((len(wanted), 3), dtype=np.float32)
+    normals = np.empty(points_map.shape, dtype=np.float32)
     _normals_kernel(np.ascontiguousarray(points_map, dtype=np.float32), np.asarray(camera_centre, np.float64),
-                    wanted.astype(np.int64), normals)
-    return normals if flat_index is not None else normals.reshape(height, width, 3)
+                    normals)
+    return normals
+
+
+_CLOUD_FIELDS = ("x", "y", "z", "nx", "ny", "nz", "u", "v", "projector", "quality", "modulation", "intensity")
+
+
+@numba.njit(parallel=True, cache=True)
+def _row_point_counts(points_map, counts):
+    for row in numba.prange(points_map.shape[0]):
+        n = 0
+        for col in range(points_map.shape[1]):
+            n += np.isfinite(points_map[row, col, 0])
+        counts[row] = n
+
+
+@numba.njit(parallel=True, cache=True)
+def _cloud_kernel(points_map, row_starts, camera_centre, coordinates, quality, modulation, intensity, out):
+    for row in numba.prange(points_map.shape[0]):
+        i = row_starts[row]
+        normal = np.empty(3, dtype=np.float32)
+        for col in range(points_map.shape[1]):
+            if not np.isfinite(points_map[row, col, 0]):
+                continue
+            _normal_at(points_map, row, col, camera_centre, normal)
+            out[0, i], out[1, i], out[2, i] = points_map[row, col, 0], points_map[row, col, 1], points_map[row, col, 2]
+            out[3, i], out[4, i], out[5, i] = normal[0], normal[1], normal[2]
+            out[6, i], out[7, i] = col, row
+            out[8, i], out[9, i] = coordinates[row, col], quality[row, col]
+            out[10, i], out[11, i] = modulation[row, col], intensity[row, col]
+            i += 1
+
+
+def _cloud(points_map: np.ndarray, camera_centre: np.ndarray, coordinates: np.ndarray,
+           decoded: DecodedCapture) -> dict[str, np.ndarray]:
+    """The reconstructed pixels of the point map with their normals and decoding properties, in raster order."""
+    counts = np.empty(points_map.shape[0], dtype=np.int64)
+    _row_point_counts(points_map, counts)
+    row_starts = np.concatenate([[0], np.cumsum(counts)])
+    columns = np.empty((len(_CLOUD_FIELDS), row_starts[-1]), dtype=np.float32)
+    _cloud_kernel(points_map, row_starts, camera_centre, coordinates, decoded.quality, decoded.modulation,
+                  decoded.intensity, columns)
+    return dict(zip(_CLOUD_FIELDS, columns, strict=True))
 
 
 def reconstruct_points(
@@ -175,7 +253,7 @@ def reconstruct_points(
     camera: Device,
     projector: Device,
     *,
-    rays: np.ndarray | None = None,
+    table: TriangulationTable | None = None,
 ) -> dict[str, np.ndarray]:
     """Decode a capture and triangulate every valid camera pixel.
 
@@ -187,8 +265,9 @@ def reconstruct_points(
         What each frame encodes.
     camera, projector : Device
         Calibrated devices of the rig.
-    rays : (H, W, 2) array, optional
-        :func:`camera_ray_table` of the camera, to reuse across scans of one calibration.
+    table : TriangulationTable, optional
+        :func:`rig_triangulation_table` of the devices for the sequence, to reuse across scans of one
+        calibration; computed here when None.
 
     Returns
     -------
@@ -203,31 +282,17 @@ def reconstruct_points(
         raise ValueError(
             f"The frames are {width}x{height} but the camera is calibrated for {camera.width}x{camera.height}."
         )
-    if rays is None:
-        rays = camera_ray_table(camera.K_array, camera.dist_array, width, height)
+    axis = coded_axis(sequence.coded_axes, camera, projector)
+    if table is None:
+        table = rig_triangulation_table(camera, projector, axis)
+    elif table.axis != axis or table.pixel_geometry.shape[:2] != (height, width):
+        raise ValueError(f"The triangulation table is for projector {table.axis} and a "
+                         f"{table.pixel_geometry.shape[1]}x{table.pixel_geometry.shape[0]} camera, "
+                         "not for this capture.")
     full_scale = np.iinfo(frames.dtype).max
     decoded = decode(frames, sequence, min_quality=_MIN_QUALITY, edge_margin=0,
                      min_modulation=_MIN_MODULATION_OF_FULL_SCALE * full_scale)
-    axis = coded_axis(decoded, camera, projector)
     coordinates = _refined_coordinates(decoded, sequence, axis)
-    valid = remove_speckles(coordinates, sequence.axis_size(axis), _coordinate_step_limit(sequence, axis))
-    flat_index = np.flatnonzero(valid)
-    points = triangulate(rays.reshape(-1, 2)[flat_index], coordinates.ravel()[flat_index], axis,
-                         camera.R_array, camera.t_array, projector.K_array, projector.dist_array,
-                         projector.R_array, projector.t_array)
-    met = np.isfinite(points[:, 0])
-    flat_index, points = flat_index[met], points[met]
-
-    points_map = np.full((height, width, 3), np.nan, dtype=np.float32)
-    points_map.reshape(-1, 3)[flat_index] = points
-    normals = surface_normals(points_map, -camera.R_array.T @ camera.t_array, flat_index)
-    v, u = np.divmod(flat_index, width)
-    return {
-        "x": points[:, 0], "y": points[:, 1], "z": points[:, 2],
-        "nx": normals[:, 0], "ny": normals[:, 1], "nz": normals[:, 2],
-        "u": u.astype(np.float32), "v": v.astype(np.float32),
-        "projector": coordinates.ravel()[flat_index].astype(np.float32),
-        "quality": decoded.quality.ravel()[flat_index].astype(np.float32),
-        "modulation": decoded.modulation.ravel()[flat_index].astype(np.float32),
-        "intensity": decoded.intensity.ravel()[flat_index].astype(np.float32),
-    }
+    coordinates = remove_speckles(coordinates, sequence.axis_size(axis), _coordinate_step_limit(sequence, axis))
+    points_map = triangulate_map(table, coordinates)
+    return _cloud(points_map, table.centre_world, coordinates, decoded)
