@@ -7,7 +7,7 @@ import numpy as np
 
 _MIN_NEIGHBOURS = 6
 _OUTLIER_SIGMAS = 4.0
-_NOISE_SAMPLE_STRIDE = 4  # a median over every 4th row and column is as good and 16x cheaper
+_NOISE_SAMPLES = 30_000  # a median over this many pixels, on a regular grid, is as good as over all
 
 
 def phase_noise_scale(steps: int, period: float, camera_noise: float) -> float:
@@ -34,11 +34,11 @@ def estimate_camera_noise(modulation: np.ndarray, quality: np.ndarray, steps: in
     -----
     A pixel's fitted AC energy is N B^2 / 2 and ``quality`` q is its share of the total AC energy, so
     the residual energy is N B^2 (1 - q) / (2 q), spread over N - 3 degrees of freedom. The median over
-    the pixels is robust to edges and motion.
+    about 30,000 pixels on a regular grid is robust to edges and motion.
     """
     if steps <= 3:
         raise ValueError("Estimating the camera noise needs more than 3 phase steps.")
-    step = _NOISE_SAMPLE_STRIDE
+    step = max(1, int(np.sqrt(modulation.size / _NOISE_SAMPLES)))
     modulation, quality = modulation[::step, ::step].ravel(), quality[::step, ::step].ravel()
     usable = np.isfinite(modulation) & np.isfinite(quality) & (quality > 0) & (modulation > 0)
     if not usable.any():
