@@ -84,7 +84,7 @@ def numpy_triangulate(table: TriangulationTable, coordinate: np.ndarray) -> np.n
     """The baseline's triangulation: the same table lookup as ``triangulate_map``, in plain vectorised numpy
     over the decoded pixels (the table is built once per calibration, outside the timed region, for both)."""
     index = np.flatnonzero(np.isfinite(coordinate))
-    pixel = table.pixel_geometry.reshape(-1, 7)[index].astype(np.float64)
+    pixel = table.pixel_geometry.reshape(-1, 3)[index].astype(np.float64)
     fq, fc = pixel[:, 0], coordinate.ravel()[index].astype(np.float64) + 1.0
     inside = (fq >= 0) & (fq < table.exact_cells.shape[1]) & (fc >= 0) & (fc < table.exact_cells.shape[0])
     q, c = np.where(inside, fq, 0).astype(np.int64), np.where(inside, fc, 0).astype(np.int64)
@@ -93,10 +93,12 @@ def numpy_triangulate(table: TriangulationTable, coordinate: np.ndarray) -> np.n
     offset = ((1 - wc) * ((1 - wq) * offsets[c, q] + wq * offsets[c, q + 1])
               + wc * ((1 - wq) * offsets[c + 1, q] + wq * offsets[c + 1, q + 1]))
     n = (fc - 1.0 - table.projector_K[0, 2]) / table.projector_K[0, 0] + offset
+    rays = np.column_stack([pixel[:, 1:], np.ones(len(pixel))])
+    d = rays @ table.rotation.T
     o = table.origin
-    s = (n * o[2] - o[0]) / (pixel[:, 1] - n * pixel[:, 3])
+    s = (n * o[2] - o[0]) / (d[:, 0] - n * d[:, 2])
     s = np.where(inside & (s > 0), s, np.nan)
-    return (table.centre_world + s[:, None] * pixel[:, 4:7]).astype(np.float32)
+    return (table.centre_world + s[:, None] * (rays @ table.camera_to_world.T)).astype(np.float32)
 
 
 def numpy_reconstruct(frames, sequence, table: TriangulationTable) -> np.ndarray:

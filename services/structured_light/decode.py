@@ -16,6 +16,7 @@ import numpy as np
 from numba import njit, prange
 
 from services.formats.sequence import AXES, Sequence
+from services.numba_options import SAFE_FASTMATH
 
 
 class Rejection(enum.IntEnum):
@@ -158,7 +159,7 @@ def _polynomial_atan2(y, x):
 
 # Hand-written numba kernels: one pass over the rows reading the uint8/uint16 stack in place, with
 # per-row buffers so the inner loops over columns vectorise; numpy would need float copies of the stack.
-@njit(parallel=True, cache=True, fastmath=False)
+@njit(parallel=True, cache=True, fastmath=SAFE_FASTMATH)
 def _decode_kernel(frames, saturation_level, white, black, mean_frames, axis_size, gray_count,
                    gray_frame, gray_complement, gray_inverted, finest_bit, group_range, group_start, group_frames,
                    group_cos, group_sin, group_period, min_intensity, min_modulation, min_quality, consistency,

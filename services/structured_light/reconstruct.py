@@ -8,6 +8,7 @@ import numpy as np
 
 from services.formats.rig import Device
 from services.formats.sequence import Sequence
+from services.numba_options import SAFE_FASTMATH
 from services.structured_light.decode import DecodedCapture, Rejection, decode
 from services.structured_light.low_snr import estimate_camera_noise, phase_noise_scale, refine_low_snr
 from services.structured_light.triangulate import TriangulationTable, triangulate_map, triangulation_table
@@ -173,7 +174,7 @@ def _normal_at(points_map, row, col, camera_centre, out):
     out[0], out[1], out[2] = scale * nx, scale * ny, scale * nz
 
 
-@numba.njit(parallel=True, cache=True)
+@numba.njit(parallel=True, cache=True, fastmath=SAFE_FASTMATH)
 def _normals_kernel(points_map, camera_centre, out):
     for row in numba.prange(points_map.shape[0]):
         for col in range(points_map.shape[1]):
@@ -209,7 +210,7 @@ def surface_normals(points_map: np.ndarray, camera_centre: np.ndarray) -> np.nda
 _CLOUD_FIELDS = ("x", "y", "z", "nx", "ny", "nz", "u", "v", "projector", "quality", "modulation", "intensity")
 
 
-@numba.njit(parallel=True, cache=True)
+@numba.njit(parallel=True, cache=True, fastmath=SAFE_FASTMATH)
 def _row_point_counts(points_map, counts):
     for row in numba.prange(points_map.shape[0]):
         n = 0
@@ -218,7 +219,7 @@ def _row_point_counts(points_map, counts):
         counts[row] = n
 
 
-@numba.njit(parallel=True, cache=True)
+@numba.njit(parallel=True, cache=True, fastmath=SAFE_FASTMATH)
 def _cloud_kernel(points_map, row_starts, camera_centre, coordinates, quality, modulation, intensity, out):
     for row in numba.prange(points_map.shape[0]):
         i = row_starts[row]

@@ -13,6 +13,7 @@ import numpy as np
 
 from services.geometry.camera import normalized_coordinates, pixel_grid
 from services.geometry.distortion import distorted_pixel, opencv_distortion_terms
+from services.numba_options import SAFE_FASTMATH
 
 _NEWTON_ITERATIONS = 12
 _NEWTON_TOLERANCE_PX = 1e-5  # a hundredth of the decoding noise
@@ -170,8 +171,8 @@ _LINE_NODES = 1024  # epipolar lines sampled across the camera's view
 _LINE_SOLVER_ITERATIONS = 30
 _LINE_SOLVER_TOLERANCE_PX = 1e-9
 _TABLE_TOLERANCE_PX = 1e-4  # cells interpolating worse than this are solved exactly instead
-# per-pixel geometry channels: epipolar line position, ray direction in the projector frame and in the world
-_LINE, _PROJECTOR_X, _PROJECTOR_Y, _PROJECTOR_Z, _WORLD_X, _WORLD_Y, _WORLD_Z = range(7)
+# per-pixel geometry channels: epipolar line position, undistorted normalised camera coordinates
+_LINE, _RAY_X, _RAY_Y = range(3)
 
 
 @dataclass(frozen=True)
@@ -182,10 +183,9 @@ class TriangulationTable:
     ----------
     axis : {"x", "y"}
         The coded projector axis.
-    pixel_geometry : (H, W, 7) float32 array
+    pixel_geometry : (H, W, 3) float32 array
         Per camera pixel: the fractional index of its epipolar line in ``line_offsets`` (NaN when the
-        line runs along the coded axis), its viewing ray's direction in the projector frame and in the
-        world (camera pixel (x, y, 1) rotated; any length).
+        line runs along the coded axis) and its viewing ray (x/z, y/z) (:func:`camera_ray_table`).
     line_offsets : (size + 2, Q) float32 array
         Undistorted minus pinhole normalised coded coordinate, at coded coordinates -1, 0, ..., size
         and at Q epipolar lines (see :func:`triangulation_table`).
@@ -194,6 +194,8 @@ class TriangulationTable:
         distortion, or lines that barely cross the coded axis); their pixels are solved exactly.
     origin : (3,) array
         Camera centre in the projector frame.
+    rotation, camera_to_world : (3, 3) arrays
+        Camera to projector and camera to world rotations.
     centre_world : (3,) array
         Camera centre in the world.
     projector_K, distortion_terms, tilt : arrays
@@ -205,6 +207,8 @@ class TriangulationTable:
     line_offsets: np.ndarray
     exact_cells: np.ndarray
     origin: np.ndarray
+    rotation: np.ndarray
+    camera_to_world: np.ndarray
     centre_world: np.ndarray
     projector_K: np.ndarray
     distortion_terms: np.ndarray
@@ -232,16 +236,13 @@ def _line_intercept(d_x, d_y, d_z, o_x, o_y, o_z, reference, axis):
 
 
 @numba.njit(parallel=True, cache=True)
-def _pixel_geometry_kernel(rays, origin, rotation, camera_to_world, reference, axis, intercepts, out):
+def _line_intercepts_kernel(rays, origin, rotation, reference, axis, out):
     for i in numba.prange(rays.shape[0]):
         x, y = np.float64(rays[i, 0]), np.float64(rays[i, 1])
         d_x = rotation[0, 0] * x + rotation[0, 1] * y + rotation[0, 2]
         d_y = rotation[1, 0] * x + rotation[1, 1] * y + rotation[1, 2]
         d_z = rotation[2, 0] * x + rotation[2, 1] * y + rotation[2, 2]
-        intercepts[i] = _line_intercept(d_x, d_y, d_z, origin[0], origin[1], origin[2], reference, axis)
-        out[i, _PROJECTOR_X], out[i, _PROJECTOR_Y], out[i, _PROJECTOR_Z] = d_x, d_y, d_z
-        for j in range(3):
-            out[i, _WORLD_X + j] = camera_to_world[j, 0] * x + camera_to_world[j, 1] * y + camera_to_world[j, 2]
+        out[i] = _line_intercept(d_x, d_y, d_z, origin[0], origin[1], origin[2], reference, axis)
 
 
 @numba.njit(cache=True, inline="always")
@@ -330,7 +331,7 @@ def triangulation_table(
     Returns
     -------
     TriangulationTable
-        For :func:`triangulate_map`: 28 bytes per camera pixel (29 MB at 1280x800) and 5 kB per
+        For :func:`triangulate_map`: 12 bytes per camera pixel (12 MB at 1280x800) and 5 kB per
         projector pixel along the coded axis.
 
     Notes
@@ -360,15 +361,16 @@ def triangulation_table(
     centre, origin, rotation, camera_to_world = _geometry(camera_R, camera_t, projector_R, projector_t)
     reference = _reference_coordinate(origin, a)
     intercepts = np.empty(len(rays))
-    geometry = np.empty((len(rays), 7), dtype=np.float32)
-    _pixel_geometry_kernel(rays, origin, rotation, camera_to_world, reference, a, intercepts, geometry)
+    _line_intercepts_kernel(rays, origin, rotation, reference, a, intercepts)
     finite = intercepts[np.isfinite(intercepts)]
     if finite.size == 0:
         raise ValueError(f"Every epipolar line runs along projector {axis}, so no pixel can be triangulated "
                          f"against projector {axis} coordinates.")
     step = max(float(finite.max() - finite.min()), 1e-9) / (_LINE_NODES - 3)
     first = float(finite.min()) - step
-    geometry[:, _LINE] = (intercepts - first) / step
+    geometry = np.empty((height, width, 3), dtype=np.float32)
+    geometry[..., _LINE] = ((intercepts - first) / step).reshape(height, width)
+    geometry[..., _RAY_X:] = rays.reshape(height, width, 2)
     K = np.asarray(projector_K, dtype=np.float64)
     terms, tilt = opencv_distortion_terms(projector_dist)
     offsets = np.empty((projector_size[a] + 2, _LINE_NODES), dtype=np.float32)
@@ -376,9 +378,9 @@ def triangulation_table(
     _line_offsets_kernel(first, step, reference, origin, K[0, 0], K[1, 1], K[0, 2], K[1, 2], terms, tilt, a, offsets,
                          exact_cells)
     return TriangulationTable(
-        axis=axis, pixel_geometry=geometry.reshape(height, width, 7), line_offsets=offsets,
-        exact_cells=exact_cells, origin=origin, centre_world=centre, projector_K=K, distortion_terms=terms,
-        tilt=tilt,
+        axis=axis, pixel_geometry=geometry, line_offsets=offsets, exact_cells=exact_cells, origin=origin,
+        rotation=rotation, camera_to_world=camera_to_world, centre_world=centre, projector_K=K,
+        distortion_terms=terms, tilt=tilt,
     )
 
 
@@ -388,22 +390,28 @@ def _exactly_solved_ray_parameter(dx, dy, dz, coordinate, origin, fx, fy, cx, cy
     return _exact_ray_parameter(dx, dy, dz, coordinate, origin, fx, fy, cx, cy, k, tilt, axis)
 
 
-@numba.njit(parallel=True, cache=True)
-def _triangulate_map_kernel(geometry, coordinates, line_offsets, exact_cells, origin, centre_world,
-                            fx, fy, cx, cy, k, tilt, axis, out):
+@numba.njit(parallel=True, cache=True, fastmath=SAFE_FASTMATH)
+def _triangulate_map_kernel(geometry, coordinates, line_offsets, exact_cells, origin, rotation, camera_to_world,
+                            centre_world, fx, fy, cx, cy, k, tilt, axis, out):
     height, width = coordinates.shape
     cells, lines = exact_cells.shape
     inverse_focal = 1.0 / (fx if axis == 0 else fy)
     principal = cx if axis == 0 else cy
     o_axis, o_z = origin[axis], origin[2]
+    # scalars, so that the loop does not reload them from arrays that ``out`` might alias
+    ra0, ra1, ra2 = rotation[axis, 0], rotation[axis, 1], rotation[axis, 2]
+    rz0, rz1, rz2 = rotation[2, 0], rotation[2, 1], rotation[2, 2]
+    wx0, wx1, wx2 = camera_to_world[0, 0], camera_to_world[0, 1], camera_to_world[0, 2]
+    wy0, wy1, wy2 = camera_to_world[1, 0], camera_to_world[1, 1], camera_to_world[1, 2]
+    wz0, wz1, wz2 = camera_to_world[2, 0], camera_to_world[2, 1], camera_to_world[2, 2]
     c_x, c_y, c_z = centre_world[0], centre_world[1], centre_world[2]
     for row in numba.prange(height):
         for col in range(width):
             coordinate = coordinates[row, col]
-            pixel = geometry[row, col]
+            x, y = np.float64(geometry[row, col, _RAY_X]), np.float64(geometry[row, col, _RAY_Y])
             s = np.nan
             if np.isfinite(coordinate):
-                fq = pixel[_LINE]
+                fq = geometry[row, col, _LINE]
                 fc = coordinate + 1.0
                 if fq >= 0.0 and fq < lines and fc >= 0.0 and fc < cells and not exact_cells[int(fc), int(fq)]:
                     q, c = int(fq), int(fc)
@@ -411,16 +419,19 @@ def _triangulate_map_kernel(geometry, coordinates, line_offsets, exact_cells, or
                     offset = ((1.0 - wc) * ((1.0 - wq) * line_offsets[c, q] + wq * line_offsets[c, q + 1])
                               + wc * ((1.0 - wq) * line_offsets[c + 1, q] + wq * line_offsets[c + 1, q + 1]))
                     n = (coordinate - principal) * inverse_focal + offset
-                    d_z = pixel[_PROJECTOR_Z]
-                    s = (n * o_z - o_axis) / (pixel[_PROJECTOR_X + axis] - n * d_z)
+                    d_z = rz0 * x + rz1 * y + rz2
+                    s = (n * o_z - o_axis) / (ra0 * x + ra1 * y + ra2 - n * d_z)
                     if not (s > 0.0 and o_z + s * d_z > 0.0):
                         s = np.nan
                 else:
-                    s = _exactly_solved_ray_parameter(pixel[_PROJECTOR_X], pixel[_PROJECTOR_Y], pixel[_PROJECTOR_Z],
-                                                      coordinate, origin, fx, fy, cx, cy, k, tilt, axis)
-            out[row, col, 0] = c_x + s * pixel[_WORLD_X]
-            out[row, col, 1] = c_y + s * pixel[_WORLD_Y]
-            out[row, col, 2] = c_z + s * pixel[_WORLD_Z]
+                    s = _exactly_solved_ray_parameter(
+                        rotation[0, 0] * x + rotation[0, 1] * y + rotation[0, 2],
+                        rotation[1, 0] * x + rotation[1, 1] * y + rotation[1, 2],
+                        rotation[2, 0] * x + rotation[2, 1] * y + rotation[2, 2],
+                        coordinate, origin, fx, fy, cx, cy, k, tilt, axis)
+            out[row, col, 0] = c_x + s * (wx0 * x + wx1 * y + wx2)
+            out[row, col, 1] = c_y + s * (wy0 * x + wy1 * y + wy2)
+            out[row, col, 2] = c_z + s * (wz0 * x + wz1 * y + wz2)
 
 
 def triangulate_map(table: TriangulationTable, coordinates: np.ndarray) -> np.ndarray:
@@ -446,7 +457,8 @@ def triangulate_map(table: TriangulationTable, coordinates: np.ndarray) -> np.nd
     K = table.projector_K
     points_map = np.empty((*coordinates.shape, 3), dtype=np.float32)
     _triangulate_map_kernel(table.pixel_geometry, np.ascontiguousarray(coordinates, dtype=np.float32),
-                            table.line_offsets, table.exact_cells, table.origin, table.centre_world,
+                            table.line_offsets, table.exact_cells, table.origin, table.rotation,
+                            table.camera_to_world, table.centre_world,
                             K[0, 0], K[1, 1], K[0, 2], K[1, 2], table.distortion_terms, table.tilt,
                             _AXES[table.axis], points_map)
     return points_map
