@@ -5,10 +5,11 @@ Run by hand (not a test; machines are shared and noisy):
     .venv/bin/python benchmarks/bench_reconstruct.py [--repeats 15] [--out docs/benchmark-reconstruct.md]
 
 Captures are rendered once by the simulator (the forging station's part at 1280x800, and the same
-station with 1920x1080 camera and projector). Both decoders read the same frames and share the camera
-ray table (computed once per calibration, outside the timed region) and the triangulation kernel, so
-the ratio isolates decoding; the total per scan is reported too. Peak memory is the largest traced
-allocation (``tracemalloc``) during one scan, beside the size of the input frames.
+station with 1920x1080 camera and projector). The baseline decodes the same frames in plain vectorised
+numpy and triangulates by the same per-calibration table, also in plain numpy; the table is built once,
+outside the timed region, for both. Ours and the baseline run in turn, so that load changes on a shared
+machine hit both alike. Peak memory is the largest traced allocation (``tracemalloc``) during one scan,
+beside the size of the input frames.
 """
 
 from __future__ import annotations
@@ -105,14 +106,17 @@ def numpy_reconstruct(frames, sequence, table: TriangulationTable) -> np.ndarray
     return numpy_triangulate(table, numpy_decode(frames, sequence))
 
 
-def _median_ms(function, repeats: int) -> float:
-    function()  # warm-up: numba compilation and caches
-    times = []
+def _interleaved_median_ms(functions: dict, repeats: int) -> dict[str, float]:
+    """Median wall time of each function, run in turn so that a change in the machine's load hits all alike."""
+    for function in functions.values():
+        function()  # warm-up: numba compilation and caches
+    times = {name: [] for name in functions}
     for _ in range(repeats):
-        start = time.perf_counter()
-        function()
-        times.append(time.perf_counter() - start)
-    return 1000 * statistics.median(times)
+        for name, function in functions.items():
+            start = time.perf_counter()
+            function()
+            times[name].append(time.perf_counter() - start)
+    return {name: 1000 * statistics.median(values) for name, values in times.items()}
 
 
 def _peak_mb(function) -> float:
@@ -127,17 +131,23 @@ def run(repeats: int) -> list[dict]:
     rows = []
     for width, height in ((1280, 800), (1920, 1080)):
         camera, projector, sequence, frames = _capture(width, height)
+        start = time.perf_counter()
         table = rig_triangulation_table(camera, projector, "x")
+        table_s = time.perf_counter() - start
+        table_mb = sum(getattr(table, name).nbytes for name in ("pixel_geometry", "line_offsets", "exact_cells")) / 2**20
         ours = lambda: reconstruct_points(frames, sequence, camera, projector, table=table)  # noqa: E731
         baseline = lambda: numpy_reconstruct(frames, sequence, table)  # noqa: E731
-        points = len(ours()["x"])
+        times = _interleaved_median_ms({
+            "ours": ours, "baseline": baseline,
+            "ours_decode": lambda: decode(frames, sequence), "baseline_decode": lambda: numpy_decode(frames, sequence),
+        }, repeats)
         row = {
             "size": f"{width}x{height}", "frames": len(frames), "input_mb": frames.nbytes / 2**20,
-            "points": points,
-            "ours_ms": _median_ms(ours, repeats), "baseline_ms": _median_ms(baseline, repeats),
-            "ours_decode_ms": _median_ms(lambda: decode(frames, sequence), repeats),
-            "baseline_decode_ms": _median_ms(lambda: numpy_decode(frames, sequence), repeats),
+            "points": len(ours()["x"]), "baseline_points": len(baseline()),
+            "ours_ms": times["ours"], "baseline_ms": times["baseline"],
+            "ours_decode_ms": times["ours_decode"], "baseline_decode_ms": times["baseline_decode"],
             "ours_peak_mb": _peak_mb(ours), "baseline_peak_mb": _peak_mb(baseline),
+            "table_s": table_s, "table_mb": table_mb,
         }
         rows.append(row)
         print(row, flush=True)
@@ -153,24 +163,29 @@ def _coding() -> str:
 def report(rows: list[dict], repeats: int) -> str:
     lines = ["# Benchmark: decode + triangulate", "",
              f"Command: `.venv/bin/python benchmarks/bench_reconstruct.py --repeats {repeats}` "
-             f"(medians of {repeats} runs after a warm-up; {platform.processor() or platform.machine()}, "
-             f"{os.cpu_count()} cores, numba threads {os.environ.get('NUMBA_NUM_THREADS', 'default')}).", "",
-             f"Baseline: a plain vectorised numpy decoder of the same {_coding()} "
-             "(`numpy_decode` in the script), on the same frames, in the same run, followed by the same "
-             "triangulation. Ours also runs the outline margin, the weak-signal refinement, the speckle "
-             "filter and the normals (docs/structured-light.md); the baseline does not. Memory: peak traced allocation during one scan (`tracemalloc`; numba's own "
-             "allocations are made through numpy arrays allocated in Python and so are counted).", "",
-             "| capture | frames | input MB | points | ours ms/scan | baseline ms/scan | speed-up | "
-             "ours Mpoints/s | decode only: ours ms | baseline ms | speed-up | ours peak MB | "
-             "peak / input | baseline peak MB |",
-             "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+             f"(medians of {repeats} runs after a warm-up, ours and the baseline run in turn; "
+             f"{platform.processor() or platform.machine()}, {os.cpu_count()} cores, numba threads "
+             f"{os.environ.get('NUMBA_NUM_THREADS', 'default')}).", "",
+             f"Baseline: a plain vectorised numpy decoder of the same {_coding()} (`numpy_decode` in the "
+             "script) on the same frames, followed by the same table triangulation written in plain "
+             "vectorised numpy (`numpy_triangulate`). Both use the triangulation table, built once per "
+             "calibration outside the timed region (build time and size below). Ours also runs the outline "
+             "margin, the weak-signal refinement, the speckle filter and the normals "
+             "(docs/structured-light.md); the baseline does not. Memory: peak traced allocation during one "
+             "scan (`tracemalloc`; numba's own allocations are made through numpy arrays allocated in Python "
+             "and so are counted), beside the size of the input frames.", "",
+             "| capture | frames | input MB | points (baseline) | ours ms/scan | baseline ms/scan | speed-up | "
+             "ours Mpoints/s | decode only: ours ms | baseline ms | speed-up | ours peak MB | peak / input | "
+             "baseline peak MB | table: build s, MB |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
         lines.append(
-            f"| {r['size']} | {r['frames']} | {r['input_mb']:.1f} | {r['points']} | {r['ours_ms']:.1f} | "
-            f"{r['baseline_ms']:.1f} | {r['baseline_ms'] / r['ours_ms']:.1f}x | "
+            f"| {r['size']} | {r['frames']} | {r['input_mb']:.1f} | {r['points']} ({r['baseline_points']}) | "
+            f"{r['ours_ms']:.1f} | {r['baseline_ms']:.1f} | {r['baseline_ms'] / r['ours_ms']:.1f}x | "
             f"{r['points'] / r['ours_ms'] / 1000:.1f} | {r['ours_decode_ms']:.1f} | {r['baseline_decode_ms']:.1f} | "
             f"{r['baseline_decode_ms'] / r['ours_decode_ms']:.1f}x | {r['ours_peak_mb']:.1f} | "
-            f"{r['ours_peak_mb'] / r['input_mb']:.2f} | {r['baseline_peak_mb']:.1f} |")
+            f"{r['ours_peak_mb'] / r['input_mb']:.2f} | {r['baseline_peak_mb']:.1f} | "
+            f"{r['table_s']:.2f}, {r['table_mb']:.1f} |")
     return "\n".join(lines) + "\n"
 
 
