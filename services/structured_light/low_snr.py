@@ -61,6 +61,27 @@ def _median_in_place(values, n):
     return values[n // 2] if n % 2 else 0.5 * (values[n // 2 - 1] + values[n // 2])
 
 
+@numba.njit(cache=True, inline="always")
+def _median_neighbour_differences(coordinates, row, col, radius, buffer):
+    """The window's median coordinate differences between horizontal and between vertical neighbours."""
+    height, width = coordinates.shape
+    m = 0
+    for r in range(max(0, row - radius), min(height, row + radius + 1)):
+        for c in range(max(0, col - radius), min(width - 1, col + radius)):
+            if np.isfinite(coordinates[r, c]) and np.isfinite(coordinates[r, c + 1]):
+                buffer[m] = coordinates[r, c + 1] - coordinates[r, c]
+                m += 1
+    slope_x = _median_in_place(buffer, m) if m > 0 else 0.0
+    m = 0
+    for r in range(max(0, row - radius), min(height - 1, row + radius)):
+        for c in range(max(0, col - radius), min(width, col + radius + 1)):
+            if np.isfinite(coordinates[r, c]) and np.isfinite(coordinates[r + 1, c]):
+                buffer[m] = coordinates[r + 1, c] - coordinates[r, c]
+                m += 1
+    slope_y = _median_in_place(buffer, m) if m > 0 else 0.0
+    return slope_x, slope_y
+
+
 # Hand-written with numba: a robust weighted plane fit per weak pixel has no vectorised library form.
 @numba.njit(parallel=True, cache=True)
 def _refine_kernel(coordinates, modulation, noise_scale, threshold, radius, max_step, out):
@@ -69,9 +90,11 @@ def _refine_kernel(coordinates, modulation, noise_scale, threshold, radius, max_
     for row in numba.prange(height):
         values = np.empty(window, dtype=np.float32)
         ordered = np.empty(window, dtype=np.float32)
+        differences = np.empty(window, dtype=np.float32)
         dxs = np.empty(window)
         dys = np.empty(window)
         ws = np.empty(window)
+        trend = np.empty(window)
         for col in range(width):
             centre = coordinates[row, col]
             out[row, col] = centre
@@ -89,34 +112,61 @@ def _refine_kernel(coordinates, modulation, noise_scale, threshold, radius, max_
                         ws[n] = modulation[r, c] * modulation[r, c] if np.isfinite(modulation[r, c]) else 0.0
                         ordered[n] = value
                         n += 1
-            median = _median_in_place(ordered, n)
-            s00 = s01 = s02 = s11 = s12 = s22 = b0 = b1 = b2 = 0.0
-            kept = 0
+            # Decoding errors jump by a period from the locally linear field. First the plain test against the
+            # window's median; where it leaves too few neighbours or calls the pixel an outlier (a steep or
+            # curved field at a limb changes by more than max_step across the window), the detrended one.
             for i in range(n):
-                if abs(values[i] - median) > max_step:
+                trend[i] = 0.0
+            median = _median_in_place(ordered, n)
+            for detrended in (False, True):
+                if detrended:
+                    slope_x, slope_y = _median_neighbour_differences(coordinates, row, col, radius, differences)
+                    for i in range(n):
+                        trend[i] = slope_x * dxs[i] + slope_y * dys[i]
+                        ordered[i] = values[i] - trend[i]
+                    median = _median_in_place(ordered, n)
+                s00 = s01 = s02 = s11 = s12 = s22 = b0 = b1 = b2 = 0.0
+                kept = 0
+                for i in range(n):
+                    if abs(values[i] - trend[i] - median) > max_step:
+                        continue
+                    w, x, y, v = ws[i], dxs[i], dys[i], values[i]
+                    s00 += w
+                    s01 += w * x
+                    s02 += w * y
+                    s11 += w * x * x
+                    s12 += w * x * y
+                    s22 += w * y * y
+                    b0 += w * v
+                    b1 += w * x * v
+                    b2 += w * y * v
+                    kept += 1
+                determinant = (s00 * (s11 * s22 - s12 * s12) - s01 * (s01 * s22 - s12 * s02)
+                               + s02 * (s01 * s12 - s11 * s02))
+                out[row, col] = np.nan
+                if kept < _MIN_NEIGHBOURS or not determinant > 0.0:
                     continue
-                w, x, y, v = ws[i], dxs[i], dys[i], values[i]
-                s00 += w
-                s01 += w * x
-                s02 += w * y
-                s11 += w * x * x
-                s12 += w * x * y
-                s22 += w * y * y
-                b0 += w * v
-                b1 += w * x * v
-                b2 += w * y * v
-                kept += 1
-            determinant = (s00 * (s11 * s22 - s12 * s12) - s01 * (s01 * s22 - s12 * s02)
-                           + s02 * (s01 * s12 - s11 * s02))
-            if kept < _MIN_NEIGHBOURS or not determinant > 0.0:
-                out[row, col] = np.nan
-                continue
-            intercept = (b0 * (s11 * s22 - s12 * s12) - s01 * (b1 * s22 - s12 * b2)
-                         + s02 * (b1 * s12 - s11 * b2)) / determinant
-            if abs(centre - intercept) > _OUTLIER_SIGMAS * sigma:
-                out[row, col] = np.nan
-            else:
-                out[row, col] = intercept
+                intercept = (b0 * (s11 * s22 - s12 * s12) - s01 * (b1 * s22 - s12 * b2)
+                             + s02 * (b1 * s12 - s11 * b2)) / determinant
+                # The outlier test's sigma, scaled by the fit's reduced chi-square when the plane misfits (a
+                # curved coordinate field at a limb), so that model error is not taken for a decoding error.
+                inflation = 1.0
+                if detrended and kept > 3:
+                    slope_u = (s00 * (b1 * s22 - s12 * b2) - b0 * (s01 * s22 - s12 * s02)
+                               + s02 * (s01 * b2 - b1 * s02)) / determinant
+                    slope_v = (s00 * (s11 * b2 - b1 * s12) - s01 * (s01 * b2 - b1 * s02)
+                               + b0 * (s01 * s12 - s11 * s02)) / determinant
+                    chi_square = 0.0
+                    for i in range(n):
+                        if abs(values[i] - trend[i] - median) <= max_step:
+                            residual = values[i] - intercept - slope_u * dxs[i] - slope_v * dys[i]
+                            chi_square += ws[i] * residual * residual
+                    reduced = chi_square / (noise_scale * noise_scale * (kept - 3))
+                    if reduced > 1.0:
+                        inflation = np.sqrt(reduced)
+                if abs(centre - intercept) <= _OUTLIER_SIGMAS * sigma * inflation:
+                    out[row, col] = intercept
+                    break
 
 
 def refine_low_snr(coordinates: np.ndarray, modulation: np.ndarray, noise_scale: float, *,
@@ -143,7 +193,10 @@ def refine_low_snr(coordinates: np.ndarray, modulation: np.ndarray, noise_scale:
     -------
     refined : (H, W) float32 array
         The coordinates, refined where noisy; NaN where a noisy pixel has fewer than 6 consistent
-        neighbours or lies more than 4 sigma from its neighbourhood's fit (an outlier).
+        neighbours (within ``max_step`` of the window's median after removing the median neighbour
+        differences, so that a steep coordinate field keeps them) or lies more than 4 sigma from its
+        neighbourhood's fit (an outlier), sigma scaled by the square root of the fit's reduced chi-square
+        where that exceeds 1 (the plane does not describe a curved field within the window).
 
     Notes
     -----

@@ -9,8 +9,9 @@ import numpy as np
 from services.formats.rig import Device
 from services.formats.sequence import Sequence
 from services.numba_options import SAFE_FASTMATH
-from services.structured_light.decode import DecodedCapture, Rejection, decode
+from services.structured_light.decode import DecodedCapture, decode
 from services.structured_light.low_snr import estimate_camera_noise, phase_noise_scale, refine_low_snr
+from services.structured_light.outline import ASSUMED_CAMERA_BLUR_PX, estimate_camera_blur, outline_corrected
 from services.structured_light.triangulate import TriangulationTable, triangulate_map, triangulation_table
 
 
@@ -49,37 +50,16 @@ def _coordinate_step_limit(sequence: Sequence, axis: str) -> float:
 # ``refine_low_snr`` instead of rejected; the outline margin is seeded only where there is no signal.
 _MIN_QUALITY = 0.3
 _MIN_MODULATION_OF_FULL_SCALE = 0.004  # 1 grey level at 8 bits
-_OUTLINE_MARGIN_PX = 3  # about four times the camera blur sigma
-_OUTLINE_RAMP = 0.9
-
-
-@numba.njit(parallel=True, cache=True)
-def _outside_outline_kernel(coordinates, intensity, brightest_around, no_signal_beside, no_signal_near, out):
-    height, width = coordinates.shape
-    for row in numba.prange(height):
-        for col in range(width):
-            pulled_down = no_signal_near[row, col] and intensity[row, col] < _OUTLINE_RAMP * brightest_around[row, col]
-            out[row, col] = np.nan if no_signal_beside[row, col] or pulled_down else coordinates[row, col]
-
-
-def _outside_outline(decoded: DecodedCapture, coordinates: np.ndarray) -> np.ndarray:
-    """The coordinates without the outline margin: the pixels whose blur footprint reaches past the
-    object's outline (as the camera sees it), a deep shadow or saturation, namely the neighbours of a
-    pixel without signal and the pixels within ``_OUTLINE_MARGIN_PX`` of one whose brightness is still
-    pulled down by the dark side (below ``_OUTLINE_RAMP`` of the brightest pixel around). Mixing with the
-    dark side biases the phase."""
-    no_signal = ((decoded.rejection == Rejection.DARK) | (decoded.rejection == Rejection.SATURATED)).view(np.uint8)
-    window = np.ones((2 * _OUTLINE_MARGIN_PX + 1, 2 * _OUTLINE_MARGIN_PX + 1), np.uint8)
-    outside = np.empty_like(coordinates)
-    _outside_outline_kernel(coordinates, decoded.intensity, cv2.dilate(decoded.intensity, window),
-                            cv2.dilate(no_signal, np.ones((3, 3), np.uint8)), cv2.dilate(no_signal, window), outside)
-    return outside
 
 
 def _refined_coordinates(decoded: DecodedCapture, sequence: Sequence, axis: str) -> np.ndarray:
-    """The decoded coordinates off the outline, with weak-signal pixels refined when the axis is phase coded."""
-    coordinates = _outside_outline(decoded, getattr(decoded, f"projector_{axis}"))
+    """The decoded coordinates off the outline and corrected for the camera blur's bias beside it, with
+    weak-signal pixels refined when the axis is phase coded."""
     groups = sequence.phase_groups(axis)
+    blur = estimate_camera_blur(decoded.intensity, decoded.rejection)
+    coordinates = outline_corrected(getattr(decoded, f"projector_{axis}"), decoded.intensity, decoded.rejection,
+                                    groups[-1].period if groups else None,
+                                    ASSUMED_CAMERA_BLUR_PX if blur is None else blur)
     if not groups or len(groups[-1].frames) <= 3 or not np.isfinite(coordinates).any():
         return coordinates
     finest = groups[-1]

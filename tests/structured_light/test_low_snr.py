@@ -59,3 +59,20 @@ def test_refinement_reduces_noise_without_bias_and_rejects_outliers():
 def test_shapes_must_match():
     with pytest.raises(ValueError, match="same shape"):
         refine_low_snr(np.zeros((3, 3)), np.zeros((3, 4)), 1.0)
+
+
+def test_a_steep_field_keeps_its_pixels_and_a_period_slip_is_still_rejected():
+    rng = np.random.default_rng(3)
+    v, u = np.mgrid[0:60, 0:80]
+    truth = 100 + 5.0 * u + 0.3 * v  # a limb: the coordinate changes by more than max_step across the window
+    modulation = np.full(truth.shape, 4.0)
+    scale = phase_noise_scale(12, 16.0, 1.5)
+    noisy = truth + rng.normal(0, 1, truth.shape) * scale / modulation
+    noisy[30, 40] += 16  # a period slip
+    refined = refine_low_snr(noisy, modulation, scale, threshold=0.1, max_step=4.0)
+    inner = (slice(2, -2), slice(2, -2))
+    kept = np.isfinite(refined[inner])
+    assert kept.mean() > 0.97
+    before = np.abs(noisy - truth)[inner][kept]
+    assert np.abs(refined[inner][kept] - truth[inner][kept]).mean() < 0.4 * before.mean()
+    assert np.isnan(refined[30, 40])
