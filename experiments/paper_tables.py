@@ -52,7 +52,8 @@ class Measurement:
     points: int
 
 
-def measure(scene, surface_distance, surface_normal, reference_length, seed: int) -> Measurement:
+def measure(scene, surface_distance, surface_normal, reference_length, seed: int,
+            camera_effects: CameraEffects = CAMERA) -> Measurement:
     """Render, reconstruct and compare one scene.
 
     ``surface_distance`` maps (N, 3) points to signed distances from the true surface and
@@ -62,7 +63,7 @@ def measure(scene, surface_distance, surface_normal, reference_length, seed: int
     camera, projector = rig.devices["camera"], rig.devices["projector"]
     sequence, patterns = generate_sequence(projector.width, projector.height)
     view = render_view(scene, camera, projector, supersample=3)
-    frames = render_frames(view, patterns, np.random.default_rng(seed), CAMERA, PROJECTOR)
+    frames = render_frames(view, patterns, np.random.default_rng(seed), camera_effects, PROJECTOR)
     cloud = reconstruct_points(frames, sequence, camera, projector)
     points = np.column_stack([cloud["x"], cloud["y"], cloud["z"]]).astype(np.float64)
     errors = np.abs(surface_distance(points))
@@ -82,15 +83,15 @@ def measure(scene, surface_distance, surface_normal, reference_length, seed: int
                        points=len(points))
 
 
-def plane_measurement(depth: float, seed: int = 0) -> Measurement:
+def plane_measurement(depth: float, seed: int = 0, camera_effects: CameraEffects = CAMERA) -> Measurement:
     return measure(paper_plane(depth, ALBEDO), lambda p: p[:, 2] - depth,
-                   lambda p: np.tile([0.0, 0.0, -1.0], (len(p), 1)), depth, seed)
+                   lambda p: np.tile([0.0, 0.0, -1.0], (len(p), 1)), depth, seed, camera_effects)
 
 
-def sphere_measurement(radius: float, seed: int = 0) -> Measurement:
+def sphere_measurement(radius: float, seed: int = 0, camera_effects: CameraEffects = CAMERA) -> Measurement:
     centre = np.asarray(PAPER_SPHERE_CENTRE)
     return measure(paper_sphere(radius, ALBEDO), lambda p: np.linalg.norm(p - centre, axis=1) - radius,
-                   lambda p: (p - centre) / radius, float(centre[2]), seed)
+                   lambda p: (p - centre) / radius, float(centre[2]), seed, camera_effects)
 
 
 def _sequence_summary() -> str:

@@ -15,16 +15,16 @@ from services.structured_light.decode import Rejection
 # outline steps to measure it (a sphere's outline is a limb or a terminator, not a step): a focused
 # camera's defocus sigma of 0.7 px and the 1-pixel box of the sensor, variance 1/12 px^2.
 ASSUMED_CAMERA_BLUR_PX = float(np.sqrt(0.7**2 + 1 / 12))
-# Pixels beside a pixel without signal are always dropped; within ``_OUTLINE_MARGIN_PX`` of one, so are
-# those whose brightness is still below ``_OUTLINE_RAMP`` of the brightest pixel around (the blur ramp).
-# With a measured blur the bias beyond is corrected; without one the wider, uncorrected margin applies.
-_OUTLINE_MARGIN_PX = 2
-_UNCORRECTED_MARGIN_PX = 3  # about four times the blur sigma of a typical focused camera, 0.7 px
+# Pixels beside a pixel without signal are always dropped; within the margin of one, so are those whose
+# brightness is still below ``_OUTLINE_RAMP`` of the brightest pixel around (the blur ramp). The margin is
+# 2.6 blur sigmas to the nearest pixel (2 px for a focused camera, s = 0.76 px), beyond which the blur
+# holds 0.5 % of its weight, and the bias is corrected one pixel further; without a correction it is
+# 4 sigmas (3 px when focused).
+_MARGIN_SIGMAS = 2.6
+_UNCORRECTED_MARGIN_SIGMAS = 4.0
 _OUTLINE_RAMP = 0.9
-# The bias correction: how far from a pixel without signal it applies, the largest bias corrected rather
-# than dropped (projector pixels), and the largest fringe washout s^2 k^2 / 2 for which its
-# first-order form holds.
-_CORRECTION_MARGIN_PX = 3
+# The bias correction: the largest bias corrected rather than dropped (projector pixels), and the largest
+# fringe washout s^2 k^2 / 2 for which its first-order form holds.
 _MAX_CORRECTED_BIAS = 0.5
 _MAX_WASHOUT = 0.5
 # The blur estimate: the window over which a step's dark and bright levels are taken (covers +/- 2.6
@@ -221,19 +221,19 @@ def _brightest_within(intensity, row, col, reach):
 # Hand-written with numba: the margin and the bias need gradients only at the few pixels near the
 # outline, where whole-image gradients and dilations would cost more than the whole outline step may.
 @numba.njit(parallel=True, cache=True)
-def _outline_kernel(decoded, intensity, rejection, near, margin, variance, wavenumber, out):
+def _outline_kernel(decoded, intensity, rejection, near, margin, reach, variance, wavenumber, out):
     height, width = decoded.shape
     for row in numba.prange(height):
         for col in range(width):
             out[row, col] = decoded[row, col]
             if near[row, col] == 0 or not np.isfinite(decoded[row, col]):
                 continue
-            distance = _distance_to_no_signal(rejection, row, col, _CORRECTION_MARGIN_PX)
+            distance = _distance_to_no_signal(rejection, row, col, reach)
             if distance <= 1 or (distance <= margin
                                  and intensity[row, col] < _OUTLINE_RAMP * _brightest_within(intensity, row, col, margin)):
                 out[row, col] = np.nan
                 continue
-            if variance == 0.0 or distance > _CORRECTION_MARGIN_PX:
+            if variance == 0.0 or distance > reach:
                 continue
             if row == 0 or col == 0 or row == height - 1 or col == width - 1:
                 continue
@@ -261,15 +261,16 @@ def outline_corrected(coordinates: np.ndarray, intensity: np.ndarray, rejection:
     period : float or None
         The finest fringe period in projector pixels; None for a Gray-code-only axis, which is not corrected.
     blur_sigma : float or None
-        The camera's total point spread in pixels (:func:`estimate_camera_blur`); None when unknown.
+        The camera's total point spread s in pixels (:func:`estimate_camera_blur`); None when unknown.
 
     Returns
     -------
     coordinates : (H, W) float32 array
-        NaN at the neighbours of a dark or saturated pixel and, within 2 px of one, where the brightness is
-        below 90 % of the brightest pixel within 2 px (the blur ramp); within 3 px, the coordinate less its
-        blur bias b, NaN where |b| > 0.5 projector px. Without a period or a blur the bias is not corrected
-        and the conservative margin of the uncorrected pipeline applies instead: 3 px.
+        NaN at the neighbours of a dark or saturated pixel and, within the margin m = round(2.6 s) of one
+        (2 px for s = 0.76 px), where the brightness is below 90 % of the brightest pixel within m (the
+        blur ramp); within m + 1, the coordinate less its blur bias b, NaN where |b| > 0.5 projector px.
+        Without a period or a blur the bias is not corrected and the wider margin round(4 s) applies
+        (3 px for the assumed s).
 
     Raises
     ------
@@ -310,8 +311,10 @@ def outline_corrected(coordinates: np.ndarray, intensity: np.ndarray, rejection:
     if period is not None and not period > 0:
         raise ValueError(f"The fringe period must be a positive number of projector pixels; got {period}.")
     corrected = period is not None and blur_sigma is not None
-    margin = _OUTLINE_MARGIN_PX if corrected else _UNCORRECTED_MARGIN_PX
+    spread = ASSUMED_CAMERA_BLUR_PX if blur_sigma is None else float(blur_sigma)
+    margin = max(1, round((_MARGIN_SIGMAS if corrected else _UNCORRECTED_MARGIN_SIGMAS) * spread))
+    reach = margin + 1 if corrected else margin
     out = np.empty_like(coordinates)
-    _outline_kernel(coordinates, intensity, rejection, _no_signal_near(rejection, _CORRECTION_MARGIN_PX), margin,
-                    float(blur_sigma) ** 2 if corrected else 0.0, 2 * np.pi / period if corrected else 0.0, out)
+    _outline_kernel(coordinates, intensity, rejection, _no_signal_near(rejection, reach), margin, reach,
+                    spread**2 if corrected else 0.0, 2 * np.pi / period if corrected else 0.0, out)
     return out

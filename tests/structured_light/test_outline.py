@@ -100,6 +100,17 @@ def test_without_a_blur_the_wider_margin_drops_the_ramp():
     np.testing.assert_array_equal(dropped[kept], decoded[kept])
 
 
+def test_a_blurrier_camera_widens_the_margin():
+    """The margin scales with the measured blur: round(2.6 s) pixels, 2 px when focused, 4 px at s = 1.5."""
+    sigma, period, slope = 1.5, 16.0, 0.3
+    decoded, _, intensity, rejection = _edge_capture(sigma, period, slope)
+    focused = outline_corrected(decoded, intensity, rejection, period, _total_spread(0.7))
+    blurry = outline_corrected(decoded, intensity, rejection, period, _total_spread(sigma))
+    first_decoded = np.argmax(np.isfinite(decoded[30]))
+    assert np.argmax(np.isfinite(blurry[30])) > np.argmax(np.isfinite(focused[30])) >= first_decoded + 1
+    assert np.isfinite(blurry).sum() < np.isfinite(focused).sum()
+
+
 def test_bad_input_is_refused():
     image = np.zeros((10, 10), np.float32)
     with pytest.raises(ValueError, match="same shape"):
