@@ -132,6 +132,12 @@ def _peak_mb(function) -> float:
     return peak / 2**20
 
 
+def _cpu_jiffies() -> tuple[int, int]:
+    """Total and stolen CPU time so far (Linux /proc/stat): steal is time the hypervisor gave another guest."""
+    fields = [int(value) for value in Path("/proc/stat").read_text().split("\n", 1)[0].split()[1:]]
+    return sum(fields), fields[7]
+
+
 def run(repeats: int) -> list[dict]:
     rows = []
     for width, height in ((1280, 800), (1920, 1080)):
@@ -143,14 +149,17 @@ def run(repeats: int) -> list[dict]:
         scan = lambda: reconstruct_points(frames, sequence, camera, projector, table=table)  # noqa: E731
         decode_triangulate = lambda: triangulate_map(table, decode(frames, sequence).projector_x)  # noqa: E731
         baseline = lambda: numpy_reconstruct(frames, sequence, table)  # noqa: E731
+        total_before, steal_before = _cpu_jiffies()
         times = _interleaved_median_ms({"scan": scan, "decode_triangulate": decode_triangulate, "baseline": baseline},
                                        repeats)
+        total_after, steal_after = _cpu_jiffies()
         row = {
             "size": f"{width}x{height}", "frames": len(frames), "input_mb": frames.nbytes / 2**20,
             "points": len(scan()["x"]), "baseline_points": len(baseline()),
             "scan_ms": times["scan"], "decode_triangulate_ms": times["decode_triangulate"],
             "baseline_ms": times["baseline"], "scan_peak_mb": _peak_mb(scan), "baseline_peak_mb": _peak_mb(baseline),
             "table_s": table_s, "table_mb": table_mb,
+            "steal": (steal_after - steal_before) / max(1, total_after - total_before),
         }
         rows.append(row)
         print(row, flush=True)
@@ -177,13 +186,15 @@ def report(rows: list[dict], repeats: int) -> str:
              "weak-signal pixels, removes speckles and computes normals (docs/structured-light.md); the "
              "baseline does none of this.",
              "- All use the triangulation table, built once per calibration outside the timed region (build "
-             "time and size in the last column). Memory: peak traced allocation during one scan "
+             "time and size in a column). CPU stolen: the share of the machine's CPU time the hypervisor gave "
+             "to other guests during the timed runs (`/proc/stat`); parallel code loses more to it than the "
+             "mostly single-threaded baseline. Memory: peak traced allocation during one scan "
              "(`tracemalloc`; numba's own allocations go through numpy and are counted), beside the size of "
              "the input frames.", "",
              "| capture | frames | input MB | points: full scan (baseline) | baseline ms | decode + triangulate ms "
              "| speed-up | full scan ms | speed-up | full scan Mpoints/s | full scan peak MB | peak / input | "
-             "baseline peak MB | table: build s, MB |",
-             "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+             "baseline peak MB | table: build s, MB | CPU stolen |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
         lines.append(
             f"| {r['size']} | {r['frames']} | {r['input_mb']:.1f} | {r['points']} ({r['baseline_points']}) | "
@@ -191,7 +202,7 @@ def report(rows: list[dict], repeats: int) -> str:
             f"{r['baseline_ms'] / r['decode_triangulate_ms']:.1f}x | {r['scan_ms']:.1f} | "
             f"{r['baseline_ms'] / r['scan_ms']:.1f}x | {r['points'] / r['scan_ms'] / 1000:.1f} | "
             f"{r['scan_peak_mb']:.1f} | {r['scan_peak_mb'] / r['input_mb']:.2f} | {r['baseline_peak_mb']:.1f} | "
-            f"{r['table_s']:.2f}, {r['table_mb']:.1f} |")
+            f"{r['table_s']:.2f}, {r['table_mb']:.1f} | {100 * r['steal']:.0f} % |")
     return "\n".join(lines) + "\n"
 
 

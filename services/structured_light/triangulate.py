@@ -167,7 +167,7 @@ def triangulate(
     return points
 
 
-_LINE_NODES = 1024  # epipolar lines sampled across the camera's view
+_LINE_NODES = 256  # epipolar lines sampled across the camera's view; the cell check guards the accuracy
 _LINE_SOLVER_ITERATIONS = 30
 _LINE_SOLVER_TOLERANCE_PX = 1e-9
 _TABLE_TOLERANCE_PX = 1e-4  # cells interpolating worse than this are solved exactly instead
@@ -341,7 +341,7 @@ def triangulation_table(
     epipole o, so one number names a line: where it crosses a reference coded coordinate (0, or 2 away
     from the epipole when that is within 45 degrees of the projector's axis), from the line
     l = o x d. Along a line the distorted coded coordinate c is a smooth function of the undistorted one
-    n; its inverse n(c, line) is tabulated at every projector pixel and at 1024 lines spanning the
+    n; its inverse n(c, line) is tabulated at every projector pixel and at 256 lines spanning the
     camera's view, as an offset from the pinhole value (c - c_0) / f. A pixel then needs a bilinear
     lookup and the pinhole intersection s = (n o_z - o_n) / (d_n - n d_z) [1]_ instead of iterating
     the distortion model. Cells whose interpolation misses the exact solution at their centre or edge
