@@ -72,6 +72,8 @@ def _refined_coordinates(decoded: DecodedCapture, sequence: Sequence, axis: str)
 _SPECKLE_INVALID = -32768
 
 
+# Hand-written with numba: one parallel pass each, where numpy's masked assignments take several passes
+# and temporaries over the whole image.
 @numba.njit(parallel=True, cache=True)
 def _quantise_kernel(coordinates, scale, out):
     height, width = coordinates.shape
@@ -130,6 +132,8 @@ def remove_speckles(coordinates: np.ndarray, axis_size: int, max_step: float, ma
     return kept
 
 
+# Hand-written with numba: normals are needed only at the valid pixels, and numpy's cross products over
+# the whole map cost several times more.
 @numba.njit(cache=True, inline="always")
 def _normal_at(points_map, row, col, camera_centre, out):
     """Central-difference normal at one pixel of an organised point map, facing the camera; NaN when a
@@ -190,6 +194,8 @@ def surface_normals(points_map: np.ndarray, camera_centre: np.ndarray) -> np.nda
 _CLOUD_FIELDS = ("x", "y", "z", "nx", "ny", "nz", "u", "v", "projector", "quality", "modulation", "intensity")
 
 
+# Hand-written with numba: the cloud is gathered from the maps in one parallel pass, each row written
+# from its offset, where numpy would gather twelve arrays one by one through an index array.
 @numba.njit(parallel=True, cache=True, fastmath=SAFE_FASTMATH)
 def _row_point_counts(points_map, counts):
     for row in numba.prange(points_map.shape[0]):

@@ -224,6 +224,8 @@ def _reference_coordinate(origin: np.ndarray, axis: int) -> float:
     return epipole - 2.0 if epipole >= 0 else epipole + 2.0
 
 
+# Hand-written with numba: no library inverts OpenCV's distortion along an epipolar line or triangulates
+# against such a table, and per-pixel numpy would need a dozen full-image temporaries.
 @numba.njit(cache=True, inline="always")
 def _line_intercept(d_x, d_y, d_z, o_x, o_y, o_z, reference, axis):
     """Other normalised coordinate at which the epipolar line of the ray o + s d (projector frame) crosses
