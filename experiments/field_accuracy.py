@@ -25,7 +25,7 @@ from services.fusion.field import temperature_field  # noqa: E402
 from services.fusion.fuse import ThermalView  # noqa: E402
 from services.fusion.visibility import depth_buffer, seen_mask  # noqa: E402
 from services.geometry.camera import camera_center, project_points  # noqa: E402
-from services.simulation.presets import forging_rig, forging_scene  # noqa: E402
+from services.simulation.presets import forging_rig, forging_scene, look_at_rotation  # noqa: E402
 from services.simulation.render import CameraEffects, render_frames, render_view  # noqa: E402
 from services.simulation.thermal import (  # noqa: E402
     ThermalEffects, forging_temperatures, render_thermal, seen_by, surface_temperature,
@@ -88,11 +88,7 @@ def exact_cloud(truth) -> dict[str, np.ndarray]:
 def _virtual_camera(centre, target, focal: float, width: int, height: int) -> Device:
     """A distortion-free camera at ``centre`` looking at ``target`` (image y roughly along world y)."""
     centre = np.asarray(centre, dtype=float)
-    forward = np.asarray(target, dtype=float) - centre
-    forward /= np.linalg.norm(forward)
-    right = np.cross([0.0, 1.0, 0.0], forward)
-    right /= np.linalg.norm(right)
-    R = np.stack([right, np.cross(forward, right), forward])
+    R = look_at_rotation(centre, target)
     return Device(kind="camera", width=width, height=height,
                   K=[[focal, 0, width / 2], [0, focal, height / 2], [0, 0, 1]], R=R.tolist(), t=(-R @ centre).tolist())
 

@@ -44,7 +44,7 @@ def _rotation_about_y(degrees: float) -> np.ndarray:
     return np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])
 
 
-def _look_at(centre: tuple[float, float, float], target: tuple[float, float, float]) -> np.ndarray:
+def look_at_rotation(centre: tuple[float, float, float], target: tuple[float, float, float]) -> np.ndarray:
     """Rotation aiming the device z axis from ``centre`` at ``target``, its x axis level (normal to world y)."""
     forward = np.subtract(target, centre, dtype=np.float64)
     forward /= np.linalg.norm(forward)
@@ -79,9 +79,9 @@ def forging_rig() -> Rig:
         "projector": _device("projector", (1280, 800), 1500.0, [0.02, -0.01, 0.0, 0.0, 0.0],
                              np.eye(3), (0.0, 0.0, 0.0)),
         "camera": _device("camera", (1280, 800), 1400.0, [-0.08, 0.12, 0.0005, -0.0003, -0.02],
-                          _look_at((350.0, 0.0, 0.0), FORGING_AIM), (350.0, 0.0, 0.0)),
+                          look_at_rotation((350.0, 0.0, 0.0), FORGING_AIM), (350.0, 0.0, 0.0)),
         "thermal": _device("thermal", (320, 256), 380.0, [-0.15, 0.08, 0.001, 0.0005, 0.0],
-                           _look_at((180.0, -120.0, 0.0), FORGING_AIM), (180.0, -120.0, 0.0)),
+                           look_at_rotation((180.0, -120.0, 0.0), FORGING_AIM), (180.0, -120.0, 0.0)),
     })
 
 

@@ -17,7 +17,7 @@ from services.formats.rig import Device, Rig, save_rig
 from services.formats.sequence import save_sequence
 from services.formats.thermal import write_thermal_frame
 from services.geometry.camera import pixel_grid, pixel_rays
-from services.simulation.presets import forging_rig, forging_scene
+from services.simulation.presets import forging_rig, forging_scene, look_at_rotation
 from services.simulation.raycast import cast_rays
 from services.simulation.render import CameraEffects, GroundTruth, render_frames, render_view
 from services.simulation.scene import Cylinder, Plane, Scene
@@ -35,11 +35,7 @@ _FORGING_SCALE = 2
 def look_at(kind: str, centre, target, focal: float, width: int, height: int, dist=()) -> Device:
     """A device at ``centre`` whose optical axis points at ``target`` (y roughly down)."""
     centre = np.asarray(centre, dtype=float)
-    forward = np.asarray(target, dtype=float) - centre
-    forward /= np.linalg.norm(forward)
-    right = np.cross([0.0, 1.0, 0.0], forward)
-    right /= np.linalg.norm(right)
-    R = np.stack([right, np.cross(forward, right), forward])
+    R = look_at_rotation(centre, target)
     K = [[focal, 0, (width - 1) / 2], [0, focal, (height - 1) / 2], [0, 0, 1]]
     return Device(kind=kind, width=width, height=height, K=K, dist=list(dist), R=R.tolist(),
                   t=(-R @ centre).tolist())
