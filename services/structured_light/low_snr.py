@@ -102,6 +102,7 @@ def _refine_kernel(coordinates, modulation, noise_scale, threshold, radius, max_
             if not (np.isfinite(centre) and sigma > threshold):
                 continue
             n = 0
+            lowest, highest = np.inf, -np.inf
             for r in range(max(0, row - radius), min(height, row + radius + 1)):
                 for c in range(max(0, col - radius), min(width, col + radius + 1)):
                     value = coordinates[r, c]
@@ -111,13 +112,15 @@ def _refine_kernel(coordinates, modulation, noise_scale, threshold, radius, max_
                         dys[n] = r - row
                         ws[n] = modulation[r, c] * modulation[r, c] if np.isfinite(modulation[r, c]) else 0.0
                         ordered[n] = value
+                        lowest, highest = min(lowest, value), max(highest, value)
                         n += 1
             # Decoding errors jump by a period from the locally linear field. First the plain test against the
             # window's median; where it leaves too few neighbours or calls the pixel an outlier (a steep or
             # curved field at a limb changes by more than max_step across the window), the detrended one.
             for i in range(n):
                 trend[i] = 0.0
-            median = _median_in_place(ordered, n)
+            # In a window spanning at most max_step every value passes whatever the median: skip sorting.
+            median = _median_in_place(ordered, n) if highest - lowest > max_step else lowest
             for detrended in (False, True):
                 if detrended:
                     slope_x, slope_y = _median_neighbour_differences(coordinates, row, col, radius, differences)

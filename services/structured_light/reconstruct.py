@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import cv2
 import numba
 import numpy as np
 
@@ -69,37 +68,76 @@ def _refined_coordinates(decoded: DecodedCapture, sequence: Sequence, axis: str)
                           max_step=finest.period / 4)
 
 
-_SPECKLE_INVALID = -32768
-
-
-# Hand-written with numba: one parallel pass each, where numpy's masked assignments take several passes
-# and temporaries over the whole image.
-@numba.njit(parallel=True, cache=True)
-def _quantise_kernel(coordinates, scale, out):
-    height, width = coordinates.shape
-    for row in numba.prange(height):
+# Hand-written with numba: OpenCV's filterSpeckles is the same flood fill, but serial and on 16-bit
+# integers; here it runs on the float coordinates in horizontal bands, one per thread.
+@numba.njit(cache=True)
+def _band_speckles(coordinates, top, bottom, first, last, max_step, max_speckle_px, out):
+    """Flood-fill rows top..bottom of the coordinates and write rows first..last of ``out``, NaN on the
+    regions of at most ``max_speckle_px`` pixels."""
+    width = coordinates.shape[1]
+    values = coordinates[top:bottom].ravel()
+    n = values.size
+    labels = np.zeros(n, np.int32)
+    region_size = np.empty(n + 1, np.int32)  # sized for the most regions, not grown: growing costs 5x
+    stack = np.empty(n, np.int32)  # flat indices of the pixels to visit, and their columns
+    stack_col = np.empty(n, np.int32)
+    regions = 0
+    for row in range(first, last):
         for col in range(width):
-            value = coordinates[row, col]
-            out[row, col] = np.int16(round((value + 0.5) * scale)) if np.isfinite(value) else _SPECKLE_INVALID
+            seed = (row - top) * width + col
+            value = values[seed]
+            out[row, col] = value
+            if not np.isfinite(value):
+                continue
+            label = labels[seed]
+            if label == 0:
+                regions += 1
+                label = regions
+                labels[seed], stack[0], stack_col[0] = label, seed, col
+                depth, size = 1, 0
+                while depth > 0:
+                    depth -= 1
+                    p, c = stack[depth], stack_col[depth]
+                    size += 1
+                    here = values[p]
+                    # the four neighbours, joined where their coordinates differ by at most max_step (not NaN)
+                    q = p - width
+                    if p >= width and labels[q] == 0 and abs(values[q] - here) <= max_step:
+                        labels[q], stack[depth], stack_col[depth] = label, q, c
+                        depth += 1
+                    q = p + width
+                    if q < n and labels[q] == 0 and abs(values[q] - here) <= max_step:
+                        labels[q], stack[depth], stack_col[depth] = label, q, c
+                        depth += 1
+                    q = p - 1
+                    if c > 0 and labels[q] == 0 and abs(values[q] - here) <= max_step:
+                        labels[q], stack[depth], stack_col[depth] = label, q, c - 1
+                        depth += 1
+                    q = p + 1
+                    if c + 1 < width and labels[q] == 0 and abs(values[q] - here) <= max_step:
+                        labels[q], stack[depth], stack_col[depth] = label, q, c + 1
+                        depth += 1
+                region_size[label] = size
+            if region_size[label] <= max_speckle_px:
+                out[row, col] = np.nan
 
 
 @numba.njit(parallel=True, cache=True)
-def _drop_speckles_kernel(coordinates, quantised, out):
-    height, width = coordinates.shape
-    for row in numba.prange(height):
-        for col in range(width):
-            out[row, col] = np.nan if quantised[row, col] == _SPECKLE_INVALID else coordinates[row, col]
+def _speckles_kernel(coordinates, bands, max_step, max_speckle_px, out):
+    height = coordinates.shape[0]
+    for band in numba.prange(bands):
+        first, last = band * height // bands, (band + 1) * height // bands
+        _band_speckles(coordinates, max(0, first - max_speckle_px), min(height, last + max_speckle_px),
+                       first, last, max_step, max_speckle_px, out)
 
 
-def remove_speckles(coordinates: np.ndarray, axis_size: int, max_step: float, max_speckle_px: int = 25) -> np.ndarray:
+def remove_speckles(coordinates: np.ndarray, max_step: float, max_speckle_px: int = 25) -> np.ndarray:
     """Reject small islands of decoded pixels that disagree with everything around them.
 
     Parameters
     ----------
     coordinates : (H, W) float32 array
         Decoded projector coordinates, NaN where invalid.
-    axis_size : int
-        Projector pixels along the coded axis.
     max_step : float
         Largest coordinate difference, in projector pixels, between 4-neighbours of one surface.
     max_speckle_px : int
@@ -114,8 +152,11 @@ def remove_speckles(coordinates: np.ndarray, axis_size: int, max_step: float, ma
     -----
     Pixels are grouped by 4-connected flood fill where neighbours differ by at most ``max_step``; a
     decoding error (a misread high Gray bit, an unwrapping slip) produces an island that differs from its
-    surroundings by at least a period and is removed, like OpenCV's speckle filter for disparity maps,
-    which this calls on the coordinates quantised to 16-bit integers.
+    surroundings by at least a period and is removed, like OpenCV's speckle filter for disparity maps
+    (``filterSpeckles``) [1]_. The image is filled in horizontal bands in parallel, each with
+    ``max_speckle_px`` rows of context on either side, which gives exactly the whole image's result: a
+    speckle spans at most that many rows, so it lies whole within the context of any band it touches, and a
+    larger region that leaves the context spans more rows than that inside it.
 
     References
     ----------
@@ -123,12 +164,13 @@ def remove_speckles(coordinates: np.ndarray, axis_size: int, max_step: float, ma
        IEEE TPAMI 30(2), 2008 (the speckle filter of OpenCV's ``filterSpeckles``).
     """
     coordinates = np.ascontiguousarray(coordinates, dtype=np.float32)
-    scale = 32000.0 / (axis_size + 1)
-    quantised = np.empty(coordinates.shape, dtype=np.int16)
-    _quantise_kernel(coordinates, scale, quantised)
-    cv2.filterSpeckles(quantised, _SPECKLE_INVALID, max_speckle_px, max(1, int(max_step * scale)))
+    if coordinates.ndim != 2:
+        raise ValueError(f"The coordinates must be an (H, W) image; got an array of shape {coordinates.shape}.")
+    if max_speckle_px < 1:
+        raise ValueError(f"max_speckle_px must be at least 1 pixel; got {max_speckle_px}.")
     kept = np.empty_like(coordinates)
-    _drop_speckles_kernel(coordinates, quantised, kept)
+    bands = min(numba.get_num_threads(), coordinates.shape[0] // (4 * max_speckle_px) + 1)
+    _speckles_kernel(coordinates, bands, float(max_step), int(max_speckle_px), kept)
     return kept
 
 
@@ -280,6 +322,6 @@ def reconstruct_points(
     decoded = decode(frames, sequence, min_quality=_MIN_QUALITY, edge_margin=0,
                      min_modulation=_MIN_MODULATION_OF_FULL_SCALE * full_scale)
     coordinates = _refined_coordinates(decoded, sequence, axis)
-    coordinates = remove_speckles(coordinates, sequence.axis_size(axis), _coordinate_step_limit(sequence, axis))
+    coordinates = remove_speckles(coordinates, _coordinate_step_limit(sequence, axis))
     points_map = triangulate_map(table, coordinates)
     return _cloud(points_map, table.centre_world, coordinates, decoded)

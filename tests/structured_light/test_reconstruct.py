@@ -1,5 +1,6 @@
 """End-to-end accuracy of decode + triangulate on the simulator's ground truth (issue 2 targets)."""
 
+import cv2
 import numpy as np
 import pytest
 
@@ -7,7 +8,7 @@ from services.simulation.presets import PAPER_SPHERE_CENTRE, forging_rig, forgin
 from services.simulation.render import CameraEffects, ProjectorEffects, render_frames, render_view
 from services.simulation.scene import Albedo
 from services.structured_light.patterns import generate_sequence
-from services.structured_light.reconstruct import reconstruct_points, remove_speckles, surface_normals
+from services.structured_light.reconstruct import _speckles_kernel, reconstruct_points, remove_speckles, surface_normals
 
 NOISY_CAMERA = CameraEffects(noise_sigma=1.5, blur_sigma=0.7)
 BLURRY_PROJECTOR = ProjectorEffects(gamma=2.2, blur_sigma=0.8, black_level=0.02)
@@ -92,7 +93,42 @@ def test_speckles_of_wrong_periods_are_removed_and_surfaces_kept():
     coordinates[40, 50] += 16  # one pixel a period off
     coordinates[10:13, 100:103] += 64  # a 3x3 island from a misread Gray bit
     coordinates[:, 150] = np.nan  # a gap splitting the surface: both sides are large and stay
-    keep = np.isfinite(remove_speckles(coordinates, 1024, max_step=8))
+    keep = np.isfinite(remove_speckles(coordinates, max_step=8))
     assert not keep[40, 50] and not keep[10:13, 100:103].any()
     assert not keep[:, 150].any()
     assert keep.sum() == 80 * 199 - 1 - 9
+
+
+def _speckled_surface(height: int, width: int, seed: int) -> np.ndarray:
+    """Integer coordinates on a slanted surface with islands of every size from 1 to 60 pixels, some a
+    period off, some cut out by NaN, so that regions end near any band boundary."""
+    rng = np.random.default_rng(seed)
+    coordinates = np.add.outer(np.arange(height) // 3, np.arange(width)).astype(np.float32)
+    for _ in range(400):
+        row, col = rng.integers(0, height), rng.integers(0, width)
+        rows, cols = rng.integers(1, 13), rng.integers(1, 6)
+        if rng.random() < 0.5:
+            coordinates[row:row + rows, col:col + cols] += 64
+        else:
+            coordinates[row:row + rows, col:col + cols] = np.nan
+    return coordinates
+
+
+def test_speckle_filter_matches_opencv_on_the_whole_image():
+    coordinates = _speckled_surface(300, 240, seed=1)
+    quantised = np.where(np.isfinite(coordinates), coordinates, -32768).astype(np.int16)
+    cv2.filterSpeckles(quantised, -32768, 25, 8)
+    kept = remove_speckles(coordinates, max_step=8)
+    assert (quantised == -32768).sum() > np.isnan(coordinates).sum()  # speckles were removed
+    np.testing.assert_array_equal(np.isfinite(kept), quantised != -32768)
+    np.testing.assert_array_equal(kept[np.isfinite(kept)], coordinates[np.isfinite(kept)])
+
+
+@pytest.mark.parametrize("bands", [2, 3, 7])
+def test_speckle_filter_in_bands_equals_one_band(bands):
+    coordinates = _speckled_surface(350, 200, seed=bands)
+    whole, banded = np.empty_like(coordinates), np.empty_like(coordinates)
+    _speckles_kernel(coordinates, 1, 8.0, 25, whole)
+    _speckles_kernel(coordinates, bands, 8.0, 25, banded)
+    np.testing.assert_array_equal(banded, whole)
+    assert np.isnan(whole).sum() > np.isnan(coordinates).sum()  # speckles were removed
