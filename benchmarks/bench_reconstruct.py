@@ -9,7 +9,8 @@ station with 1920x1080 camera and projector). The baseline decodes the same fram
 numpy and triangulates by the same per-calibration table, also in plain numpy; the table is built once,
 outside the timed region, for both. Ours and the baseline run in turn, so that load changes on a shared
 machine hit both alike. Peak memory is the largest traced allocation (``tracemalloc``) during one scan,
-beside the size of the input frames.
+beside the size of the input frames. Last, the full scan's stages are timed back to back, to show where its
+time goes.
 """
 
 from __future__ import annotations
@@ -29,7 +30,16 @@ from services.simulation.presets import forging_rig, forging_scene
 from services.simulation.render import CameraEffects, ProjectorEffects, render_frames, render_view
 from services.structured_light.decode import decode
 from services.structured_light.patterns import generate_sequence
-from services.structured_light.reconstruct import reconstruct_points, rig_triangulation_table
+from services.structured_light.reconstruct import (
+    _MIN_MODULATION_OF_FULL_SCALE,
+    _MIN_QUALITY,
+    _cloud,
+    _coordinate_step_limit,
+    _refined_coordinates,
+    reconstruct_points,
+    remove_speckles,
+    rig_triangulation_table,
+)
 from services.structured_light.triangulate import TriangulationTable, triangulate_map
 
 
@@ -109,8 +119,8 @@ def numpy_reconstruct(frames, sequence, table: TriangulationTable) -> np.ndarray
 _SETTLE_S = 0.3  # OpenBLAS and OpenMP worker threads spin for up to ~0.1 s after a call
 
 
-def _interleaved_median_ms(functions: dict, repeats: int) -> dict[str, float]:
-    """Median wall time of each function, run in turn so that a change in the machine's load hits all alike,
+def _interleaved_times_ms(functions: dict, repeats: int) -> dict[str, list[float]]:
+    """Wall times of each function, run in turn so that a change in the machine's load hits all alike,
     with a pause before each run so that the previous one's spinning worker threads do not steal a core."""
     for function in functions.values():
         function()  # warm-up: numba compilation and caches
@@ -120,8 +130,46 @@ def _interleaved_median_ms(functions: dict, repeats: int) -> dict[str, float]:
             time.sleep(_SETTLE_S)
             start = time.perf_counter()
             function()
-            times[name].append(time.perf_counter() - start)
-    return {name: 1000 * statistics.median(values) for name, values in times.items()}
+            times[name].append(1000 * (time.perf_counter() - start))
+    return times
+
+
+def _stage_medians_ms(frames, sequence, camera, projector, table, repeats: int) -> dict[str, float]:
+    """Median time of each stage of ``reconstruct_points``, the stages run back to back as it runs them."""
+    axis = table.axis
+    decoded = coordinates = kept = points_map = None
+
+    def decode_stage():
+        nonlocal decoded
+        decoded = decode(frames, sequence, min_quality=_MIN_QUALITY, edge_margin=0,
+                         min_modulation=_MIN_MODULATION_OF_FULL_SCALE * np.iinfo(frames.dtype).max)
+
+    def refine_stage():
+        nonlocal coordinates
+        coordinates = _refined_coordinates(decoded, sequence, axis)
+
+    def speckle_stage():
+        nonlocal kept
+        kept = remove_speckles(coordinates, _coordinate_step_limit(sequence, axis))
+
+    def triangulate_stage():
+        nonlocal points_map
+        points_map = triangulate_map(table, kept)
+
+    def cloud_stage():
+        _cloud(points_map, table.centre_world, kept, decoded)
+
+    stages = {"decode": decode_stage,
+              "blur estimate, outline correction, noise estimate, weak-signal refinement": refine_stage,
+              "speckle filter": speckle_stage, "triangulation": triangulate_stage, "cloud with normals": cloud_stage}
+    times = {name: [] for name in stages}
+    for repeat in range(repeats + 1):
+        for name, stage in stages.items():
+            start = time.perf_counter()
+            stage()
+            if repeat > 0:  # the first pass is the warm-up
+                times[name].append(1000 * (time.perf_counter() - start))
+    return {name: statistics.median(values) for name, values in times.items()}
 
 
 def _peak_mb(function) -> float:
@@ -150,16 +198,19 @@ def run(repeats: int) -> list[dict]:
         decode_triangulate = lambda: triangulate_map(table, decode(frames, sequence).projector_x)  # noqa: E731
         baseline = lambda: numpy_reconstruct(frames, sequence, table)  # noqa: E731
         total_before, steal_before = _cpu_jiffies()
-        times = _interleaved_median_ms({"scan": scan, "decode_triangulate": decode_triangulate, "baseline": baseline},
-                                       repeats)
+        times = _interleaved_times_ms({"scan": scan, "decode_triangulate": decode_triangulate, "baseline": baseline},
+                                      repeats)
         total_after, steal_after = _cpu_jiffies()
         row = {
             "size": f"{width}x{height}", "frames": len(frames), "input_mb": frames.nbytes / 2**20,
             "points": len(scan()["x"]), "baseline_points": len(baseline()),
-            "scan_ms": times["scan"], "decode_triangulate_ms": times["decode_triangulate"],
-            "baseline_ms": times["baseline"], "scan_peak_mb": _peak_mb(scan), "baseline_peak_mb": _peak_mb(baseline),
+            "scan_ms": statistics.median(times["scan"]),
+            "decode_triangulate_ms": statistics.median(times["decode_triangulate"]),
+            "baseline_ms": statistics.median(times["baseline"]), "baseline_fastest_ms": min(times["baseline"]),
+            "scan_peak_mb": _peak_mb(scan), "baseline_peak_mb": _peak_mb(baseline),
             "table_s": table_s, "table_mb": table_mb,
             "steal": (steal_after - steal_before) / max(1, total_after - total_before),
+            "stages": _stage_medians_ms(frames, sequence, camera, projector, table, repeats),
         }
         rows.append(row)
         print(row, flush=True)
@@ -185,24 +236,37 @@ def report(rows: list[dict], repeats: int) -> str:
              "- **Full scan**: `reconstruct_points`, which also corrects the outline's blur bias, refines "
              "weak-signal pixels, removes speckles and computes normals (docs/structured-light.md); the "
              "baseline does none of this.",
+             "- The baseline's run times are bimodal on this machine (about 150 ms, or two to three times that in "
+             "some runs), so its fastest run is given beside the median, and the full scan's speed-up against it "
+             "in brackets: the conservative figure.",
              "- All use the triangulation table, built once per calibration outside the timed region (build "
              "time and size in a column). CPU stolen: the share of the machine's CPU time the hypervisor gave "
              "to other guests during the timed runs (`/proc/stat`); parallel code loses more to it than the "
              "mostly single-threaded baseline. Memory: peak traced allocation during one scan "
              "(`tracemalloc`; numba's own allocations go through numpy and are counted), beside the size of "
              "the input frames.", "",
-             "| capture | frames | input MB | points: full scan (baseline) | baseline ms | decode + triangulate ms "
-             "| speed-up | full scan ms | speed-up | full scan Mpoints/s | full scan peak MB | peak / input | "
-             "baseline peak MB | table: build s, MB | CPU stolen |",
+             "| capture | frames | input MB | points: full scan (baseline) | baseline ms (fastest) | "
+             "decode + triangulate ms | speed-up | full scan ms | speed-up (against the fastest baseline) | "
+             "full scan Mpoints/s | full scan peak MB | peak / input | baseline peak MB | table: build s, MB | "
+             "CPU stolen |",
              "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
         lines.append(
             f"| {r['size']} | {r['frames']} | {r['input_mb']:.1f} | {r['points']} ({r['baseline_points']}) | "
-            f"{r['baseline_ms']:.1f} | {r['decode_triangulate_ms']:.1f} | "
+            f"{r['baseline_ms']:.1f} ({r['baseline_fastest_ms']:.1f}) | {r['decode_triangulate_ms']:.1f} | "
             f"{r['baseline_ms'] / r['decode_triangulate_ms']:.1f}x | {r['scan_ms']:.1f} | "
-            f"{r['baseline_ms'] / r['scan_ms']:.1f}x | {r['points'] / r['scan_ms'] / 1000:.1f} | "
+            f"{r['baseline_ms'] / r['scan_ms']:.1f}x ({r['baseline_fastest_ms'] / r['scan_ms']:.1f}x) | "
+            f"{r['points'] / r['scan_ms'] / 1000:.1f} | "
             f"{r['scan_peak_mb']:.1f} | {r['scan_peak_mb'] / r['input_mb']:.2f} | {r['baseline_peak_mb']:.1f} | "
             f"{r['table_s']:.2f}, {r['table_mb']:.1f} | {100 * r['steal']:.0f} % |")
+    lines += ["", "Where the full scan's time goes: the median of each stage of `reconstruct_points`, the stages run "
+              "back to back without the pause (so without the wake-up of idle threads that the pause costs the "
+              "scan above).", "",
+              "| stage | " + " | ".join(f"{r['size']} ms" for r in rows) + " |",
+              "|---|" + "---|" * len(rows)]
+    for stage in rows[0]["stages"]:
+        lines.append(f"| {stage} | " + " | ".join(f"{r['stages'][stage]:.1f}" for r in rows) + " |")
+    lines.append("| sum | " + " | ".join(f"{sum(r['stages'].values()):.1f}" for r in rows) + " |")
     return "\n".join(lines) + "\n"
 
 
