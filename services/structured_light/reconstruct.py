@@ -78,7 +78,7 @@ def _band_speckles(coordinates, top, bottom, first, last, max_step, max_speckle_
     values = coordinates[top:bottom].ravel()
     n = values.size
     labels = np.zeros(n, np.int32)
-    region_size = np.empty(n + 1, np.int32)  # sized for the most regions, not grown: growing costs 5x
+    region_size = np.empty(n + 1, np.int32)  # room for the most regions: an array grown in the loop costs 5x
     stack = np.empty(n, np.int32)  # flat indices of the pixels to visit, and their columns
     stack_col = np.empty(n, np.int32)
     regions = 0

@@ -124,6 +124,13 @@ def test_speckle_filter_matches_opencv_on_the_whole_image():
     np.testing.assert_array_equal(kept[np.isfinite(kept)], coordinates[np.isfinite(kept)])
 
 
+def test_speckle_filter_refuses_what_is_not_an_image_or_a_size():
+    with pytest.raises(ValueError, match=r"must be an \(H, W\) image"):
+        remove_speckles(np.zeros((2, 3, 4), np.float32), max_step=8)
+    with pytest.raises(ValueError, match="at least 1 pixel"):
+        remove_speckles(np.zeros((3, 4), np.float32), max_step=8, max_speckle_px=0)
+
+
 @pytest.mark.parametrize("bands", [2, 3, 7])
 def test_speckle_filter_in_bands_equals_one_band(bands):
     coordinates = _speckled_surface(350, 200, seed=bands)
