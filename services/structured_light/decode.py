@@ -17,6 +17,7 @@ from numba import get_num_threads, njit, prange
 
 from services.formats.sequence import AXES, Sequence
 from services.numba_options import SAFE_FASTMATH
+from services.structured_light.gray_subpixel import gray_subpixel
 
 
 class Rejection(enum.IntEnum):
@@ -379,6 +380,18 @@ def _edge_kernel(coordinates, rejection, margin, max_jump):
                 coordinates[1, row, col] = np.nan
 
 
+def _interpolate_gray_only_axes(frames: np.ndarray, sequence: Sequence, coordinates: np.ndarray,
+                                rejection: np.ndarray) -> None:
+    """Replace the stripe centres of Gray-code-only axes by ``gray_subpixel``'s coordinates, in place;
+    pixels it cannot interpolate become ``INCONSISTENT``."""
+    for a, axis in enumerate(AXES):
+        if sequence.gray_planes(axis) and not sequence.phase_groups(axis):
+            coordinates[a] = gray_subpixel(frames, sequence, axis, coordinates[a])
+            lost = (rejection == Rejection.VALID) & np.isnan(coordinates[a])
+            rejection[lost] = Rejection.INCONSISTENT
+            coordinates[:, lost] = np.nan
+
+
 def decode(
     frames: np.ndarray,
     sequence: Sequence,
@@ -390,6 +403,7 @@ def decode(
     consistency: float = 0.25,
     edge_margin: int = 3,
     max_jump: float = np.inf,
+    gray_boundaries: bool = True,
 ) -> DecodedCapture:
     """Decode camera frames of a structured-light sequence into projector coordinates.
 
@@ -424,6 +438,10 @@ def decode(
         more than this many projector pixels are ``EDGE`` (both sides of a depth
         step, where mixed pixels fly between the surfaces). Infinite by default,
         since the expected gradient depends on the rig and the surface slant.
+    gray_boundaries : bool
+        For axes coded by Gray code alone, interpolate the coordinate between the stripe boundaries
+        located in the image (``gray_subpixel``); pixels without boundaries on both sides (or one side,
+        within a stripe) are then ``INCONSISTENT``. False gives the stripe centres.
 
     Returns
     -------
@@ -435,7 +453,9 @@ def decode(
     else than ``(white + black) / 2``, or else than the phase offset; the Gray
     bits ``g`` give the stripe index ``k`` (``binary_i = binary_{i+1} XOR g_i``),
     and with stripes ``s = 2**d`` pixels wide (``d`` the finest bit shown) the
-    stripe centre is ``x_g = s k + (s - 1) / 2``.
+    stripe centre is ``x_g = s k + (s - 1) / 2``. Axes coded by Gray code alone are then refined to
+    sub-pixel by ``gray_subpixel``: the coordinate is interpolated between the stripe boundaries, located
+    where the flipping bit's plane crosses its inverse (or threshold) between two camera pixels.
 
     Phase: with ``I_k = A + B cos(phi - 2 pi k / N)``, ``C = sum I_k cos(2 pi k / N)``
     and ``S = sum I_k sin(2 pi k / N)`` give ``phi = atan2(S, C)`` and
@@ -489,6 +509,8 @@ def decode(
     )
     if edge_margin > 0 or np.isfinite(max_jump):
         _edge_kernel(coordinates, rejection, int(edge_margin), float(max_jump))
+    if gray_boundaries:
+        _interpolate_gray_only_axes(frames, sequence, coordinates, rejection)
     return DecodedCapture(
         projector_x=coordinates[0],
         projector_y=coordinates[1],

@@ -283,6 +283,7 @@ def reconstruct_points(
     projector: Device,
     *,
     table: TriangulationTable | None = None,
+    gray_boundaries: bool = True,
 ) -> dict[str, np.ndarray]:
     """Decode a capture and triangulate every valid camera pixel.
 
@@ -297,6 +298,9 @@ def reconstruct_points(
     table : TriangulationTable, optional
         :func:`rig_triangulation_table` of the devices for the sequence, to reuse across scans of one
         calibration; computed here when None.
+    gray_boundaries : bool
+        Interpolate axes coded by Gray code alone between their stripe boundaries (``decode``'s option);
+        False triangulates their stripe centres.
 
     Returns
     -------
@@ -320,7 +324,7 @@ def reconstruct_points(
                          "not for this capture.")
     full_scale = np.iinfo(frames.dtype).max
     decoded = decode(frames, sequence, min_quality=_MIN_QUALITY, edge_margin=0,
-                     min_modulation=_MIN_MODULATION_OF_FULL_SCALE * full_scale)
+                     min_modulation=_MIN_MODULATION_OF_FULL_SCALE * full_scale, gray_boundaries=gray_boundaries)
     coordinates = _refined_coordinates(decoded, sequence, axis)
     coordinates = remove_speckles(coordinates, _coordinate_step_limit(sequence, axis))
     points_map = triangulate_map(table, coordinates)

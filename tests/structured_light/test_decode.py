@@ -99,13 +99,17 @@ def test_foreign_sequence_round_trip(name):
     assert np.all(np.isnan(other))
 
 
-def test_documented_1824_example_gives_stripe_centres():
+def test_documented_1824_example_gives_stripe_centres_or_interpolates_between_boundaries():
     frames = REFERENCES + _gray("x", range(10, 0, -1))
     sequence = _sequence(frames, 1824, 2)
-    decoded = decode(_camera(render_patterns(sequence)), sequence)
+    captured = _camera(render_patterns(sequence))
     truth_x, _ = _truth(2, 1824)
+    centres = decode(captured, sequence, gray_boundaries=False)
+    assert centres.valid.all()
+    np.testing.assert_array_equal(centres.projector_x, 2 * (truth_x // 2) + 0.5)
+    decoded = decode(captured, sequence)
     assert decoded.valid.all()
-    np.testing.assert_array_equal(decoded.projector_x, 2 * (truth_x // 2) + 0.5)
+    np.testing.assert_allclose(decoded.projector_x, truth_x, atol=1e-4)  # sharp edges halfway between pixels
     np.testing.assert_allclose(decoded.modulation, 105.0)  # every plane 105 grey levels from the mid level
     np.testing.assert_allclose(decoded.quality, 1.0)
 
