@@ -8,7 +8,11 @@ from typing import Literal
 import cv2
 import numpy as np
 
-DistortionModel = Literal["none", "radial", "standard", "rational"]
+from services.calibration.model_selection import ModelFit, ModelSelection, bayesian_information_criterion, select_model
+
+DistortionModel = Literal["none", "radial", "standard", "rational", "auto"]
+#: The lens models ``distortion="auto"`` chooses from, simplest first; each contains the previous one.
+AUTO_CANDIDATES = ("none", "radial", "standard", "rational")
 MIN_VIEWS = 3
 INTRINSIC_NAMES = ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6",
                    "s1", "s2", "s3", "s4", "tau_x", "tau_y")
@@ -58,6 +62,11 @@ class CameraCalibration:
         Observed minus reprojected pixel position of every feature of each kept view.
     rejected : list of (int, str)
         Input index and reason of every view rejected as an outlier.
+    distortion_model : str
+        The lens model of ``dist`` (the chosen one when ``distortion="auto"``).
+    model_selection : ModelSelection or None
+        With ``distortion="auto"``: every candidate's fit (RSS, parameters, BIC, RMS) and why the
+        chosen one won.
     """
 
     image_size: tuple[int, int]
@@ -72,6 +81,8 @@ class CameraCalibration:
     pose_std: np.ndarray
     residuals: list[np.ndarray]
     rejected: list[tuple[int, str]]
+    distortion_model: str = "standard"
+    model_selection: ModelSelection | None = None
 
 
 def calibrate_camera(
@@ -90,9 +101,9 @@ def calibrate_camera(
     image_points : list of (N_i, 2) arrays
         Their observed pixel positions.
     image_size : (width, height)
-    distortion : {"none", "radial", "standard", "rational"}
-        Lens model: none (ideal pinhole), k1 k2, k1 k2 p1 p2 k3, or the 8-coefficient
-        rational model.
+    distortion : {"none", "radial", "standard", "rational", "auto"}
+        Lens model: none (ideal pinhole), k1 k2, k1 k2 p1 p2 k3, the 8-coefficient
+        rational model, or "auto": the one of these the data support best (see Notes).
     reject_outliers : bool
         Drop views whose RMS is far above the others (see Notes), one at a time.
 
@@ -112,10 +123,18 @@ def calibrate_camera(
     median of the per-view RMS, it is dropped and the calibration repeated, never going
     below three views.
 
+    With ``distortion="auto"`` the outlier views are found with the standard model, then every
+    model of ``AUTO_CANDIDATES`` is fitted to the kept views and the one of lowest Bayesian
+    information criterion ``n ln(RSS / n) + k ln n`` wins (n residual coordinates, k parameters
+    including six per view) [2]_. Few, blurry views of a small sensor cannot separate k2 and k3 from
+    the focal length, and the criterion then drops the coefficients whose residual gain is noise;
+    many sharp views of a strongly distorted lens keep the full model.
+
     References
     ----------
     .. [1] Z. Zhang, "A flexible new technique for camera calibration", IEEE TPAMI 22(11),
        1330-1334, 2000.
+    .. [2] G. Schwarz, "Estimating the dimension of a model", Annals of Statistics 6(2), 461-464 (1978).
     """
     if len(object_points) != len(image_points):
         raise ValueError(
@@ -123,8 +142,8 @@ def calibrate_camera(
         )
     if len(object_points) < MIN_VIEWS:
         raise ValueError(f"Calibration needs at least {MIN_VIEWS} views of the board; got {len(object_points)}.")
-    if distortion not in _FLAGS:
-        raise ValueError(f"distortion must be one of {sorted(_FLAGS)}; got {distortion!r}.")
+    if distortion not in (*_FLAGS, "auto"):
+        raise ValueError(f"distortion must be one of {sorted((*_FLAGS, 'auto'))}; got {distortion!r}.")
     objects = [np.asarray(p, dtype=np.float32).reshape(-1, 3) for p in object_points]
     images = [np.asarray(p, dtype=np.float32).reshape(-1, 2) for p in image_points]
     for index, (obj, img) in enumerate(zip(objects, images)):
@@ -133,13 +152,20 @@ def calibrate_camera(
                              f"got {len(obj)} and {len(img)}.")
     kept = list(range(len(objects)))
     rejected: list[tuple[int, str]] = []
+    fitted = "standard" if distortion == "auto" else distortion
     while True:
-        result = _calibrate_views([objects[i] for i in kept], [images[i] for i in kept], image_size, distortion)
+        result = _calibrate_views([objects[i] for i in kept], [images[i] for i in kept], image_size, fitted)
         worst, reason = _worst_outlier(result["per_view_rms"]) if reject_outliers else (None, "")
         if worst is None or len(kept) <= MIN_VIEWS:
             break
         rejected.append((kept[worst], reason))
         del kept[worst]
+    selection = None
+    if distortion == "auto":
+        selection, result = _select_distortion([objects[i] for i in kept], [images[i] for i in kept], image_size,
+                                               {fitted: result})
+        fitted = selection.chosen
+    distortion = fitted
     std = {name: float(value) for name, value in zip(INTRINSIC_NAMES, result["std_intrinsics"])
            if name in _ESTIMATED[distortion]}
     return CameraCalibration(
@@ -155,7 +181,26 @@ def calibrate_camera(
         pose_std=result["pose_std"],
         residuals=result["residuals"],
         rejected=rejected,
+        distortion_model=distortion,
+        model_selection=selection,
     )
+
+
+def _select_distortion(objects: list[np.ndarray], images: list[np.ndarray], image_size: tuple[int, int],
+                       known: dict[str, dict]) -> tuple[ModelSelection, dict]:
+    """Fit every candidate lens model (reusing those in ``known``) and pick the lowest BIC."""
+    results = {model: known.get(model) or _calibrate_views(objects, images, image_size, model)
+               for model in AUTO_CANDIDATES}
+    observations = 2 * sum(len(points) for points in images)
+    fits = []
+    for model, result in results.items():
+        residual_sum = float(sum(np.sum(r**2) for r in result["residuals"]))
+        parameters = len(_ESTIMATED[model]) + 6 * len(images)
+        fits.append(ModelFit(model=model, residual_sum=residual_sum, observations=observations, parameters=parameters,
+                             bic=bayesian_information_criterion(residual_sum, observations, parameters),
+                             rms=result["rms"]))
+    selection = select_model(fits)
+    return selection, results[selection.chosen]
 
 
 def _calibrate_views(objects: list[np.ndarray], images: list[np.ndarray], image_size: tuple[int, int],

@@ -6,6 +6,10 @@ of the paper's Table 1 rotation [[0.94, 0, 0.342], [0, 1, 0], [-0.342, 0, 0.94]]
 axis (-0.342, 0, 0.940) turns toward the projector's; both 1024x768 with principal points at the image
 centres and no distortion; focal lengths 1300 px (projector) and 800 px (camera).
 
+Gray-code scanner rig (a foreign scanner coding Gray code alone): projector "projector" 1824x1140,
+f = 2500 px, at the origin looking along +z; camera "camera" 1280x1024, f = 1800 px, centred at
+(250, 0, 0) and aimed at (0, 0, 500); no distortion. ``scale`` divides every size and focal length.
+
 Forging rig: projector "projector" 1280x800, f = 1500 px, at the origin looking along +z; camera
 "camera" 1280x800, f = 1400 px, centred at (350, 0, 0); thermal camera "thermal" 320x256, f = 380 px,
 centred at (180, -120, 0) (above the projector, y pointing down). Camera and thermal camera aim at
@@ -71,6 +75,19 @@ def paper_plane(depth_mm: float, albedo: Albedo = Albedo()) -> Scene:
 def paper_sphere(radius_mm: float, albedo: Albedo = Albedo()) -> Scene:
     """The paper's sphere of radius ``radius_mm`` centred at (0, 0, 480) mm."""
     return Scene(surfaces=[Sphere(center=list(PAPER_SPHERE_CENTRE), radius=radius_mm, albedo=albedo)])
+
+
+def gray_scanner_rig(scale: int = 1) -> Rig:
+    """The Gray-code scanner rig, every size and focal length divided by ``scale`` (module docstring)."""
+    if scale < 1 or 1824 % scale or 1140 % scale or 1280 % scale or 1024 % scale:
+        raise ValueError(f"scale must be a positive common divisor of 1824, 1140, 1280 and 1024; got {scale}.")
+    camera_centre = (250.0, 0.0, 0.0)
+    return Rig(devices={
+        "projector": _device("projector", (1824 // scale, 1140 // scale), 2500.0 / scale, [], np.eye(3),
+                             (0.0, 0.0, 0.0)),
+        "camera": _device("camera", (1280 // scale, 1024 // scale), 1800.0 / scale, [],
+                          look_at_rotation(camera_centre, (0.0, 0.0, 500.0)), camera_centre),
+    })
 
 
 def forging_rig() -> Rig:
