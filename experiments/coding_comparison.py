@@ -79,7 +79,7 @@ def _unique_frames() -> dict[str, np.ndarray]:
 
 def _measure(sequence, captured, view, camera, projector, rays) -> dict[str, float]:
     frames = np.stack([captured[frame.file] for frame in sequence.frames])
-    decoded = decode(frames, sequence)
+    decoded = decode(frames, sequence, gray_boundaries=False)  # Gray-only codings as stripe centres (docs/coding.md)
     truth = view.truth
     decoded_lit = decoded.valid & truth.lit
     error_px = np.abs(decoded.projector_x - truth.projector_pixels[..., 0])[decoded_lit]

@@ -9,6 +9,7 @@ import numpy as np
 
 from services.calibration.camera import MIN_VIEWS, calibrate_camera
 from services.calibration.corners import BoardDetection, detect_board
+from services.calibration.model_selection import ModelSelection
 from services.calibration.projector import calibrate_projector, projector_corners
 from services.calibration.report import coverage_map, residual_bars, residual_vectors
 from services.calibration.stereo import calibrate_stereo
@@ -17,6 +18,8 @@ from services.formats.board import BoardSpec, load_board
 from services.formats.calibration import (
     CalibratedView,
     CameraCalibrationFile,
+    ModelCandidate,
+    ModelSelectionRecord,
     ProjectorCalibrationFile,
     RejectedView,
     StereoCalibrationFile,
@@ -44,8 +47,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     camera.add_argument("--out", required=True, type=Path, help="calibration JSON to write (report PNGs beside it)")
     camera.add_argument("--name", default=None, help="device name (default: the --kind)")
     camera.add_argument("--kind", choices=("camera", "thermal"), default="camera")
-    camera.add_argument("--distortion", choices=("none", "radial", "standard", "rational"), default="standard",
-                        help="lens model: none, k1 k2, k1 k2 p1 p2 k3 (default) or rational (8 terms)")
+    camera.add_argument("--distortion", choices=("none", "radial", "standard", "rational", "auto"), default="standard",
+                        help="lens model: none, k1 k2, k1 k2 p1 p2 k3 (default), rational (8 terms), or auto "
+                             "(the one the data support best, by the Bayesian information criterion)")
     camera.set_defaults(handler=run_camera)
 
     projector = topics.add_parser("projector", help="projector intrinsics and pose from structured-light board captures")
@@ -134,9 +138,10 @@ def run_camera(args: argparse.Namespace) -> int:
     ]
     output = CameraCalibrationFile(
         name=args.name or args.kind, kind=args.kind, width=size[0], height=size[1], K=result.K.tolist(),
-        dist=result.dist.tolist(), distortion_model=args.distortion, rms_px=result.rms, std=result.std,
+        dist=result.dist.tolist(), distortion_model=result.distortion_model, rms_px=result.rms, std=result.std,
         board=board, views=views,
         rejected=[RejectedView(image=names[i], reason=reason) for i, reason in result.rejected],
+        model_selection=_model_selection_record(result.model_selection),
     )
     kept_points = [detections[i].image_points for i in result.views]
     figures = {
@@ -151,7 +156,17 @@ def run_camera(args: argparse.Namespace) -> int:
     print(f"{output.name}: RMS {result.rms:.3f} px over {len(result.views)} views "
           f"({len(result.rejected)} rejected); fx {result.K[0, 0]:.2f} +- {result.std['fx']:.2f}, "
           f"fy {result.K[1, 1]:.2f} +- {result.std['fy']:.2f}, cx {result.K[0, 2]:.2f}, cy {result.K[1, 2]:.2f}")
+    if result.model_selection is not None:
+        print(f"{output.name}: lens model {result.distortion_model}: {result.model_selection.reason}")
     return 0
+
+
+def _model_selection_record(selection: ModelSelection | None) -> ModelSelectionRecord | None:
+    if selection is None:
+        return None
+    return ModelSelectionRecord(reason=selection.reason, candidates=[
+        ModelCandidate(model=fit.model, rms_px=fit.rms, parameters=fit.parameters, bic=fit.bic)
+        for fit in selection.fits])
 
 
 def report_path(calibration_path: Path, figure: str) -> Path:

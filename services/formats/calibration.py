@@ -7,8 +7,14 @@
  "board": {...board spec...},
  "views": [{"image": "ir01.png", "rms_px": 0.04, "polarity": "inverted",
             "R": [[...]], "t": [...], "pose_std": [rx, ry, rz, tx, ty, tz]}],
- "rejected": [{"image": "ir07.png", "reason": "reprojection RMS ... exceeds ..."}]}
+ "rejected": [{"image": "ir07.png", "reason": "reprojection RMS ... exceeds ..."}],
+ "model_selection": {"reason": "radial has the lowest BIC ...",
+                     "candidates": [{"model": "none", "rms_px": 0.9, "parameters": 100, "bic": -1200.0}, ...]}}
 ```
+
+``model_selection`` is present when the lens model was chosen from the data (``--distortion auto``):
+every candidate's RMS, number of estimated parameters (intrinsics and six per view) and Bayesian
+information criterion, and why ``distortion_model`` won.
 
 ``views[i].R, t`` is the board-to-camera pose, x_cam = R x_board + t, in millimetres;
 ``pose_std`` holds the standard deviations of the Rodrigues vector (rad) and of t (mm).
@@ -44,6 +50,22 @@ class RejectedView(BaseModel):
     reason: str
 
 
+class ModelCandidate(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+    model: str
+    rms_px: float
+    parameters: int
+    bic: float
+
+
+class ModelSelectionRecord(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+    reason: str
+    candidates: list[ModelCandidate]
+
+
 class CameraCalibrationFile(BaseModel):
     """What ``thermofield calibrate camera`` writes."""
 
@@ -61,6 +83,7 @@ class CameraCalibrationFile(BaseModel):
     board: BoardSpec
     views: list[CalibratedView]
     rejected: list[RejectedView]
+    model_selection: ModelSelectionRecord | None = None
 
     def device(self) -> Device:
         """The calibrated device at the world origin, as a rig entry."""

@@ -7,7 +7,7 @@ import pytest
 
 from services.cli.main import main
 from services.formats.board import parse_board
-from services.formats.calibration import CameraCalibrationFile, save_camera_calibration
+from services.formats.calibration import CameraCalibrationFile, load_camera_calibration, save_camera_calibration
 from services.formats.images import write_png
 from services.formats.rig import Device, Rig, load_rig, save_rig
 
@@ -153,3 +153,20 @@ def test_calibrate_camera_on_simulated_infrared_frames(tmp_path, visible_infrare
     K = np.asarray(result["K"])
     assert np.abs(np.diag(K)[:2] / np.diag(THERMAL_K)[:2] - 1).max() < 5e-3
     assert result["std"]["fx"] > 0 and "p1" not in result["std"]
+
+
+def test_calibrate_camera_chooses_the_lens_model_and_says_why(tmp_path, capsys, visible_infrared_pairs, chessboard_9x6):
+    (tmp_path / "board.json").write_text(chessboard_9x6.model_dump_json())
+    images = tmp_path / "thermal"
+    images.mkdir()
+    for index, (_, infrared) in enumerate(visible_infrared_pairs):
+        write_png(images / f"ir{index:02d}.png", infrared)
+    out = tmp_path / "thermal.json"
+    assert main(["calibrate", "camera", "--board", str(tmp_path / "board.json"), "--images", str(images), "--out",
+                 str(out), "--kind", "thermal", "--distortion", "auto"]) == 0
+    result = load_camera_calibration(out)
+    candidates = {c.model: c for c in result.model_selection.candidates}
+    assert set(candidates) == {"none", "radial", "standard", "rational"}
+    assert min(candidates.values(), key=lambda c: c.bic).model == result.distortion_model
+    assert result.model_selection.reason.startswith(result.distortion_model)
+    assert f"lens model {result.distortion_model}" in capsys.readouterr().out
