@@ -27,3 +27,23 @@ def engine(request, tmp_path):
     engine.dispose()
     with make_engine(POSTGRES_URL).begin() as connection:
         connection.execute(text(f"DROP SCHEMA {schema} CASCADE"))
+
+
+@pytest.fixture
+def small_disk(tmp_path):
+    """A directory on its own tmpfs of ``size`` bytes (``mode`` "ro" for a read-only one): a full or
+    read-only disk for the tests of what happens when writing fails. The machine's tests run as root."""
+    import subprocess
+
+    mounts = []
+
+    def make(size: int, mode: str = "rw"):
+        mount_point = tmp_path / f"disk{len(mounts)}"
+        mount_point.mkdir()
+        subprocess.run(["mount", "-t", "tmpfs", "-o", f"size={size},{mode}", "tmpfs", str(mount_point)], check=True)
+        mounts.append(mount_point)
+        return mount_point
+
+    yield make
+    for mount_point in mounts:
+        subprocess.run(["umount", "-l", str(mount_point)], check=False)

@@ -3,11 +3,20 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
 import importlib
+import logging
+import os
 import sys
 import traceback
+import warnings
 
-from services.errors import InputError
+# Third-party libraries do not write to the user's terminal: OpenCV's own log ("[ERROR:0@0.9] global
+# loadsave.cpp ..."), set before any module imports cv2; the rest is quieted per command below.
+os.environ.setdefault("OPENCV_LOG_LEVEL", "SILENT")
+
+from services.errors import InputError  # noqa: E402
+from services.formats.files import describe_os_error  # noqa: E402
 
 # Each module defines ``register(subparsers)``, which adds its sub-command(s) and sets ``handler``.
 COMMAND_MODULES = [
@@ -21,6 +30,8 @@ COMMAND_MODULES = [
     "services.cli.demo",
     "services.cli.register",
 ]
+# Commands that run services: their logs (and their children's) are for the operator and stay on stderr.
+SERVICE_COMMANDS = frozenset({"serve", "api", "worker", "gateway", "demo"})
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -35,14 +46,59 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+@contextlib.contextmanager
+def _quiet_libraries():
+    """Send what C libraries write straight to file descriptor 2 (libpng's "libpng error: ...", native
+    logs) to /dev/null, Python warnings and library log records nowhere; our own messages go to
+    ``sys.stderr``, which is pointed at the real terminal."""
+    sys.stderr.flush()
+    terminal = os.dup(2)
+    with open(os.devnull, "wb") as devnull:
+        os.dup2(devnull.fileno(), 2)
+    saved_stderr = sys.stderr
+    if _writes_to_fd2(saved_stderr):
+        sys.stderr = os.fdopen(os.dup(terminal), "w", buffering=1, errors="replace")
+    logging.getLogger().addHandler(logging.NullHandler())
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            yield
+    finally:
+        if sys.stderr is not saved_stderr:
+            sys.stderr.flush()
+            sys.stderr.close()
+            sys.stderr = saved_stderr
+        os.dup2(terminal, 2)
+        os.close(terminal)
+
+
+def _writes_to_fd2(stream) -> bool:
+    try:
+        return stream.fileno() == 2
+    except (AttributeError, OSError, ValueError):  # io.UnsupportedOperation is an OSError
+        return False
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
+    quiet = not args.debug and args.command not in SERVICE_COMMANDS
+    with _quiet_libraries() if quiet else contextlib.nullcontext():
+        return _run(args)
+
+
+def _run(args: argparse.Namespace) -> int:
     try:
         return args.handler(args) or 0
     except InputError as error:
         print(f"thermofield: error: {error}", file=sys.stderr)
         return 2
+    except OSError as error:  # a file the command reads or writes: name it, no traceback
+        if args.debug:
+            traceback.print_exc()
+        what = describe_os_error(error.filename, error, "use") if error.filename else f"{error.strerror or error}"
+        print(f"thermofield: error: {what}", file=sys.stderr)
+        return 1
     except KeyboardInterrupt:
         print("thermofield: interrupted", file=sys.stderr)
         return 130

@@ -49,10 +49,7 @@ def _run(args: argparse.Namespace) -> int:
     try:
         args.out.mkdir(parents=True, exist_ok=True)
         for frame, image in zip(sequence.frames, patterns):
-            target = args.out / frame.file
-            temporary = target.with_name(f"{target.stem}.part{target.suffix}")  # OpenCV picks the format by suffix
-            write_png(temporary, image)
-            temporary.replace(target)
+            write_png(args.out / frame.file, image)
         save_sequence(sequence, args.out)
     except OSError as error:
         raise InputError(f"--out: cannot write to {args.out} ({error.strerror or error})") from None

@@ -69,12 +69,6 @@ def _read_image(path: Path) -> np.ndarray:
     return image
 
 
-def _write_png_atomically(path: Path, image: np.ndarray) -> None:
-    temporary = path.with_name(path.stem + ".part" + path.suffix)
-    write_png(temporary, image)
-    temporary.replace(path)
-
-
 def _run_register(args: argparse.Namespace) -> int:
     for option in ("out", "overlay", "checkerboard"):
         path = getattr(args, option)
@@ -96,9 +90,9 @@ def _run_register(args: argparse.Namespace) -> int:
         raise InputError(f"{args.fixed} + {args.moving}: {error}") from None
     save_registration(registration_to_file(result), args.out)
     if args.overlay is not None:
-        _write_png_atomically(args.overlay, fused_overlay(fixed, moving, result.matrix))
+        write_png(args.overlay, fused_overlay(fixed, moving, result.matrix))
     if args.checkerboard is not None:
-        _write_png_atomically(args.checkerboard, checkerboard_blend(fixed, moving, result.matrix))
+        write_png(args.checkerboard, checkerboard_blend(fixed, moving, result.matrix))
     print(f"{args.out}: {result.model}, MI {result.mi:.3f} (base {result.log_base:g}, {result.bins} bins), "
           f"NMI {result.nmi:.3f}")
     return 0

@@ -6,11 +6,12 @@ import argparse
 import re
 from pathlib import Path
 
-import cv2
 import numpy as np
 
 from services.errors import InputError
-from services.formats.images import read_frame_stack
+from services.formats.files import atomic_output
+from services.formats.images import read_frame_stack, write_image
+from services.formats.json_files import write_text_atomically
 from services.formats.rig import Rig, load_rig, save_rig
 from services.formats.sequence import load_sequence, save_sequence
 from services.simulation.presets import forging_rig, forging_scene, paper_plane, paper_rig, paper_sphere
@@ -86,19 +87,9 @@ def _effects(args: argparse.Namespace) -> tuple[CameraEffects, ProjectorEffects]
     return camera, projector
 
 
-def _write_image(path: Path, image: np.ndarray) -> None:
-    """Write a frame in the format its name says, atomically (temporary name, then rename)."""
-    temporary = path.with_name(f"{path.stem}.part{path.suffix}")
-    if not cv2.imwrite(str(temporary), image):
-        raise OSError(f"{path}: could not write the image")
-    temporary.replace(path)
-
-
 def _write_array(path: Path, array: np.ndarray) -> None:
-    temporary = path.with_name(path.name + ".part")
-    with temporary.open("wb") as stream:
+    with atomic_output(path) as temporary, temporary.open("wb") as stream:
         np.save(stream, array)
-    temporary.replace(path)
 
 
 def _run(args: argparse.Namespace) -> int:
@@ -129,15 +120,14 @@ def _run(args: argparse.Namespace) -> int:
     view = render_view(scene, camera, projector, args.supersample)
     frames = render_frames(view, patterns, np.random.default_rng(args.seed), camera_effects, projector_effects)
     for frame, image in zip(sequence.frames, frames):
-        _write_image(args.out / frame.file, image)
+        write_image(args.out / frame.file, image)
     save_sequence(sequence, args.out)
     save_rig(rig, args.out / "rig.json")
-    (args.out / "scene.json.part").write_text(scene.model_dump_json(indent=2, exclude_none=True) + "\n")
-    (args.out / "scene.json.part").replace(args.out / "scene.json")
+    write_text_atomically(args.out / "scene.json", scene.model_dump_json(indent=2, exclude_none=True) + "\n")
     _write_array(args.out / "depth.npy", view.truth.depth)
     _write_array(args.out / "points.npy", view.truth.points)
     _write_array(args.out / "projector_pixels.npy", view.truth.projector_pixels)
-    _write_image(args.out / "lit_mask.png", view.truth.lit.astype(np.uint8) * 255)
+    write_image(args.out / "lit_mask.png", view.truth.lit.astype(np.uint8) * 255)
     print(f"wrote {len(frames)} frames of {camera.width}x{camera.height} and the ground truth to {args.out} "
           f"({view.truth.lit.mean():.1%} of pixels lit)")
     return 0

@@ -28,6 +28,7 @@ from matplotlib.figure import Figure
 from pydantic import BaseModel, ConfigDict
 
 from services.formats.board import BoardSpec
+from services.formats.files import atomic_output
 from services.formats.json_files import read_text, validate_json, write_model
 from services.formats.rig import Device, DeviceKind, Matrix3
 
@@ -140,7 +141,5 @@ def save_stereo_calibration(report: StereoCalibrationFile, path: str | Path) -> 
 
 def save_figure(figure: Figure, path: str | Path) -> None:
     """Write a report figure as PNG atomically."""
-    path = Path(path)
-    temporary = path.with_name(path.name + ".part")
-    figure.savefig(temporary, format="png", dpi=100)
-    temporary.replace(path)
+    with atomic_output(path) as temporary:
+        figure.savefig(temporary, format="png", dpi=100)

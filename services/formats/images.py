@@ -8,6 +8,7 @@ import cv2
 import numpy as np
 
 from services.errors import InputError
+from services.formats.files import atomic_output
 
 FRAME_SUFFIXES = (".png", ".bmp", ".tif", ".tiff")
 
@@ -52,7 +53,19 @@ def read_frame_stack(paths: list[Path]) -> np.ndarray:
 
 
 def write_png(path: str | Path, image: np.ndarray) -> None:
-    """Write an 8- or 16-bit grey or BGR image as PNG."""
+    """Write an 8- or 16-bit grey or BGR image as PNG, atomically."""
+    write_image(path, image)
+
+
+def write_image(path: str | Path, image: np.ndarray) -> None:
+    """Write an image in the format its suffix names (PNG, BMP, TIFF), atomically.
+
+    Encoded in memory and written by Python, so that a full disk is reported as such
+    (``cv2.imwrite`` only returns False).
+    """
     path = Path(path)
-    if not cv2.imwrite(str(path), image):
-        raise OSError(f"{path}: could not write the PNG")
+    ok, encoded = cv2.imencode(path.suffix, image)
+    if not ok:
+        raise ValueError(f"{path}: OpenCV cannot encode a {image.dtype} {image.shape} image as {path.suffix}.")
+    with atomic_output(path) as temporary:
+        temporary.write_bytes(encoded.tobytes())

@@ -8,6 +8,7 @@ from typing import TypeVar
 from pydantic import BaseModel, TypeAdapter, ValidationError
 
 from services.errors import InputError
+from services.formats.files import atomic_output
 
 Model = TypeVar("Model")
 
@@ -59,9 +60,8 @@ def read_text(path: str | Path, what: str) -> str:
 def write_text_atomically(path: str | Path, text: str) -> Path:
     """Write beside the target and rename, so a reader never sees half a file."""
     path = Path(path)
-    temporary = path.with_name(path.name + ".part")
-    temporary.write_text(text)
-    temporary.replace(path)
+    with atomic_output(path) as temporary:
+        temporary.write_text(text)
     return path
 
 

@@ -8,6 +8,7 @@ import numpy as np
 from plyfile import PlyData, PlyElement
 
 from services.errors import InputError
+from services.formats.files import atomic_output
 
 
 def write_cloud(path: str | Path, properties: dict[str, np.ndarray], comments: list[str] | None = None) -> None:
@@ -24,9 +25,8 @@ def write_cloud(path: str | Path, properties: dict[str, np.ndarray], comments: l
     for name, values in properties.items():
         vertices[name] = values
     data = PlyData([PlyElement.describe(vertices, "vertex")], text=False, byte_order="<", comments=comments or [])
-    temporary = path.with_name(path.name + ".part")
-    data.write(str(temporary))
-    temporary.replace(path)
+    with atomic_output(path) as temporary:
+        data.write(str(temporary))
 
 
 def read_cloud(path: str | Path) -> dict[str, np.ndarray]:

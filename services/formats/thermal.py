@@ -31,6 +31,7 @@ import tifffile
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from services.errors import InputError
+from services.formats.files import atomic_output
 from services.formats.json_files import read_text, validate_json
 from services.fusion.radiometry import KELVIN_OFFSET, PlanckConstants, correct_emissivity, counts_to_temperature
 
@@ -190,19 +191,15 @@ def write_thermal_frame(path: str | Path, temperature: np.ndarray) -> None:
     path = Path(path)
     suffix = path.suffix.lower()
     temperature = np.asarray(temperature, dtype=np.float32)
-    temporary = path.with_name(path.name + ".part")
-    if suffix == ".npy":
-        with open(temporary, "wb") as handle:
-            np.save(handle, temperature)
-    elif suffix in (".tif", ".tiff"):
-        tifffile.imwrite(temporary, temperature)
-    elif suffix == ".png":
-        centikelvin = np.round((temperature.astype(np.float64) + KELVIN_OFFSET) * 100.0)
-        in_range = np.isfinite(centikelvin) & (centikelvin > 0) & (centikelvin < 65535)
-        encoded = np.where(in_range, centikelvin, 0).astype(np.uint16)
-        if not cv2.imwrite(str(temporary) + ".png", encoded):
-            raise OSError(f"{path}: could not write the PNG")
-        Path(str(temporary) + ".png").replace(temporary)
-    else:
+    if suffix not in THERMAL_SUFFIXES:
         raise ValueError(f"Thermal frames are written as {', '.join(THERMAL_SUFFIXES)}; got {path.name!r}.")
-    temporary.replace(path)
+    with atomic_output(path) as temporary:
+        if suffix == ".npy":
+            with open(temporary, "wb") as handle:
+                np.save(handle, temperature)
+        elif suffix in (".tif", ".tiff"):
+            tifffile.imwrite(temporary, temperature)
+        else:
+            centikelvin = np.round((temperature.astype(np.float64) + KELVIN_OFFSET) * 100.0)
+            in_range = np.isfinite(centikelvin) & (centikelvin > 0) & (centikelvin < 65535)
+            temporary.write_bytes(cv2.imencode(".png", np.where(in_range, centikelvin, 0).astype(np.uint16))[1])

@@ -1,0 +1,63 @@
+"""Writing output files atomically, with one clear error naming the file when the disk says no.
+
+Every writer of the project's files goes through :func:`atomic_output`: the content
+is written to a temporary name beside the target and renamed into place, so a
+reader never sees half a file; on any failure (missing directory, no permission,
+disk full, an encoder that refuses) the temporary file is removed and an
+``InputError`` names the file the user asked for.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import errno
+import os
+from collections.abc import Iterator
+from contextlib import contextmanager
+from pathlib import Path
+
+from services.errors import InputError
+
+
+def describe_os_error(path: str | Path, error: OSError, action: str = "write") -> str:
+    """``path: cannot <action> the file (reason)`` for an ``OSError`` met on ``path``."""
+    path = Path(path)
+    if error.errno == errno.ENOENT and not path.parent.is_dir():
+        reason = f"the directory {path.parent} does not exist"
+    elif error.errno in (errno.ENOSPC, errno.EDQUOT):
+        reason = f"no space left on the device holding {path.parent}"
+    elif error.errno in (errno.EACCES, errno.EPERM, errno.EROFS):
+        reason = f"permission denied ({error.strerror.lower()})"
+    else:
+        reason = error.strerror or str(error)
+    return f"{path}: cannot {action} the file ({reason})"
+
+
+@contextmanager
+def atomic_output(path: str | Path) -> Iterator[Path]:
+    """Yield a temporary path beside ``path`` (same suffix, so encoders pick the format); rename it to
+    ``path`` when the block succeeds, remove it when it fails.
+
+    Raises
+    ------
+    InputError
+        Naming ``path``, when its directory is missing or writing fails (permission, disk full).
+    """
+    path = Path(path)
+    if not path.parent.is_dir():
+        raise InputError(f"{path}: cannot write the file (the directory {path.parent} does not exist)")
+    temporary = path.with_name(f"{path.stem}.part{os.getpid()}{path.suffix}")
+    try:
+        yield temporary
+        temporary.replace(path)
+    except OSError as error:
+        _remove(temporary)
+        raise InputError(describe_os_error(path, error)) from None
+    except BaseException:
+        _remove(temporary)
+        raise
+
+
+def _remove(path: Path) -> None:
+    with contextlib.suppress(OSError):  # e.g. on a read-only disk, where nothing was written either
+        path.unlink(missing_ok=True)
