@@ -8,7 +8,8 @@ from fastapi.routing import APIRoute
 from api.deps import KeyCache
 from api.metrics import ApiMetrics, MetricsMiddleware
 from api.problems import install_problem_handlers
-from api.routers import calibrations, devices, health, jobs, scans
+from api.ratelimit import RateLimiter
+from api.routers import apikeys, calibrations, devices, health, jobs, scans
 from workers.runtime import Runtime
 
 
@@ -27,12 +28,13 @@ def create_app(runtime: Runtime) -> FastAPI:
     )
     app.state.runtime = runtime
     app.state.key_cache = KeyCache()
+    app.state.rate_limiter = RateLimiter(runtime.settings.rate_limit_per_s, runtime.settings.rate_limit_burst)
     app.state.metrics = ApiMetrics(runtime)
     install_problem_handlers(app)
     app.add_middleware(MetricsMiddleware, metrics=app.state.metrics)
     app.include_router(health.router)
     v1 = APIRouter(prefix="/v1")
-    for module in (scans, jobs, calibrations, devices):
+    for module in (scans, jobs, calibrations, devices, apikeys):
         v1.include_router(module.router)
     app.include_router(v1)
     return app

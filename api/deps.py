@@ -61,6 +61,10 @@ class KeyCache:
             self._keys.clear()
         self._keys[digest] = (time.monotonic() + self.seconds, key)
 
+    def evict(self, key_id: str) -> None:
+        """Forget ``key_id`` at once (it was revoked through this process)."""
+        self._keys = {digest: entry for digest, entry in self._keys.items() if entry[1].id != key_id}
+
 
 async def get_current_key(
     request: Request, runtime: RuntimeDep,
@@ -77,6 +81,10 @@ async def get_current_key(
         if key is None:
             raise Problem(401, "unauthenticated", "The API key is unknown or revoked.", challenge)
         cache.put(digest, key)
+    wait = request.app.state.rate_limiter.wait_seconds(key.id)
+    if wait:
+        raise Problem(429, "rate-limited", f"This API key made more than {runtime.settings.rate_limit_per_s:g} "
+                                           f"requests per second; retry in {wait} s.", {"Retry-After": str(wait)})
     return key
 
 

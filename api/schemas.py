@@ -122,3 +122,22 @@ class Health(BaseModel):
 class Readiness(BaseModel):
     status: Literal["ready"]
     checks: dict[str, str]
+
+
+class ApiKeyOut(BaseModel):
+    api_key_id: str
+    name: str
+    scopes: list[str]
+    created_at: datetime
+    revoked_at: datetime | None
+
+
+class ApiKeyCreated(ApiKeyOut):
+    secret: str = Field(description="The key itself, shown only in this answer (the database keeps its SHA-256).")
+
+
+class ApiKeyRequest(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+    name: str = Field("api key", min_length=1, max_length=200)
+    scopes: list[Literal["read", "operate", "admin"]] = Field(min_length=1, max_length=3)

@@ -91,7 +91,9 @@ def main() -> None:
 
     data_dir = Path(tempfile.mkdtemp(prefix="thermofield-bench-"))
     port, gateway_port = _free_port(), _free_port()
-    env = os.environ | {"THERMOFIELD_DATA_DIR": str(data_dir), "THERMOFIELD_SITE": "bench"}
+    # The load measures the API itself, not the per-key rate limit (off here).
+    env = os.environ | {"THERMOFIELD_DATA_DIR": str(data_dir), "THERMOFIELD_SITE": "bench",
+                        "THERMOFIELD_RATE_LIMIT_PER_S": "0"}
     serve = subprocess.Popen(THERMOFIELD + ["serve", "--port", str(port), "--gateway-port", str(gateway_port),
                                             "--rerun-port", str(_free_port())],
                              env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)

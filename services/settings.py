@@ -66,6 +66,11 @@ class Settings(BaseSettings):
     site: str = Field("plant", pattern=r"^[A-Za-z0-9_-]+$", description="First level of the MQTT topic tree.")
     station: str = Field("station1", pattern=r"^[A-Za-z0-9_-]+$", description="Second level of the MQTT topic tree.")
 
+    rate_limit_per_s: float = Field(
+        50.0, ge=0, description="Requests per second each API key may make on average, per API process (0: no limit)."
+    )
+    rate_limit_burst: int = Field(100, ge=1, description="Requests an API key may make at once above its rate.")
+
     worker_processes: int = Field(2, ge=1, description="Worker processes started by `thermofield worker`.")
     worker_threads: int = Field(1, ge=1, description="Jobs run at once per worker process.")
     compute_threads: int = Field(2, ge=1, description="Numeric threads (numba, OpenCV, BLAS) per worker process.")

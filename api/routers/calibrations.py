@@ -79,7 +79,7 @@ async def create_calibration_set(request: Request, session: SessionDep, runtime:
 @router.post("/{calibration_set_id}/stereo", name="start_stereo_calibration", status_code=202,
              response_model=Accepted, responses={202: {"headers": {"Location": {"description": "The job."}}}})
 async def start_stereo_calibration(
-    request: Request, calibration: ExistingCalibration, session: SessionDep, runtime: RuntimeDep, key: AdminKey,
+    request: Request, key: AdminKey, calibration: ExistingCalibration, session: SessionDep, runtime: RuntimeDep,
     board: Annotated[UploadFile, File(description="Board specification JSON (docs/calibration.md).")],
     reference_images: Annotated[list[UploadFile], File(description="Board images of the rig's camera.")],
     device_images: Annotated[list[UploadFile], File(description="The same board poses seen by the device, "
@@ -121,8 +121,8 @@ async def start_stereo_calibration(
 
 @router.post("/{calibration_set_id}/stereo-captures", name="start_stereo_capture", status_code=202,
              response_model=Accepted, responses={202: {"headers": {"Location": {"description": "The job."}}}})
-async def start_stereo_capture(request: Request, calibration: ExistingCalibration, body: StereoCaptureRequest,
-                               session: SessionDep, runtime: RuntimeDep, key: AdminKey,
+async def start_stereo_capture(request: Request, key: AdminKey, calibration: ExistingCalibration,
+                               body: StereoCaptureRequest, session: SessionDep, runtime: RuntimeDep,
                                idempotency_key: IdempotencyKeyHeader = None):
     """A calibration capture job: the gateway films the board in ``views`` poses with the camera and the device
     (default the thermal camera), which is then placed relative to the camera: a ``calibrate`` job that creates a
@@ -180,7 +180,7 @@ def download_calibration_set(calibration: ExistingCalibration, runtime: RuntimeD
 
 
 @router.post("/{calibration_set_id}/activate", name="activate_calibration_set")
-def activate_calibration_set(calibration: ExistingCalibration, session: SessionDep, _: AdminKey) -> CalibrationSetOut:
+def activate_calibration_set(_: AdminKey, calibration: ExistingCalibration, session: SessionDep) -> CalibrationSetOut:
     """Make this the station's active calibration set (new scans use it)."""
     if calibration.rig_sha256 is None:
         raise Problem(409, "not-ready", f"Calibration set {calibration.id} has no rig yet and cannot be active.")

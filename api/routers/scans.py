@@ -105,8 +105,8 @@ def _calibration_for(session, station: str, calibration_set_id: str | None) -> C
 
 @router.post("/{scan_id}/jobs", name="create_scan_job", status_code=202, response_model=Accepted,
              responses={202: {"headers": {"Location": {"description": "The job."}}}})
-async def create_scan_job(request: Request, scan: ExistingScan, body: ScanJobRequest, session: SessionDep,
-                          runtime: RuntimeDep, key: OperatorKey, idempotency_key: IdempotencyKeyHeader = None):
+async def create_scan_job(request: Request, key: OperatorKey, scan: ExistingScan, body: ScanJobRequest,
+                          session: SessionDep, runtime: RuntimeDep, idempotency_key: IdempotencyKeyHeader = None):
     """Run one step again on a stored scan: reconstruct or fuse (e.g. with another calibration set), or register
     its thermal frame onto its camera frame by mutual information. Results: ``/v1/jobs/{id}/artifacts/{name}``."""
     digest = request_digest(request, await request.body())

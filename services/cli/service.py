@@ -39,10 +39,18 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     apikey = subparsers.add_parser("apikey", help="manage API keys")
     apikey_commands = apikey.add_subparsers(dest="apikey_command", required=True, metavar="ACTION")
     create = apikey_commands.add_parser("create", help="create a key and print its secret (shown once)")
-    create.add_argument("--scopes", nargs="+", required=True, metavar="SCOPE", help="read, operate and/or admin")
+    create.add_argument("--scopes", nargs="+", required=True, metavar="SCOPE",
+                        help="read, operate and/or admin, as separate words or comma-separated")
     create.add_argument("--name", default="api key", help="a label for the key")
     create.add_argument("--data-dir", type=Path, help="the service's data directory (embedded database)")
     create.set_defaults(handler=_create_api_key)
+    listing = apikey_commands.add_parser("list", help="list the keys (never their secrets)")
+    listing.add_argument("--data-dir", type=Path, help="the service's data directory (embedded database)")
+    listing.set_defaults(handler=_list_api_keys)
+    revoke = apikey_commands.add_parser("revoke", help="revoke a key by its id (it stops working within 5 s)")
+    revoke.add_argument("key_id", help="the key's id, as `thermofield apikey list` shows it")
+    revoke.add_argument("--data-dir", type=Path, help="the service's data directory (embedded database)")
+    revoke.set_defaults(handler=_revoke_api_key)
 
 
 def _settings(**overrides) -> Settings:
@@ -181,20 +189,49 @@ def _require_broker(settings: Settings, command: str) -> None:
                          "for a single process use `thermofield serve`")
 
 
+def _key_sessions(args: argparse.Namespace):
+    from services.db.engine import make_engine, make_sessions, migrate
+
+    settings = _settings(data_dir=args.data_dir)
+    engine = make_engine(settings.resolved_database_url, settings.database_schema)
+    migrate(engine)
+    return make_sessions(engine)
+
+
 def _create_api_key(args: argparse.Namespace) -> int:
     from services.db.apikeys import create_api_key, parse_scopes
-    from services.db.engine import make_engine, make_sessions, migrate
 
     try:
         scopes = parse_scopes(args.scopes)
     except ValueError as error:
         raise InputError(f"--scopes: {error}") from None
-    settings = _settings(data_dir=args.data_dir)
-    engine = make_engine(settings.resolved_database_url, settings.database_schema)
-    migrate(engine)
-    with make_sessions(engine).begin() as session:
+    with _key_sessions(args).begin() as session:
         key, secret = create_api_key(session, args.name, scopes)
     print(secret)
     print(f"thermofield: created API key {key.id} ({args.name!r}) with scopes {' '.join(scopes)}; "
           "the secret above is shown only once", file=sys.stderr)
+    return 0
+
+
+def _list_api_keys(args: argparse.Namespace) -> int:
+    from services.db.apikeys import list_api_keys
+
+    with _key_sessions(args)() as session:
+        keys = list_api_keys(session)
+    print(f"{'id':32}  {'scopes':18}  {'created':20}  {'revoked':20}  name")
+    for key in keys:
+        revoked = key.revoked_at.strftime("%Y-%m-%d %H:%M:%S") if key.revoked_at else "-"
+        print(f"{key.id:32}  {key.scopes:18}  {key.created_at:%Y-%m-%d %H:%M:%S}  {revoked:20}  {key.name}")
+    return 0
+
+
+def _revoke_api_key(args: argparse.Namespace) -> int:
+    from services.db.apikeys import revoke_api_key
+
+    with _key_sessions(args).begin() as session:
+        try:
+            key = revoke_api_key(session, args.key_id)
+        except KeyError:
+            raise InputError(f"there is no API key {args.key_id!r} (see `thermofield apikey list`)") from None
+    print(f"thermofield: revoked API key {key.id} ({key.name!r})", file=sys.stderr)
     return 0

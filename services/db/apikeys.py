@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import hashlib
 import secrets
+from datetime import UTC, datetime
 
 from sqlalchemy import select
 from sqlalchemy.orm import Session
@@ -24,7 +25,9 @@ def secret_digest(secret: str) -> str:
 
 
 def parse_scopes(scopes: list[str]) -> list[str]:
-    """Validate scope names; ``ValueError`` names the unknown one."""
+    """Validate scope names, given as separate words or comma-separated (``read operate``, ``read,operate``,
+    ``"read, operate"``); ``ValueError`` names the unknown one."""
+    scopes = [scope.strip().lower() for word in scopes for scope in word.replace(",", " ").split()]
     unknown = [scope for scope in scopes if scope not in SCOPES]
     if unknown or not scopes:
         raise ValueError(f"Scopes must be a non-empty subset of {', '.join(SCOPES)}; "
@@ -52,3 +55,19 @@ def grants(key: ApiKey, scope: str) -> bool:
     """Whether ``key`` may act with ``scope`` (a higher scope includes the lower ones)."""
     granted = key.scopes.split()
     return any(SCOPES.index(g) >= SCOPES.index(scope) for g in granted)
+
+
+def list_api_keys(session: Session) -> list[ApiKey]:
+    """Every key, newest first, revoked ones included (their ``revoked_at`` is set)."""
+    return list(session.scalars(select(ApiKey).order_by(ApiKey.created_at.desc())))
+
+
+def revoke_api_key(session: Session, key_id: str) -> ApiKey:
+    """Revoke the key ``key_id`` (the caller commits); ``KeyError`` if there is none. Revoking twice keeps
+    the first time."""
+    key = session.get(ApiKey, key_id)
+    if key is None:
+        raise KeyError(key_id)
+    if key.revoked_at is None:
+        key.revoked_at = datetime.now(UTC)
+    return key
