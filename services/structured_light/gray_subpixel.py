@@ -17,6 +17,7 @@ from services.formats.sequence import AXES, Axis, Sequence
 
 _MAX_STRIPES_BETWEEN_PIXELS = 2  # more boundaries between two neighbours: a bit flips twice, not locatable
 _MAX_BOUNDARY_GAP_STRIPES = 2  # brackets may span one lost boundary
+_FIT_BOUNDARIES_PER_SIDE = 2  # a line through two boundaries each side: wider windows feel the curvature
 
 
 @numba.njit(cache=True, inline="always")
@@ -39,13 +40,14 @@ def _trailing_zeros(value):
 # Hand-written with numba: a scan along each row that pairs neighbours, locates the crossings and
 # interpolates between them; numpy would need ragged per-row lists of boundaries.
 @numba.njit(parallel=True, cache=True)
-def _subpixel_kernel(frames, plane_frame, plane_complement, plane_sign, reference, stripe, stripe_width, out):
+def _subpixel_kernel(frames, plane_frame, plane_complement, plane_sign, reference, stripe, stripe_width, reach, out):
     height, width = stripe.shape
     for row in numba.prange(height):
         capacity = _MAX_STRIPES_BETWEEN_PIXELS * width + 1
         position = np.empty(capacity)  # camera column of each boundary, in scan order
         coordinate = np.empty(capacity)  # its projector coordinate
         segment = np.empty(capacity, np.int64)  # the run of decoded pixels it lies in
+        weight = np.empty(capacity)  # inverse variance of its position, up to a common factor: (D(u) - D(u+1))^2
         pixel_segment = np.empty(width, np.int64)
         run = 0
         for col in range(width):
@@ -71,12 +73,14 @@ def _subpixel_kernel(frames, plane_frame, plane_complement, plane_sign, referenc
                 if not a * b < 0.0:
                     continue  # the plane does not cross its threshold between the two pixels: misread
                 position[n] = col + a / (a - b)
+                weight[n] = (a - b) * (a - b)
                 coordinate[n] = stripe_width * upper - 0.5
                 segment[n] = pixel_segment[col]
                 n += 1
             if n - start == 2:
                 if second < first:  # the coordinate falls along the scan: its boundaries in scan order
                     position[start], position[start + 1] = position[start + 1], position[start]
+                    weight[start], weight[start + 1] = weight[start + 1], weight[start]
                     coordinate[start], coordinate[start + 1] = coordinate[start + 1], coordinate[start]
                 if position[start + 1] < position[start]:  # crossings out of order by noise: both at their mean
                     position[start] = position[start + 1] = 0.5 * (position[start] + position[start + 1])
@@ -84,11 +88,12 @@ def _subpixel_kernel(frames, plane_frame, plane_complement, plane_sign, referenc
         m = 0
         i = 0
         while i < n:
-            j, total = i + 1, position[i]
+            j, total, least = i + 1, position[i], weight[i]
             while j < n and coordinate[j] == coordinate[i] and segment[j] == segment[i]:
                 total += position[j]
+                least = min(least, weight[j])
                 j += 1
-            position[m], coordinate[m], segment[m] = total / (j - i), coordinate[i], segment[i]
+            position[m], coordinate[m], segment[m], weight[m] = total / (j - i), coordinate[i], segment[i], least
             m += 1
             i = j
         n = m
@@ -120,6 +125,30 @@ def _subpixel_kernel(frames, plane_frame, plane_complement, plane_sign, referenc
                 if abs(col - nearest) > distance:
                     continue  # too far beyond the boundaries to extrapolate
             value = coordinate[a] + span * (col - position[a]) / distance
+            if reach > 1:
+                # A line through up to ``reach`` boundaries on each side, weighted by the inverse variance
+                # of their positions: washed-out fine planes (narrow stripes, grazing light) count little.
+                first, last = a, b
+                for _ in range(reach - 1):  # widen the window while the boundaries run on in step
+                    if first > 0 and segment[first - 1] == here and position[first - 1] < position[first] and \
+                            0 < (coordinate[first] - coordinate[first - 1]) * span <= span * span * 2:
+                        first -= 1
+                    if last + 1 < n and segment[last + 1] == here and position[last + 1] > position[last] and \
+                            0 < (coordinate[last + 1] - coordinate[last]) * span <= span * span * 2:
+                        last += 1
+                count = last - first + 1
+                if count > 2:
+                    sw = su = sc = suu = suc = 0.0
+                    for i in range(first, last + 1):
+                        du, w = position[i] - col, weight[i]
+                        sw += w
+                        su += w * du
+                        sc += w * coordinate[i]
+                        suu += w * du * du
+                        suc += w * du * coordinate[i]
+                    determinant = sw * suu - su * su
+                    if determinant > 0:
+                        value = (suu * sc - su * suc) / determinant
             if abs(value - (stripe_width * k + 0.5 * (stripe_width - 1))) <= stripe_width:
                 out[row, col] = value
 
@@ -164,8 +193,11 @@ def gray_subpixel(frames: np.ndarray, sequence: Sequence, axis: Axis, stripe_cen
     stripes ``k - 1`` and ``k``, that bit's plane signal ``D = I - I_inverse`` (or ``I - (I_white +
     I_black) / 2``) changes sign and the boundary lies at ``u_k = u + D(u) / (D(u) - D(u + 1))``, the zero
     crossing of the blurred edge. A pixel ``u`` between boundaries ``u_a <= u < u_b`` of one run of decoded
-    pixels gets ``c = c_a + (c_b - c_a) (u - u_a) / (u_b - u_a)`` [1]_; past a run's last boundary its last
-    interval is extrapolated by up to its own length. Scan lines are the camera rows, or the columns when
+    pixels gets ``c = c_a + (c_b - c_a) (u - u_a) / (u_b - u_a)`` [1]_, refined to the weighted least-squares
+    line ``c(u)`` through up to two boundaries on each side (those that run on in step), each weighted by
+    ``(D(u) - D(u + 1))^2``, the inverse variance of its position up to the common noise: boundaries of a
+    plane washed out by blur or grazing light count little. Past a run's last boundary its last interval is
+    extrapolated by up to its own length. Scan lines are the camera rows, or the columns when
     they cross more stripe boundaries (stripes along the rows): for a rig whose baseline runs along the
     coded axis, the image axis nearer the epipolar direction. The result is refused (NaN) where it leaves
     the pixel's own stripe by more than a stripe (a misread bit), and boundaries that disagree with the
@@ -203,5 +235,5 @@ def gray_subpixel(frames: np.ndarray, sequence: Sequence, axis: Axis, stripe_cen
         frames, reference, stripe = frames.transpose(0, 2, 1), reference.T, stripe.T
     out = np.empty(stripe.shape, np.float32)
     _subpixel_kernel(np.ascontiguousarray(frames), plane_frame, plane_complement, plane_sign,
-                     np.ascontiguousarray(reference), np.ascontiguousarray(stripe), width, out)
+                     np.ascontiguousarray(reference), np.ascontiguousarray(stripe), width, _FIT_BOUNDARIES_PER_SIDE, out)
     return np.ascontiguousarray(out.T) if along_columns else out
