@@ -1,12 +1,15 @@
-"""Publishing job and scan states as retained JSON messages over MQTT (paho-mqtt 2).
+"""Publishing job and scan states as JSON messages over MQTT (paho-mqtt 2).
 
 Topic tree (``site`` and ``station`` from the settings)::
 
+    <site>/<station>/state             the station's latest change (a scan's or job's state), retained
     <site>/<station>/jobs/<job id>     {"job_id", "kind", "status", "stage", "fraction", "attempts", "error", ...}
     <site>/<station>/scans/<scan id>   {"scan_id", "job_id", "status", "stage", "fraction", "summary", ...}
 
-Messages are QoS 1 and retained, so a subscriber that connects later receives the
-last state of every job and scan at once.
+Messages are QoS 1. Only the station's state is retained, so a subscriber that
+connects later gets the station's latest state at once, and the broker keeps one
+message per station instead of one per job and scan forever; per-id topics are
+live updates (the API has every job's and scan's state).
 """
 
 from __future__ import annotations
@@ -31,8 +34,12 @@ def scan_topic(prefix: str, scan_id: str) -> str:
     return f"{prefix}/scans/{scan_id}"
 
 
+def station_topic(prefix: str) -> str:
+    return f"{prefix}/state"
+
+
 class EventPublisher:
-    """A connected MQTT client that publishes retained JSON states under ``prefix``.
+    """A connected MQTT client that publishes JSON states under ``prefix``.
 
     A broker outage never fails a job: publishing logs a warning and the job's
     state stays in the database, which remains the source of truth.
@@ -47,12 +54,12 @@ class EventPublisher:
         self._client.connect_async(host, port, keepalive=30)
         self._client.loop_start()
 
-    def publish(self, topic: str, state: dict[str, Any]) -> None:
-        """Queue a retained QoS 1 message; the client's network thread delivers it (and re-sends it after a
+    def publish(self, topic: str, state: dict[str, Any], retain: bool = False) -> None:
+        """Queue a QoS 1 message; the client's network thread delivers it (and re-sends it after a
         reconnection), so a job never waits for the broker."""
         payload = json.dumps(state, default=str, separators=(",", ":"))
         with self._lock:
-            info = self._client.publish(topic, payload, qos=1, retain=True)
+            info = self._client.publish(topic, payload, qos=1, retain=retain)
         if info.rc not in (mqtt.MQTT_ERR_SUCCESS, mqtt.MQTT_ERR_NO_CONN):
             logger.warning("MQTT publish to %s failed: %s", topic, mqtt.error_string(info.rc))
         self._last = info

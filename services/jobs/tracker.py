@@ -15,7 +15,7 @@ from sqlalchemy import select
 from sqlalchemy.orm import Session, sessionmaker
 
 from services.db.models import TERMINAL_STATUSES, Job, Scan
-from services.events.mqtt import EventPublisher, job_topic, scan_topic
+from services.events.mqtt import EventPublisher, job_topic, scan_topic, station_topic
 
 
 def job_state(job: Job) -> dict[str, Any]:
@@ -91,19 +91,21 @@ class JobTracker:
         return jobs
 
     def announce(self, job: Job) -> None:
-        """Publish the job's state, and its scan's when it is a scan job."""
+        """Publish the job's state, and its scan's when it is a scan job; the latter (or the job's) is also
+        the station's state, the one retained message."""
         if self.publisher is None:
             return
+        prefix = self.publisher.prefix
         state = job_state(job)
-        self.publisher.publish(job_topic(self.publisher.prefix, job.id), state)
+        self.publisher.publish(job_topic(prefix, job.id), state)
         scan_id = job.params.get("scan_id")
         if scan_id is not None:
             with self.sessions() as session:
                 scan = session.get(Scan, scan_id)
                 summary = scan.summary if scan is not None else None
-            scan_state = {"scan_id": scan_id, **{k: v for k, v in state.items() if k != "scan_id"},
-                          "summary": summary}
-            self.publisher.publish(scan_topic(self.publisher.prefix, scan_id), scan_state)
+            state = {"scan_id": scan_id, **{k: v for k, v in state.items() if k != "scan_id"}, "summary": summary}
+            self.publisher.publish(scan_topic(prefix, scan_id), state)
+        self.publisher.publish(station_topic(prefix), state, retain=True)
 
     def _update(self, job_id: str, **changes: Any) -> None:
         with self.sessions.begin() as session:

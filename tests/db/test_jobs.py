@@ -1,5 +1,5 @@
 import json
-import threading
+import time
 import uuid
 
 import paho.mqtt.client as mqtt
@@ -8,7 +8,7 @@ import pytest
 from services.db.apikeys import create_api_key, find_api_key, grants, parse_scopes
 from services.db.engine import make_sessions
 from services.db.models import Job
-from services.events.mqtt import EventPublisher, job_topic
+from services.events.mqtt import EventPublisher, job_topic, station_topic
 from services.jobs.tracker import JobTracker
 
 
@@ -65,36 +65,51 @@ def test_api_keys_are_stored_hashed_with_hierarchical_scopes(engine):
         parse_scopes(["write"])
 
 
-def test_state_changes_are_published_retained_to_mosquitto(engine):
-    prefix = f"test-{uuid.uuid4().hex[:8]}/station1"
-    publisher = EventPublisher("127.0.0.1", 1883, prefix)
-    tracker = JobTracker(make_sessions(engine), publisher)
-    with tracker.sessions.begin() as session:
-        job_id = tracker.create(session, "scan", {"scan_id": "s9"}).id
-    tracker.start(job_id)
-    tracker.succeed(job_id, {"n": 1})
-    publisher.close()
-
-    received, done = {}, threading.Event()  # a late subscriber still gets the last (retained) state
-
-    def on_message(client, userdata, message):
-        received[message.topic] = (json.loads(message.payload), message.retain)
-        if len(received) == 2:
-            done.set()
-
+def _subscriber(prefix: str, received: list) -> mqtt.Client:
     subscriber = mqtt.Client(mqtt.CallbackAPIVersion.VERSION2)
-    subscriber.on_message = on_message
+    subscriber.on_message = lambda client, userdata, message: received.append(
+        (message.topic, json.loads(message.payload) if message.payload else None, message.retain))
     subscriber.connect("127.0.0.1", 1883)
     subscriber.subscribe(f"{prefix}/#", qos=1)
     subscriber.loop_start()
+    return subscriber
+
+
+def _wait_for(condition, timeout_s: float = 10.0) -> None:
+    deadline = time.monotonic() + timeout_s
+    while not condition() and time.monotonic() < deadline:
+        time.sleep(0.05)
+
+
+def test_states_are_published_live_and_only_the_stations_latest_is_retained(engine):
+    prefix = f"test-{uuid.uuid4().hex[:8]}/station1"
+    live: list = []
+    listener = _subscriber(prefix, live)
+    publisher = EventPublisher("127.0.0.1", 1883, prefix)
+    tracker = JobTracker(make_sessions(engine), publisher)
+    _wait_for(listener.is_connected)
+    time.sleep(0.3)  # the subscription is acknowledged
+    job_ids = []
+    for scan_id in ("s8", "s9"):
+        with tracker.sessions.begin() as session:
+            job_ids.append(tracker.create(session, "scan", {"scan_id": scan_id}).id)
+        tracker.start(job_ids[-1])
+        tracker.succeed(job_ids[-1], {"n": 1})
+    publisher.close()
+    late: list = []  # a subscriber that connects afterwards gets one retained message: the station's latest
+    latecomer = _subscriber(prefix, late)
     try:
-        assert done.wait(10), received
+        _wait_for(lambda: len(live) >= 9 and late)
+        time.sleep(0.5)  # anything else retained would have arrived by now
     finally:
-        for topic in received:
-            subscriber.publish(topic, b"", retain=True)  # clear the retained test messages
-        subscriber.loop_stop()
-        subscriber.disconnect()
-    state, retained = received[job_topic(prefix, job_id)]
-    assert retained and state["status"] == "succeeded" and state["attempts"] == 1
-    scan_state, _ = received[f"{prefix}/scans/s9"]
-    assert scan_state["job_id"] == job_id and scan_state["status"] == "succeeded"
+        latecomer.publish(station_topic(prefix), b"", retain=True).wait_for_publish(5)
+        for client in (listener, latecomer):
+            client.loop_stop()
+            client.disconnect()
+    job_states = [state["status"] for topic, state, _ in live if topic == job_topic(prefix, job_ids[1])]
+    assert job_states == ["running", "succeeded"]
+    assert [state["status"] for topic, state, _ in live if topic == f"{prefix}/scans/s9"] == ["running", "succeeded"]
+    assert not any(retained for _, _, retained in live)
+    late = [message for message in late if message[1] is not None]  # not the clearing of the test's retained one
+    assert [(topic, retained) for topic, _, retained in late] == [(station_topic(prefix), True)]
+    assert late[0][1]["scan_id"] == "s9" and late[0][1]["status"] == "succeeded" and late[0][1]["job_id"] == job_ids[1]
