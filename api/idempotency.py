@@ -1,5 +1,7 @@
 """``Idempotency-Key`` on POSTs: a retried request gets the first response; the same key with
-another request is refused (422). Records are kept per API key in the database."""
+another request is refused (422). Records are kept per API key in the database for
+``THERMOFIELD_IDEMPOTENCY_TTL_S`` (after that the key may be used afresh; the periodic
+maintenance deletes the expired records)."""
 
 from __future__ import annotations
 
@@ -7,6 +9,7 @@ import hashlib
 import json
 from collections.abc import Callable
 from dataclasses import dataclass
+from datetime import UTC, datetime, timedelta
 from typing import Annotated, Any
 
 from fastapi import Header, Request
@@ -42,7 +45,8 @@ def request_digest(request: Request, content: bytes) -> str:
 
 
 def respond_once(
-    session: Session, key: ApiKey, idempotency_key: str | None, digest: str, produce: Callable[[], Outcome]
+    session: Session, key: ApiKey, idempotency_key: str | None, digest: str, produce: Callable[[], Outcome],
+    ttl_s: float,
 ) -> JSONResponse:
     """Commit and answer ``produce()``'s outcome, or replay the answer stored under the idempotency key.
 
@@ -50,7 +54,7 @@ def respond_once(
     retry can never create a second job.
     """
     if idempotency_key is not None:
-        replay = _stored_response(session, key, idempotency_key, digest)
+        replay = _stored_response(session, key, idempotency_key, digest, ttl_s)
         if replay is not None:
             return replay
     outcome = produce()
@@ -64,19 +68,25 @@ def respond_once(
         if idempotency_key is None:
             raise
         session.rollback()  # a concurrent retry stored its answer first
-        return _stored_response(session, key, idempotency_key, digest)
+        return _stored_response(session, key, idempotency_key, digest, ttl_s)
     if outcome.after_commit is not None:
         outcome.after_commit()
     headers = {"Location": outcome.location} if outcome.location else None
     return JSONResponse(outcome.body, status_code=outcome.status, headers=headers)
 
 
-def _stored_response(session: Session, key: ApiKey, idempotency_key: str, digest: str) -> JSONResponse | None:
+def _stored_response(session: Session, key: ApiKey, idempotency_key: str, digest: str,
+                     ttl_s: float) -> JSONResponse | None:
     record = session.scalar(
         select(IdempotencyRecord).where(IdempotencyRecord.api_key_id == key.id,
                                         IdempotencyRecord.key == idempotency_key)
     )
     if record is None:
+        return None
+    created = record.created_at if record.created_at.tzinfo else record.created_at.replace(tzinfo=UTC)
+    if created < datetime.now(UTC) - timedelta(seconds=ttl_s):
+        session.delete(record)  # expired: the key starts afresh (deleted with the new answer's commit)
+        session.flush()
         return None
     if record.request_sha256 != digest:
         raise Problem(422, "idempotency-key-reused",

@@ -71,6 +71,14 @@ class Settings(BaseSettings):
     )
     rate_limit_burst: int = Field(100, ge=1, description="Requests an API key may make at once above its rate.")
 
+    idempotency_ttl_s: float = Field(86400.0, gt=0, description="How long an Idempotency-Key's answer is replayed.")
+    retention_keep_scans: int = Field(100, ge=0, description="Scans per station that keep their artifacts, newest first.")
+    retention_keep_days: float = Field(7.0, ge=0, description="Days a scan keeps its artifacts (whatever its rank).")
+    retention_raw_frames_days: float = Field(1.0, ge=0, description="Days a scan keeps its raw frames.")
+    maintenance_interval_s: float = Field(
+        3600.0, ge=0, description="Seconds between retention runs in the API processes (0: never)."
+    )
+
     worker_processes: int = Field(2, ge=1, description="Worker processes started by `thermofield worker`.")
     worker_threads: int = Field(1, ge=1, description="Jobs run at once per worker process.")
     compute_threads: int = Field(2, ge=1, description="Numeric threads (numba, OpenCV, BLAS) per worker process.")
@@ -82,6 +90,14 @@ class Settings(BaseSettings):
     @property
     def resolved_artifact_dir(self) -> Path:
         return self.artifact_dir or self.data_dir / "artifacts"
+
+    @property
+    def retention_policy(self):
+        from services.storage.retention import RetentionPolicy
+
+        return RetentionPolicy(keep_scans=self.retention_keep_scans, keep_days=self.retention_keep_days,
+                               raw_frames_days=self.retention_raw_frames_days,
+                               idempotency_ttl_s=self.idempotency_ttl_s)
 
     @property
     def topic_prefix(self) -> str:

@@ -73,7 +73,8 @@ async def create_calibration_set(request: Request, session: SessionDep, runtime:
         return Outcome(201, out.model_dump(mode="json"), out.links["self"])
 
     request_sha256 = request_digest(request, json.dumps({"name": name, "activate": activate}).encode() + text)
-    return await run_in_threadpool(respond_once, session, key, idempotency_key, request_sha256, create)
+    return await run_in_threadpool(respond_once, session, key, idempotency_key, request_sha256, create,
+                                   runtime.settings.idempotency_ttl_s)
 
 
 @router.post("/{calibration_set_id}/stereo", name="start_stereo_calibration", status_code=202,
@@ -116,7 +117,8 @@ async def start_stereo_calibration(
     form = json.dumps({"name": name, "device": device, "activate": activate}).encode() + hasher.digest()
     request_sha256 = request_digest(request, form)
     return await run_in_threadpool(respond_once, session, key, idempotency_key, request_sha256,
-                                   lambda: _start_calibrate_job(runtime, session, params))
+                                   lambda: _start_calibrate_job(runtime, session, params),
+                                   runtime.settings.idempotency_ttl_s)
 
 
 @router.post("/{calibration_set_id}/stereo-captures", name="start_stereo_capture", status_code=202,
@@ -135,7 +137,8 @@ async def start_stereo_capture(request: Request, key: AdminKey, calibration: Exi
               "capture": {"views": body.views, "interval_s": body.interval_s}}
     digest = request_digest(request, await request.body())
     return await run_in_threadpool(respond_once, session, key, idempotency_key, digest,
-                                   lambda: _start_calibrate_job(runtime, session, params))
+                                   lambda: _start_calibrate_job(runtime, session, params),
+                                   runtime.settings.idempotency_ttl_s)
 
 
 def _require_thermal_device(rig: Rig, calibration: CalibrationSet, device: str) -> None:

@@ -84,7 +84,8 @@ async def create_scan(request: Request, session: SessionDep, runtime: RuntimeDep
         return Outcome(202, accepted.model_dump(mode="json"), f"/v1/jobs/{job.id}", dispatch)
 
     digest = request_digest(request, await request.body())
-    return await run_in_threadpool(respond_once, session, key, idempotency_key, digest, start)
+    return await run_in_threadpool(respond_once, session, key, idempotency_key, digest, start,
+                                   runtime.settings.idempotency_ttl_s)
 
 
 def _calibration_for(session, station: str, calibration_set_id: str | None) -> CalibrationSet:
@@ -131,7 +132,8 @@ async def create_scan_job(request: Request, key: OperatorKey, scan: ExistingScan
                             links={"job": f"/v1/jobs/{job.id}", "events": f"/v1/jobs/{job.id}/events"})
         return Outcome(202, accepted.model_dump(mode="json"), f"/v1/jobs/{job.id}", dispatch)
 
-    return await run_in_threadpool(respond_once, session, key, idempotency_key, digest, start)
+    return await run_in_threadpool(respond_once, session, key, idempotency_key, digest, start,
+                                   runtime.settings.idempotency_ttl_s)
 
 
 def _reconstructed_cloud(session, scan: Scan, body: ScanJobRequest) -> str:

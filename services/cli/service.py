@@ -36,6 +36,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     worker.add_argument("--threads", type=int, help="jobs at once per process (default THERMOFIELD_WORKER_THREADS)")
     worker.set_defaults(handler=_worker)
 
+    maintenance = subparsers.add_parser(
+        "maintenance", help="apply the artifact retention policy and expire idempotency keys once (the service "
+                            "does it every THERMOFIELD_MAINTENANCE_INTERVAL_S)")
+    maintenance.add_argument("--data-dir", type=Path, help="the service's data directory (embedded database)")
+    maintenance.set_defaults(handler=_maintenance)
+
     apikey = subparsers.add_parser("apikey", help="manage API keys")
     apikey_commands = apikey.add_subparsers(dest="apikey_command", required=True, metavar="ACTION")
     create = apikey_commands.add_parser("create", help="create a key and print its secret (shown once)")
@@ -75,7 +81,7 @@ def _serve(args: argparse.Namespace) -> int:
     broker = setup_broker(settings)
     worker = dramatiq.Worker(broker, worker_threads=settings.worker_threads)
     with (_GatewayProcess(settings.gateway_port) as gateway,
-          RerunProxy(settings.rerun_host, settings.rerun_port) as proxy):
+          RerunProxy(settings.rerun_host, settings.rerun_port) as proxy, _maintenance_thread(runtime)):
         gateway.wait_until_healthy()
         worker.start()
         for job in runtime.tracker.recover():
@@ -164,7 +170,28 @@ def _api(args: argparse.Namespace) -> int:
     use_runtime(runtime)
     setup_broker(settings)
     print(f"thermofield: API on http://{settings.api_host}:{settings.api_port}", flush=True)
-    _run_uvicorn(create_app(runtime), settings)
+    with _maintenance_thread(runtime):
+        _run_uvicorn(create_app(runtime), settings)
+    return 0
+
+
+def _maintenance_thread(runtime):
+    from services.storage.retention import MaintenanceThread
+
+    return MaintenanceThread(runtime.sessions, runtime.store, runtime.settings.retention_policy,
+                             runtime.settings.maintenance_interval_s)
+
+
+def _maintenance(args: argparse.Namespace) -> int:
+    from services.storage.artifacts import ArtifactStore
+    from services.storage.retention import run_maintenance
+
+    settings = _settings(data_dir=args.data_dir)
+    report = run_maintenance(_key_sessions(args), ArtifactStore(settings.resolved_artifact_dir),
+                             settings.retention_policy)
+    print(f"thermofield: {report.scans_expired} scans expired, raw frames of {report.raw_frames_expired} more; "
+          f"{report.idempotency_records_deleted} idempotency records and {report.blobs_deleted} blobs "
+          f"({report.bytes_freed / 1e6:.1f} MB) deleted")
     return 0
 
 

@@ -12,6 +12,7 @@ import hashlib
 import os
 import re
 import tempfile
+from collections.abc import Iterator
 from pathlib import Path
 
 _DIGEST = re.compile(r"^[0-9a-f]{64}$")
@@ -58,6 +59,15 @@ class ArtifactStore:
                 hasher.update(chunk)
                 handle.write(chunk)
         return self._commit(temporary, hasher.hexdigest())
+
+    def blobs(self) -> Iterator[tuple[str, Path]]:
+        """Every stored blob as (digest, path), and every temporary file a crash left in ``incoming/``
+        (as ("", path)), for the retention sweep."""
+        for path in self._objects.glob("??/*"):
+            if _DIGEST.match(path.name):
+                yield path.name, path
+        for path in self._incoming.glob("*.part"):
+            yield "", path
 
     def read_bytes(self, digest: str) -> bytes:
         return self.path(digest).read_bytes()

@@ -1,0 +1,79 @@
+"""Retention on the real databases and a real store: which scans keep what, idempotency expiry, the sweep."""
+
+import os
+import time
+from datetime import UTC, datetime, timedelta
+
+from services.db.engine import make_sessions
+from services.db.models import ApiKey, CalibrationSet, IdempotencyRecord, Job, Scan
+from services.storage.artifacts import ArtifactStore
+from services.storage.retention import RetentionPolicy, run_maintenance
+
+NOW = datetime(2026, 6, 1, 12, 0, tzinfo=UTC)
+FIELDS = ("cloud.ply", "field.ply", "field.rrd")
+RAW = ("frames.npy", "thermal.npy", "sequence.json")
+
+
+def _scan(session, store, calibration, station, days_old, name):
+    created = NOW - timedelta(days=days_old)
+    artifacts = {artifact: store.put_bytes(f"{name} {artifact}".encode() * 100) for artifact in FIELDS + RAW}
+    job = Job(kind="scan", status="succeeded", params={"scan_id": name}, created_at=created,
+              result={"scan_id": name, "artifacts": dict(artifacts)})
+    session.add(job)
+    session.flush()
+    session.add(Scan(id=name, station=station, job_id=job.id, calibration_set_id=calibration.id,
+                     artifacts=artifacts, summary={"point_count": 1}, created_at=created))
+    return artifacts
+
+
+def test_retention_keeps_the_newest_scans_or_days_and_raw_frames_shorter(engine, tmp_path):
+    sessions = make_sessions(engine)
+    store = ArtifactStore(tmp_path / "artifacts")
+    with sessions.begin() as session:
+        calibration = CalibrationSet(name="rig", station="s1", source="upload", rig_sha256=store.put_bytes(b"rig"))
+        session.add(calibration)
+        session.flush()
+        blobs = {name: _scan(session, store, calibration, station, days, name) for name, station, days in [
+            ("new", "s1", 0.5), ("two-days", "s1", 2.0), ("young-but-third", "s1", 2.5), ("old", "s1", 10.0),
+            ("other-station-old", "s2", 10.0)]}
+        rerun = Job(kind="reconstruct", status="succeeded", params={"scan_id": "old"},
+                    result={"artifacts": {"cloud.ply": store.put_bytes(b"rerun cloud")}})
+        session.add(rerun)
+        key = ApiKey(name="k", secret_sha256="0" * 64, scopes="operate")
+        session.add(key)
+        session.flush()
+        for age_days, idempotency_key in ((2.0, "stale"), (0.1, "fresh")):
+            session.add(IdempotencyRecord(api_key_id=key.id, key=idempotency_key, request_sha256="x", status_code=202,
+                                          body="{}", created_at=NOW - timedelta(days=age_days)))
+    in_flight = store.put_bytes(b"written by a running job, not yet in a row")
+    old_blob = store.path(blobs["old"]["frames.npy"])
+    os.utime(store.path(in_flight), (time.time(), time.time()))
+    for digest, path in store.blobs():  # everything else was written "long ago"
+        if digest != in_flight:
+            os.utime(path, (time.time() - 7200, time.time() - 7200))
+    before = sum(path.stat().st_size for _, path in store.blobs())
+
+    policy = RetentionPolicy(keep_scans=2, keep_days=3.0, raw_frames_days=1.0, idempotency_ttl_s=86400.0)
+    report = run_maintenance(sessions, store, policy, now=NOW)
+
+    with sessions() as session:
+        kept = {scan.id: set(scan.artifacts) for scan in session.query(Scan)}
+        assert kept["new"] == set(FIELDS + RAW)  # newest, and younger than the raw-frame limit
+        assert kept["two-days"] == set(FIELDS)  # among the newest two: fields kept, raw frames older than 1 day
+        assert kept["young-but-third"] == set(FIELDS)  # third, but younger than 3 days
+        assert kept["old"] == set()  # neither among the newest two nor younger than 3 days
+        assert kept["other-station-old"] == set(FIELDS)  # the newest of its own station
+        old_jobs = [job for job in session.query(Job) if job.params.get("scan_id") == "old"]
+        assert len(old_jobs) == 2 and all(job.result["artifacts"] == {} for job in old_jobs)
+        assert session.get(Scan, "old").summary == {"point_count": 1}  # the row and its summary stay
+        assert [record.key for record in session.query(IdempotencyRecord)] == ["fresh"]
+    assert (report.scans_expired, report.raw_frames_expired, report.idempotency_records_deleted) == (1, 3, 1)
+    assert not old_blob.exists() and store.exists(in_flight)  # swept; the fresh blob is within the grace period
+    remaining = {digest for digest, _ in store.blobs()}
+    assert all(blobs["new"][name] in remaining for name in FIELDS + RAW)
+    assert not any(blobs["two-days"][name] in remaining for name in RAW)
+    with sessions() as session:
+        assert store.exists(session.scalar(session.query(CalibrationSet.rig_sha256).statement))
+    after = sum(path.stat().st_size for _, path in store.blobs())
+    assert report.bytes_freed == before - after > 0
+    assert run_maintenance(sessions, store, policy, now=NOW).blobs_deleted == 0  # idempotent
