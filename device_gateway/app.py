@@ -18,7 +18,7 @@ import dataclasses
 import logging
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
-from typing import Annotated, Any
+from typing import Annotated, Any, Literal
 
 import numpy as np
 from fastapi import Depends, FastAPI, Request
@@ -27,7 +27,7 @@ from fastapi.responses import JSONResponse, Response
 from pydantic import BaseModel, Field
 
 from device_gateway.devices import DeviceError
-from device_gateway.station import Station
+from device_gateway.station import ExposureControl, Station
 from device_gateway.transfer import BOARD_VIEWS_MEDIA_TYPE, MEDIA_TYPE, encode_board_views, encode_capture
 from services.formats.board import BoardSpec
 from services.formats.sequence import Sequence
@@ -38,6 +38,8 @@ PROBLEM_MEDIA_TYPE = "application/problem+json"
 
 class CaptureRequest(BaseModel):
     thermal_frames: int = Field(1, ge=1, le=64, description="Thermal frames grabbed after the last pattern.")
+    exposure: Literal["fixed", "auto", "hdr"] = Field(
+        "fixed", description="The camera's own exposure, metered for a glowing part, or metered and HDR-merged.")
 
 
 class BoardViewsRequest(BaseModel):
@@ -119,7 +121,8 @@ def create_app(station: Station, sequence: Sequence, patterns: np.ndarray) -> Fa
               responses={200: {"content": {MEDIA_TYPE: {}}, "description": "The capture archive."}})
     def capture(station: StationDep, body: CaptureRequest | None = None) -> Response:
         request = body or CaptureRequest()
-        result = station.capture(sequence, patterns, thermal_frames=request.thermal_frames)
+        result = station.capture(sequence, patterns, thermal_frames=request.thermal_frames,
+                                 exposure=ExposureControl(mode=request.exposure))
         return Response(encode_capture(result), media_type=MEDIA_TYPE)
 
     @app.post("/v1/board-views", operation_id="boardViews", response_class=Response,

@@ -51,9 +51,11 @@ class GatewayClient:
     def sequence(self) -> Sequence:
         return Sequence.model_validate(self._request("GET", "/v1/sequence").json())
 
-    def capture(self, thermal_frames: int = 1) -> Capture:
-        """Run one capture on the station and return its frames, thermal frames and metadata."""
-        response = self._request("POST", "/v1/captures", json={"thermal_frames": thermal_frames})
+    def capture(self, thermal_frames: int = 1, exposure: str = "fixed") -> Capture:
+        """Run one capture on the station (``exposure``: fixed, auto or hdr) and return its frames, thermal
+        frames and metadata."""
+        response = self._request("POST", "/v1/captures", json={"thermal_frames": thermal_frames,
+                                                               "exposure": exposure})
         if response.headers.get("content-type") != MEDIA_TYPE:
             raise GatewayError(f"gateway {self.base_url} answered {response.headers.get('content-type')!r}, "
                                f"not a capture archive", response.status_code)

@@ -79,11 +79,30 @@ class Device(abc.ABC):
 
 
 class Camera(Device):
-    """A visible camera filming the projected patterns."""
+    """A visible camera filming the projected patterns.
+
+    Cameras that can change their exposure between frames (for automatic exposure and HDR of glowing
+    parts) override ``exposure_us`` and ``set_exposure``; ``saturation_level`` is the grey level at
+    which their sensor clips.
+    """
 
     @abc.abstractmethod
     def grab(self, timeout_s: float) -> Frame:
         """A frame exposed after this call started; :class:`DeviceLost` when none comes in time."""
+
+    @property
+    def exposure_us(self) -> float | None:
+        """The current exposure time in microseconds; None when the camera does not say."""
+        return None
+
+    def set_exposure(self, exposure_us: float) -> None:
+        """Expose the following frames for ``exposure_us`` microseconds (manual exposure)."""
+        raise DeviceUnavailable(f"camera {self.info.name!r} cannot change its exposure")
+
+    @property
+    def saturation_level(self) -> int:
+        """Grey level at which the sensor saturates (255 for an 8-bit camera)."""
+        return 255
 
 
 class ThermalCamera(Device):

@@ -1,7 +1,12 @@
 """A station: one camera, one thermal camera and one projector, captured together.
 
 A capture shows each pattern, waits for the projector to settle, grabs the camera
-frame, and after the last pattern grabs the thermal frame(s). Captures are
+frame, and after the last pattern grabs the thermal frame(s). Its exposure is the
+camera's own (``fixed``), or metered first (``auto``: a projector-off and a full-white
+frame, so that the part's glow plus the full pattern stays below saturation), or
+metered and filmed at several exposures merged per pixel (``hdr``: a glowing part
+and a cool fixture in one view); the chosen exposures and the glow level go into
+``Capture.exposure``. Captures are
 serialised (the devices can do one at a time). If a device is lost mid-capture the
 capture fails with :class:`DeviceLost` and every device is closed and re-opened, so
 the next capture starts clean.
@@ -17,14 +22,15 @@ from __future__ import annotations
 import logging
 import threading
 import time
-from dataclasses import dataclass
-from typing import Any, Protocol
+from dataclasses import dataclass, field
+from typing import Any, Literal, Protocol
 
 import numpy as np
 
 from device_gateway.devices import Camera, Device, DeviceInfo, DeviceLost, DeviceUnavailable, Projector, ThermalCamera
 from services.formats.board import BoardSpec
 from services.formats.sequence import Sequence
+from services.structured_light.hdr import merge_exposures
 
 logger = logging.getLogger(__name__)
 
@@ -47,6 +53,39 @@ class Capture:
     thermal_timestamps: np.ndarray
     thermal_metadata: list[dict[str, Any]]
     devices: list[DeviceInfo]
+    exposure: dict[str, Any] = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class ExposureControl:
+    """How a capture is exposed.
+
+    ``fixed`` keeps the camera's exposure. ``auto`` meters first: a frame with the projector dark (the
+    glow and ambient light) and one fully white, shortened until it no longer saturates; the exposure
+    is then set so that the white frame's 99.9th percentile (glow plus full pattern) reaches ``target``
+    of saturation. ``hdr`` films the sequence at that exposure and ``hdr_exposures - 1`` more, each
+    ``hdr_ratio`` times longer, and merges them per pixel (``structured_light.hdr.merge_exposures``).
+    """
+
+    mode: Literal["fixed", "auto", "hdr"] = "fixed"
+    target: float = 0.85
+    hdr_exposures: int = 2
+    hdr_ratio: float = 4.0
+    min_exposure_us: float = 10.0
+    max_exposure_us: float = 100_000.0
+
+    def __post_init__(self) -> None:
+        if not 0 < self.target < 1:
+            raise ValueError(f"The exposure target must be a fraction of saturation in (0, 1); got {self.target}.")
+        if self.hdr_exposures < 2 or self.hdr_ratio <= 1:
+            raise ValueError("HDR needs at least 2 exposures, each more than 1x longer than the last.")
+        if not 0 < self.min_exposure_us < self.max_exposure_us:
+            raise ValueError("The exposure limits must satisfy 0 < min_exposure_us < max_exposure_us.")
+
+
+_METERING_PERCENTILE = 99.9
+_GLOW_PERCENTILE = 99.0
+_METERING_TRIES = 8
 
 
 @dataclass(frozen=True)
@@ -103,7 +142,8 @@ class Station:
         """Whether each device (by name) is open and usable."""
         return {device.info.name: device.is_open for device in self.devices}
 
-    def capture(self, sequence: Sequence, patterns: np.ndarray, thermal_frames: int = 1) -> Capture:
+    def capture(self, sequence: Sequence, patterns: np.ndarray, thermal_frames: int = 1,
+                exposure: ExposureControl = ExposureControl()) -> Capture:
         """Project ``patterns`` one by one, film each, then grab ``thermal_frames`` thermal frames.
 
         Parameters
@@ -114,6 +154,8 @@ class Station:
             One image per manifest frame, at the projector's resolution.
         thermal_frames : int
             Thermal frames to grab after the last pattern.
+        exposure : ExposureControl
+            Fixed, automatic or HDR exposure (automatic and HDR need a camera that sets its exposure).
 
         Raises
         ------
@@ -140,22 +182,72 @@ class Station:
         with self._lock:
             self.open()
             try:
-                return self._capture(sequence, patterns, thermal_frames)
+                return self._capture(sequence, patterns, thermal_frames, exposure)
             except DeviceLost:
                 self._reopen()
                 raise
 
-    def _capture(self, sequence: Sequence, patterns: np.ndarray, thermal_frames: int) -> Capture:
-        camera_frames = []
+    def _film(self, patterns: np.ndarray) -> list:
+        frames = []
         for pattern in patterns:
             self.projector.show(pattern)
             if self.settle_s > 0:
                 time.sleep(self.settle_s)
-            camera_frames.append(self.camera.grab(self.grab_timeout_s))
+            frames.append(self.camera.grab(self.grab_timeout_s))
+        return frames
+
+    def meter(self, control: ExposureControl) -> tuple[float, float]:
+        """Choose the exposure for a glowing part: (exposure in us, glow level as a fraction of saturation).
+
+        A projector-dark and a full-white frame are filmed at the camera's exposure, shortened eightfold
+        while the white frame saturates; the exposure then scales so that the white frame's 99.9th
+        percentile (glow plus the full pattern) reaches ``control.target`` of saturation, within the limits.
+        """
+        info = self.projector.info
+        dark_and_white = np.stack([np.zeros((info.height, info.width), np.uint8),
+                                   np.full((info.height, info.width), 255, np.uint8)])
+        saturation = float(self.camera.saturation_level)
+        exposure_us = float(self.camera.exposure_us or control.max_exposure_us)
+        for _ in range(_METERING_TRIES):
+            exposure_us = min(max(exposure_us, control.min_exposure_us), control.max_exposure_us)
+            self.camera.set_exposure(exposure_us)
+            dark, white = (frame.image.astype(np.float64) for frame in self._film(dark_and_white))
+            bright = float(np.percentile(white, _METERING_PERCENTILE))
+            if bright < 0.98 * saturation or exposure_us <= control.min_exposure_us:
+                break
+            exposure_us /= 8
+        chosen = exposure_us * control.target * saturation / max(bright, 1.0)
+        chosen = min(max(chosen, control.min_exposure_us), control.max_exposure_us)
+        glow = float(np.percentile(dark, _GLOW_PERCENTILE)) * chosen / exposure_us / saturation
+        return chosen, glow
+
+    def _capture(self, sequence: Sequence, patterns: np.ndarray, thermal_frames: int,
+                 control: ExposureControl) -> Capture:
+        saturation = self.camera.saturation_level
+        metadata: dict[str, Any] = {"mode": control.mode, "saturation_level": saturation}
+        if control.mode == "fixed":
+            camera_frames = self._film(patterns)
+            frames = np.stack([frame.image for frame in camera_frames])
+            metadata["exposures_us"] = [self.camera.exposure_us]
+        else:
+            chosen, glow = self.meter(control)
+            exposures = [chosen] if control.mode == "auto" else [
+                min(chosen * control.hdr_ratio**k, control.max_exposure_us) for k in range(control.hdr_exposures)]
+            stacks = []
+            for exposure_us in exposures:
+                self.camera.set_exposure(exposure_us)
+                camera_frames = self._film(patterns)
+                stacks.append(np.stack([frame.image for frame in camera_frames]))
+            frames = stacks[0]
+            if len(stacks) > 1:
+                frames, saturation = merge_exposures(np.stack(stacks), exposures, saturation)
+            metadata.update(exposures_us=[round(e, 2) for e in exposures], glow_level=round(glow, 5),
+                            saturation_level=saturation)
+            self.camera.set_exposure(chosen)
         thermal = [self.thermal.grab(self.grab_timeout_s) for _ in range(thermal_frames)]
         return Capture(
             sequence=sequence,
-            frames=np.stack([frame.image for frame in camera_frames]),
+            frames=frames,
             frame_timestamps=np.array([frame.timestamp for frame in camera_frames]),
             frame_metadata=[{**frame.metadata, "file": entry.file}
                             for frame, entry in zip(camera_frames, sequence.frames)],
@@ -163,6 +255,7 @@ class Station:
             thermal_timestamps=np.array([frame.timestamp for frame in thermal]),
             thermal_metadata=[frame.metadata for frame in thermal],
             devices=[device.info for device in self.devices],
+            exposure=metadata,
         )
 
     def board_views(self, board: BoardSpec, views: int, interval_s: float = 2.0) -> BoardViews:

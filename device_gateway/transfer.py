@@ -2,7 +2,8 @@
 
 Arrays ``frames`` (F, H, W), ``frame_timestamps`` (F,), ``thermal`` (T, h, w)
 float32 degrees Celsius and ``thermal_timestamps`` (T,), plus ``metadata``: UTF-8
-JSON bytes holding the sequence manifest, the devices and the per-frame metadata.
+JSON bytes holding the sequence manifest, the devices, the per-frame metadata and the
+capture's exposure (mode, exposure times, glow level, saturation level).
 Uncompressed because frames are noisy (compression gains little) and the scan has
 a 2 s budget; loaded without pickle, so a capture cannot carry code.
 """
@@ -33,6 +34,7 @@ def encode_capture(capture: Capture) -> bytes:
         "devices": [dataclasses.asdict(info) for info in capture.devices],
         "frame_metadata": capture.frame_metadata,
         "thermal_metadata": capture.thermal_metadata,
+        "exposure": capture.exposure,
     }
     buffer = io.BytesIO()
     np.savez(buffer, metadata=np.frombuffer(json.dumps(metadata).encode(), dtype=np.uint8),
@@ -54,6 +56,7 @@ def decode_capture(data: bytes) -> Capture:
         frame_metadata=metadata["frame_metadata"],
         thermal_metadata=metadata["thermal_metadata"],
         devices=[DeviceInfo(**info) for info in metadata["devices"]],
+        exposure=metadata.get("exposure", {}),
         **arrays,
     )
 

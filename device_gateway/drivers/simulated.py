@@ -2,7 +2,11 @@
 
 The camera films whatever pattern the simulated projector shows, rendered by
 ``services.simulation.render`` (shadows, shading, texture, blur, noise,
-quantisation); the thermal camera sees the scene's temperature field through
+quantisation), or, for a scene with ``temperature`` and ``optics``, by
+``services.simulation.glow`` (the part's own glow, cooling from frame to frame,
+through a sensor in electrons: 12-bit frames by default). The camera honours
+``set_exposure``: a hot scene's frames are exposed for that time, a cold scene's
+``CameraEffects.exposure`` scales with it (the default 8 ms gives it as set). The thermal camera sees the scene's temperature field through
 ``services.simulation.thermal`` (area integration, blur, NETD noise). The scene
 geometry is traced once, when the devices are first opened (seconds for a
 1280x800 view); every frame after that is one cheap pass plus fresh noise.
@@ -17,6 +21,7 @@ for the thermal camera) instead of the part.
 
 from __future__ import annotations
 
+import dataclasses
 import threading
 import time
 from dataclasses import dataclass, field
@@ -28,6 +33,7 @@ from services.formats.board import BoardSpec
 from services.formats.rig import Device, Rig
 from services.simulation import presets
 from services.simulation.boards import render_board
+from services.simulation.glow import GlowView, render_glow_view, render_hot_frames
 from services.simulation.render import CameraEffects, ProjectorEffects, ViewGeometry, render_frames, render_view
 from services.simulation.scene import Scene
 from services.simulation.thermal import TemperatureScene, ThermalEffects, forging_temperatures, render_thermal
@@ -46,6 +52,11 @@ class SimulationOptions:
     thermal_effects: ThermalEffects = field(default_factory=ThermalEffects)
     camera_supersample: int = 1
     seed: int = 0
+    frame_interval_s: float = 1 / 30
+
+
+# The exposure at which a cold scene's frames follow ``CameraEffects.exposure`` (the OAK driver's default).
+REFERENCE_EXPOSURE_US = 8000.0
 
 
 # The hollowed board before its heater as the thermal camera sees it: holes at the heater's temperature.
@@ -98,6 +109,8 @@ class SimulatedStation:
         self._rng = np.random.default_rng(options.seed)
         self._lock = threading.Lock()
         self._view: ViewGeometry | None = None
+        self._glow: GlowView | None = None
+        self.clock_s = 0.0  # simulated time since the station opened: a hot part cools with it
         self._clean_thermal: np.ndarray | None = None
         self._board: tuple[BoardSpec, tuple[np.ndarray, np.ndarray]] | None = None
         self.shown: np.ndarray | None = None
@@ -108,12 +121,20 @@ class SimulatedStation:
         self.projector = SimulatedProjector(self, projector_name)
         self.thermal = SimulatedThermal(self, thermal_name)
 
+    @property
+    def hot(self) -> bool:
+        """Whether the scene glows (has a temperature field and optics)."""
+        return self.scene.temperature is not None and self.scene.optics is not None
+
     def view(self) -> ViewGeometry:
-        """The camera's traced view of the scene under the projector, computed once."""
+        """The camera's traced view of the scene under the projector (and of its glow), computed once."""
         with self._lock:
             if self._view is None:
-                self._view = render_view(self.scene, self.rig.devices[self.camera.name],
-                                         self.rig.devices[self.projector.name], self.options.camera_supersample)
+                camera = self.rig.devices[self.camera.name]
+                self._view = render_view(self.scene, camera, self.rig.devices[self.projector.name],
+                                         self.options.camera_supersample)
+                if self.hot:
+                    self._glow = render_glow_view(self.scene, camera, self.options.camera_supersample)
             return self._view
 
     def clean_thermal(self) -> np.ndarray:
@@ -129,8 +150,15 @@ class SimulatedStation:
         """The camera frame of the pattern on the projector now (black when it shows nothing)."""
         projector = self.rig.devices[self.projector.name]
         pattern = self.shown if self.shown is not None else np.zeros((projector.height, projector.width), np.uint8)
-        return render_frames(self.view(), pattern[None], self._rng, self.options.camera_effects,
-                             self.options.projector_effects)[0]
+        view, exposure_us = self.view(), self.camera.exposure_us
+        time_s, self.clock_s = self.clock_s, self.clock_s + self.options.frame_interval_s
+        if self._glow is not None:
+            return render_hot_frames(view, self._glow, pattern[None], exposure_us * 1e-6, self._rng, start_s=time_s,
+                                     blur_sigma=self.options.camera_effects.blur_sigma,
+                                     projector_effects=self.options.projector_effects)[0]
+        effects = self.options.camera_effects
+        effects = dataclasses.replace(effects, exposure=effects.exposure * exposure_us / REFERENCE_EXPOSURE_US)
+        return render_frames(view, pattern[None], self._rng, effects, self.options.projector_effects)[0]
 
     def present(self, board: BoardSpec | None, view: int) -> None:
         """Hold ``board`` in the pose of calibration view ``view`` before the devices, or take it away."""
@@ -182,6 +210,25 @@ class _SimulatedDevice:
 class SimulatedCamera(_SimulatedDevice, Camera):
     kind = "camera"
 
+    def __init__(self, station: SimulatedStation, name: str) -> None:
+        super().__init__(station, name)
+        self._exposure_us = 1000.0 if station.hot else REFERENCE_EXPOSURE_US
+
+    @property
+    def exposure_us(self) -> float:
+        return self._exposure_us
+
+    def set_exposure(self, exposure_us: float) -> None:
+        if not exposure_us > 0:
+            raise ValueError(f"The exposure must be a positive number of microseconds; got {exposure_us}.")
+        self._exposure_us = float(exposure_us)
+
+    @property
+    def saturation_level(self) -> int:
+        if self.station.hot:
+            return self.station.scene.optics.sensor.full_scale
+        return self.station.options.camera_effects.full_scale
+
     def open(self) -> None:
         self.station.view()
         self._open = True
@@ -190,7 +237,8 @@ class SimulatedCamera(_SimulatedDevice, Camera):
         self._require_open()
         exposed = time.time()
         board = self.station.board_frame(self.name, "visible")
-        return Frame(self.station.film() if board is None else board, exposed, {"driver": "simulated"})
+        return Frame(self.station.film() if board is None else board, exposed,
+                     {"driver": "simulated", "exposure_us": self._exposure_us})
 
 
 class SimulatedThermal(_SimulatedDevice, ThermalCamera):

@@ -136,10 +136,13 @@ class Sequence(BaseModel):
         for name, count in Counter(frame.file for frame in self.frames).items():
             if count > 1:
                 raise ValueError(f"frames: file {name!r} is listed {count} times; each frame needs its own file")
-        for kind in ("white", "black"):
-            indices = [i for i, frame in enumerate(self.frames) if frame.kind == kind]
-            if len(indices) > 1:
-                raise ValueError(f"frames[{indices[1]}]: a second {kind} frame; a sequence has at most one")
+        whites = [i for i, frame in enumerate(self.frames) if frame.kind == "white"]
+        if len(whites) > 1:
+            raise ValueError(f"frames[{whites[1]}]: a second white frame; a sequence has at most one")
+        blacks = [i for i, frame in enumerate(self.frames) if frame.kind == "black"]
+        if len(blacks) > 2 or (len(blacks) == 2 and blacks[1] != len(self.frames) - 1):
+            raise ValueError(f"frames[{blacks[1]}]: a second black frame that is not the last frame; a sequence "
+                             "has at most one black frame, and a second one only to close it (the glow's drift)")
         self._check_gray_planes()
         self._check_phase_groups()
         for axis in AXES:
@@ -235,6 +238,13 @@ class Sequence(BaseModel):
     @property
     def black_index(self) -> int | None:
         return next((i for i, frame in enumerate(self.frames) if frame.kind == "black"), None)
+
+    @property
+    def closing_black_index(self) -> int | None:
+        """The second black frame, which closes the sequence so that a drifting offset (a hot part's
+        cooling glow) can be interpolated between the two; None when there is none."""
+        blacks = [i for i, frame in enumerate(self.frames) if frame.kind == "black"]
+        return blacks[1] if len(blacks) == 2 else None
 
     @property
     def coded_axes(self) -> tuple[Axis, ...]:

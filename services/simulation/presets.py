@@ -21,7 +21,9 @@ from __future__ import annotations
 import numpy as np
 
 from services.formats.rig import Device, Rig
+from services.simulation.optics import BandPassFilter, Optics, ProjectorOptics
 from services.simulation.scene import Albedo, Cylinder, Plane, Scene, Sphere
+from services.simulation.temperature import Spot, SurfaceTemperature, TemperatureScene
 
 PAPER_SIZE = (1024, 768)
 PAPER_PROJECTOR_FOCAL = 1300.0
@@ -115,5 +117,48 @@ def forging_scene() -> Scene:
         Cylinder(center=[0.0, 20.0, 600.0], axis=[1.0, 0.0, 0.0], radius=55.0, length=220.0, albedo=steel),
         Cylinder(center=[-95.0, 20.0, 600.0], axis=[1.0, 0.0, 0.0], radius=80.0, length=24.0, albedo=steel),
         Plane(center=[0.0, 0.0, 760.0], normal=[0.0, 0.0, -1.0], u_axis=[1.0, 0.0, 0.0], size=[700.0, 500.0],
+              albedo=Albedo(base=0.4, texture_amplitude=0.1, feature_size=40.0, seed=2)),
+    ])
+
+
+# Oxidised steel is opaque and nearly grey: emissivity 0.85 and, by Kirchhoff's law, albedo 0.15.
+HOT_STEEL_EMISSIVITY = 0.85
+_HOT_PROJECTORS = {
+    "white": ProjectorOptics(spectrum="white_led", radiant_power_w=20.0),
+    "blue": ProjectorOptics(spectrum="blue_led", centre_nm=450.0, fwhm_nm=20.0, radiant_power_w=30.0),
+}
+
+
+def hot_optics(projector: str = "white", band_pass: tuple[float, float] | None = None) -> Optics:
+    """The hot-part station's optics: a 20 W white LED or 30 W blue (450 nm) LED projector over the
+    rig's 0.164 m^2 at 600 mm, a 12-bit mono CMOS camera, optionally a band-pass filter (centre, FWHM nm)."""
+    if projector not in _HOT_PROJECTORS:
+        raise ValueError(f"The hot-part projector is 'white' or 'blue'; got {projector!r}.")
+    camera_filter = None if band_pass is None else BandPassFilter(centre_nm=band_pass[0], fwhm_nm=band_pass[1])
+    return Optics(projector=_HOT_PROJECTORS[projector], camera_filter=camera_filter,
+                  emissivity=HOT_STEEL_EMISSIVITY)
+
+
+def hot_part_scene(peak_c: float, optics: Optics | None = None, cooling_rate: float = 0.0) -> Scene:
+    """A glowing billet and dome before a cool fixture plate, for the forging rig (docs/hot-parts.md).
+
+    Surfaces (index: shape): 0: billet, capped cylinder radius 45 mm, length 150 mm along x, centre
+    (-70, 0, 620), at ``peak_c`` - 60 K with a +60 K spot (sigma 60 mm) on its front; 1: dome, sphere of
+    radius 80 mm centred (100, 0, 700) on the plate, at ``peak_c`` - 90 K with a +70 K spot on its top;
+    2: fixture plate 600 x 400 mm at z = 700 facing the devices, 40 C. Part albedo 0.15 +- 0.03 (oxidised
+    steel, 1 - emissivity), plate 0.4 +- 0.1; ambient 0.01. The parts cool at ``cooling_rate`` K/s.
+    """
+    scale = Albedo(base=1 - HOT_STEEL_EMISSIVITY, texture_amplitude=0.03, feature_size=25.0, seed=1)
+    temperature = TemperatureScene(background=25.0, surfaces=[
+        SurfaceTemperature(base=peak_c - 60.0, cooling_rate=cooling_rate,
+                           spots=[Spot(center=[-70.0, 0.0, 575.0], radius=60.0, amplitude=60.0)]),
+        SurfaceTemperature(base=peak_c - 90.0, cooling_rate=cooling_rate,
+                           spots=[Spot(center=[100.0, 0.0, 620.0], radius=60.0, amplitude=70.0)]),
+        SurfaceTemperature(base=40.0),
+    ])
+    return Scene(ambient=0.01, temperature=temperature, optics=optics or hot_optics(), surfaces=[
+        Cylinder(center=[-70.0, 0.0, 620.0], axis=[1.0, 0.0, 0.0], radius=45.0, length=150.0, albedo=scale),
+        Sphere(center=[100.0, 0.0, 700.0], radius=80.0, albedo=scale),
+        Plane(center=[0.0, 0.0, 700.0], normal=[0.0, 0.0, -1.0], u_axis=[1.0, 0.0, 0.0], size=[600.0, 400.0],
               albedo=Albedo(base=0.4, texture_amplitude=0.1, feature_size=40.0, seed=2)),
     ])

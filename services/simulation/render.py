@@ -308,7 +308,7 @@ def _centre_samples(samples: np.ndarray, grid: tuple[int, int, int, int]) -> np.
     return samples.reshape(grid + samples.shape[1:])[:, grid[1] // 2, :, grid[3] // 2]
 
 
-def _projector_light(pattern: np.ndarray, effects: ProjectorEffects) -> np.ndarray:
+def projector_light(pattern: np.ndarray, effects: ProjectorEffects) -> np.ndarray:
     """Relative light (0..1, float32) a projector emits for one pattern image."""
     maximum = np.iinfo(pattern.dtype).max if np.issubdtype(pattern.dtype, np.integer) else 1.0
     light = (pattern.astype(np.float32) / np.float32(maximum)) ** np.float32(effects.gamma)
@@ -353,7 +353,7 @@ def render_frames(view: ViewGeometry, patterns: np.ndarray, rng: np.random.Gener
                          f"{projector.width}x{projector.height} projector; got {patterns.shape}.")
     frames = np.empty((len(patterns), view.camera.height, view.camera.width), dtype=camera_effects.dtype)
     for index, pattern in enumerate(patterns):
-        light = cv2.remap(_projector_light(pattern, projector_effects), view.projector_x, view.projector_y,
+        light = cv2.remap(projector_light(pattern, projector_effects), view.projector_x, view.projector_y,
                           cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
         irradiance = integrate_pixels(view.direct * light + view.ambient, view.supersample)
         frames[index] = expose(irradiance, camera_effects, rng)

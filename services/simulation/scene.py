@@ -27,6 +27,8 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 
 from services.errors import InputError
 from services.formats.json_files import describe_validation_error, read_text, validate_json
+from services.simulation.optics import Optics
+from services.simulation.temperature import TemperatureScene
 
 Vector3 = Annotated[list[float], Field(min_length=3, max_length=3)]
 _TEXTURE_WAVES = 8
@@ -154,12 +156,26 @@ Surface = Annotated[Plane | Sphere | Cylinder | Mesh, Field(discriminator="type"
 
 
 class Scene(BaseModel):
-    """Surfaces in the rig's world frame and the ambient light level (fraction of full projector light)."""
+    """Surfaces in the rig's world frame and the ambient light level (fraction of full projector light).
+
+    A hot part's scene adds ``temperature`` (one field per surface, degrees Celsius, optionally cooling)
+    and ``optics`` (projector spectrum, camera filter, sensor, emissivity: what the visible camera makes
+    of the parts' glow); see docs/hot-parts.md.
+    """
 
     model_config = ConfigDict(extra="forbid", frozen=True)
 
     surfaces: list[Surface] = Field(min_length=1)
     ambient: float = Field(0.05, ge=0.0, le=1.0)
+    temperature: TemperatureScene | None = None
+    optics: Optics | None = None
+
+    @model_validator(mode="after")
+    def _one_temperature_field_per_surface(self) -> Scene:
+        if self.temperature is not None and len(self.temperature.surfaces) != len(self.surfaces):
+            raise ValueError(f"temperature: {len(self.temperature.surfaces)} surface fields for "
+                             f"{len(self.surfaces)} surfaces; give one per surface, in the same order")
+        return self
 
 
 def surface_albedo(scene: Scene, points: np.ndarray, surface_index: np.ndarray) -> np.ndarray:
@@ -206,7 +222,7 @@ def parse_scene(text: str, source: str = "scene", base_directory: str | Path = "
             except ValidationError as error:
                 raise InputError(describe_validation_error(field, error)) from None
         surfaces.append(surface)
-    return Scene(surfaces=surfaces, ambient=scene.ambient)
+    return scene.model_copy(update={"surfaces": surfaces})
 
 
 def load_scene(path: str | Path) -> Scene:

@@ -1,17 +1,10 @@
-"""The simulated thermal camera: temperature fields on scene surfaces and the camera's view of them.
+"""The simulated thermal camera: its view of the temperature fields on scene surfaces.
 
-A ``TemperatureScene`` gives each surface of a ``Scene`` (same order) a smooth
-temperature field, in degrees Celsius,
-
-    T(X) = base + g . (X - origin) + sum_k a_k exp(-|X - c_k|^2 / (2 r_k^2)),
-
-a linear gradient plus Gaussian hot (a_k > 0) or cold (a_k < 0) spots. Rays that
-miss every surface see ``background``.
+The fields themselves (``TemperatureScene``, ``SurfaceTemperature``, ``Spot``, ``surface_temperature``)
+live in ``services.simulation.temperature`` and are re-exported here.
 """
 
 from __future__ import annotations
-
-from typing import Annotated
 
 import cv2
 import numpy as np
@@ -23,47 +16,7 @@ from services.geometry.camera import camera_center
 from services.simulation.raycast import cast_rays
 from services.simulation.render import integrate_pixels, subsample_rays
 from services.simulation.scene import Scene
-
-Vector3 = Annotated[list[float], Field(min_length=3, max_length=3)]
-
-
-class Spot(BaseModel):
-    """A Gaussian hot or cold spot: ``amplitude`` kelvin at ``center``, standard deviation ``radius`` mm."""
-
-    model_config = ConfigDict(extra="forbid", frozen=True)
-
-    center: Vector3
-    radius: float = Field(gt=0)
-    amplitude: float
-
-
-class SurfaceTemperature(BaseModel):
-    """A smooth temperature field on one surface, degrees Celsius."""
-
-    model_config = ConfigDict(extra="forbid", frozen=True)
-
-    base: float = Field(gt=-273.15)
-    gradient: Vector3 = Field(default_factory=lambda: [0.0, 0.0, 0.0])
-    origin: Vector3 = Field(default_factory=lambda: [0.0, 0.0, 0.0])
-    spots: list[Spot] = Field(default_factory=list)
-
-    def evaluate(self, points: np.ndarray) -> np.ndarray:
-        """Temperature at world points (N, 3) -> (N,)."""
-        points = np.asarray(points, dtype=np.float64)
-        temperature = self.base + (points - np.asarray(self.origin)) @ np.asarray(self.gradient)
-        for spot in self.spots:
-            squared = np.sum((points - np.asarray(spot.center)) ** 2, axis=1)
-            temperature = temperature + spot.amplitude * np.exp(-squared / (2 * spot.radius**2))
-        return temperature
-
-
-class TemperatureScene(BaseModel):
-    """One temperature field per scene surface (same order), and what rays that miss see."""
-
-    model_config = ConfigDict(extra="forbid", frozen=True)
-
-    surfaces: list[SurfaceTemperature] = Field(min_length=1)
-    background: float = Field(25.0, gt=-273.15)
+from services.simulation.temperature import Spot, SurfaceTemperature, TemperatureScene, surface_temperature
 
 
 class ThermalEffects(BaseModel):
@@ -82,16 +35,6 @@ class ThermalEffects(BaseModel):
     blur_sigma: float = Field(0.6, ge=0.0)
     netd: float = Field(0.05, ge=0.0)
     planck: PlanckConstants = Field(default_factory=PlanckConstants)
-
-
-def surface_temperature(temperatures: TemperatureScene, points: np.ndarray, surface: np.ndarray) -> np.ndarray:
-    """True temperature of points (N, 3) on scene surfaces ``surface`` (N,); ``background`` where -1."""
-    result = np.full(len(points), temperatures.background, dtype=np.float64)
-    for index, field in enumerate(temperatures.surfaces):
-        on_surface = surface == index
-        if on_surface.any():
-            result[on_surface] = field.evaluate(points[on_surface])
-    return result
 
 
 def render_thermal(
@@ -175,3 +118,7 @@ def forging_temperatures() -> TemperatureScene:
         SurfaceTemperature(base=960.0, gradient=[0.0, 0.4, 0.0], origin=[-95.0, 20.0, 600.0]),
         SurfaceTemperature(base=45.0, spots=[Spot(center=[0.0, 20.0, 760.0], radius=150.0, amplitude=75.0)]),
     ])
+
+
+__all__ = ["Spot", "SurfaceTemperature", "TemperatureScene", "ThermalEffects", "forging_temperatures",
+           "render_thermal", "seen_by", "surface_temperature"]

@@ -30,6 +30,8 @@ class Rejection(enum.IntEnum):
     POOR_FIT = 4  #: ``quality`` below ``min_quality``: the samples are not one sinusoid (mixed or moving surface)
     INCONSISTENT = 5  #: Gray code and phase (or two phase periods) disagree, or the code is out of range
     EDGE = 6  #: next to a rejected pixel or across a coordinate jump: a camera pixel mixing two surfaces
+    GLOW_SATURATED = 7  #: a hot part's own glow saturates the pattern (``glow.decode_glowing`` only)
+    GLOW_NOISE = 8  #: the pattern is below what the glow's shot noise allows (``glow.decode_glowing`` only)
 
 
 @dataclass(frozen=True)
@@ -409,8 +411,9 @@ def decode(
 
     Parameters
     ----------
-    frames : (F, H, W) uint8 or uint16 array
-        One camera frame per manifest frame, in display order.
+    frames : (F, H, W) uint8, uint16 or float32 array
+        One camera frame per manifest frame, in display order (float32: grey levels with an offset
+        removed, as ``glow.decode_glowing`` passes them, with ``saturation_level`` given).
     sequence : Sequence
         What each frame encodes.
     saturation_level : float, optional
@@ -482,8 +485,10 @@ def decode(
     frames = np.asarray(frames)
     if frames.ndim != 3:
         raise ValueError(f"Frames must be a (F, H, W) stack; got an array of shape {frames.shape}.")
-    if frames.dtype not in (np.uint8, np.uint16):
-        raise ValueError(f"Frames must be uint8 or uint16; got {frames.dtype}.")
+    if frames.dtype not in (np.uint8, np.uint16, np.float32):
+        raise ValueError(f"Frames must be uint8, uint16 or float32; got {frames.dtype}.")
+    if frames.dtype == np.float32 and saturation_level is None:
+        raise ValueError("Float32 frames (offset-free grey levels) need an explicit saturation_level.")
     if frames.shape[0] != len(sequence.frames):
         raise ValueError(f"The sequence has {len(sequence.frames)} frames but {frames.shape[0]} were given.")
     if not 0 <= consistency <= 1:

@@ -44,6 +44,7 @@ def generate_sequence(
     axes: str = "x",
     period: float = DEFAULT_PERIOD,
     steps: int = DEFAULT_STEPS,
+    closing_black: bool = False,
 ) -> tuple[Sequence, np.ndarray]:
     """The default structured-light sequence for a projector, and its images.
 
@@ -57,12 +58,16 @@ def generate_sequence(
         Phase-shift period in projector pixels.
     steps : int
         Number of phase shifts N (at least 3).
+    closing_black : bool
+        End with a second black frame, so that a hot part's glow, which drifts as the part cools, can
+        be interpolated between the opening and the closing black frame and subtracted (see
+        docs/hot-parts.md).
 
     Returns
     -------
     sequence : Sequence
         The manifest: white, black, then per axis the Gray planes most significant
-        first, each followed by its inverse, then the N phase steps.
+        first, each followed by its inverse, then the N phase steps (and the closing black frame).
     patterns : (F, height, width) uint8 array
         The projector images in display order.
 
@@ -91,6 +96,8 @@ def generate_sequence(
         for step in range(steps):
             frames.append(PhaseFrame(kind="phase", file=f"{len(frames):02d}_phase_{axis}_step{step}.png",
                                      axis=axis, period=period, step=step, steps=steps))
+    if closing_black:
+        frames.append(BlackFrame(kind="black", file=f"{len(frames):02d}_black_closing.png"))
     sequence = Sequence(projector=ProjectorSize(width=width, height=height), frames=frames)
     return sequence, render_patterns(sequence)
 

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numba
 import numpy as np
 
@@ -9,6 +11,7 @@ from services.formats.rig import Device
 from services.formats.sequence import Sequence
 from services.numba_options import SAFE_FASTMATH
 from services.structured_light.decode import DecodedCapture, decode
+from services.structured_light.glow import GlowReport, decode_glowing
 from services.structured_light.low_snr import estimate_camera_noise, phase_noise_scale, refine_low_snr
 from services.structured_light.outline import ASSUMED_CAMERA_BLUR_PX, estimate_camera_blur, outline_corrected
 from services.structured_light.triangulate import TriangulationTable, triangulate_map, triangulation_table
@@ -51,9 +54,11 @@ _MIN_QUALITY = 0.3
 _MIN_MODULATION_OF_FULL_SCALE = 0.004  # 1 grey level at 8 bits
 
 
-def _refined_coordinates(decoded: DecodedCapture, sequence: Sequence, axis: str) -> np.ndarray:
+def _refined_coordinates(decoded: DecodedCapture, sequence: Sequence, axis: str,
+                         noise: np.ndarray | None = None) -> np.ndarray:
     """The decoded coordinates off the outline and corrected for the camera blur's bias beside it, with
-    weak-signal pixels refined when the axis is phase coded."""
+    weak-signal pixels refined when the axis is phase coded (against the per-pixel ``noise`` when given,
+    else the capture's one noise level)."""
     groups = sequence.phase_groups(axis)
     blur = estimate_camera_blur(decoded.intensity, decoded.rejection)
     coordinates = outline_corrected(getattr(decoded, f"projector_{axis}"), decoded.intensity, decoded.rejection,
@@ -63,8 +68,11 @@ def _refined_coordinates(decoded: DecodedCapture, sequence: Sequence, axis: str)
         return coordinates
     finest = groups[-1]
     steps = len(finest.frames)
-    noise = estimate_camera_noise(decoded.modulation, decoded.quality, steps)
-    return refine_low_snr(coordinates, decoded.modulation, phase_noise_scale(steps, finest.period, noise),
+    if noise is not None:  # the predicted noise scale / B per pixel is then scale(1) / (B / noise)
+        return refine_low_snr(coordinates, decoded.modulation / noise, phase_noise_scale(steps, finest.period, 1.0),
+                              max_step=finest.period / 4)
+    noise_level = estimate_camera_noise(decoded.modulation, decoded.quality, steps)
+    return refine_low_snr(coordinates, decoded.modulation, phase_noise_scale(steps, finest.period, noise_level),
                           max_step=finest.period / 4)
 
 
@@ -276,6 +284,77 @@ def _cloud(points_map: np.ndarray, camera_centre: np.ndarray, coordinates: np.nd
     return dict(zip(_CLOUD_FIELDS, columns, strict=True))
 
 
+@dataclass(frozen=True)
+class Scan:
+    """A reconstructed capture: the ``cloud`` (see :func:`reconstruct_points`) and, for a capture of a
+    glowing part (a sequence closed by a second black frame), what the glow did (``glow``), else None."""
+
+    cloud: dict[str, np.ndarray]
+    glow: GlowReport | None
+
+
+def reconstruct_scan(
+    frames: np.ndarray,
+    sequence: Sequence,
+    camera: Device,
+    projector: Device,
+    *,
+    table: TriangulationTable | None = None,
+    gray_boundaries: bool = True,
+    saturation_level: float | None = None,
+) -> Scan:
+    """Decode a capture and triangulate every valid camera pixel, reporting what a hot part's glow did.
+
+    Parameters
+    ----------
+    frames : (F, H, W) uint8 or uint16 array
+        Camera frames in the manifest's display order.
+    sequence : Sequence
+        What each frame encodes. A sequence that opens and closes with a black frame (our hot-part
+        sequences) is decoded by ``glow.decode_glowing``: the drifting glow is interpolated between the
+        two and subtracted, and the thresholds follow the noise measured per pixel.
+    camera, projector : Device
+        Calibrated devices of the rig.
+    table : TriangulationTable, optional
+        :func:`rig_triangulation_table` of the devices for the sequence, to reuse across scans of one
+        calibration; computed here when None.
+    gray_boundaries : bool
+        Interpolate axes coded by Gray code alone between their stripe boundaries (``decode``'s option);
+        False triangulates their stripe centres.
+    saturation_level : float, optional
+        The sensor's saturation grey level (4095 for 12-bit frames in 16-bit files); default the
+        dtype maximum.
+
+    Returns
+    -------
+    Scan
+    """
+    height, width = frames.shape[1:]
+    if (width, height) != camera.size:
+        raise ValueError(
+            f"The frames are {width}x{height} but the camera is calibrated for {camera.width}x{camera.height}."
+        )
+    axis = coded_axis(sequence.coded_axes, camera, projector)
+    if table is None:
+        table = rig_triangulation_table(camera, projector, axis)
+    elif table.axis != axis or table.pixel_geometry.shape[:2] != (height, width):
+        raise ValueError(f"The triangulation table is for projector {table.axis} and a "
+                         f"{table.pixel_geometry.shape[1]}x{table.pixel_geometry.shape[0]} camera, "
+                         "not for this capture.")
+    full_scale = float(np.iinfo(frames.dtype).max if saturation_level is None else saturation_level)
+    noise, report = None, None
+    if sequence.closing_black_index is not None and sequence.phase_groups():
+        decoded, noise, report = decode_glowing(frames, sequence, saturation_level=full_scale,
+                                                min_quality=_MIN_QUALITY)
+    else:
+        decoded = decode(frames, sequence, min_quality=_MIN_QUALITY, edge_margin=0, saturation_level=full_scale,
+                         min_modulation=_MIN_MODULATION_OF_FULL_SCALE * full_scale, gray_boundaries=gray_boundaries)
+    coordinates = _refined_coordinates(decoded, sequence, axis, noise)
+    coordinates = remove_speckles(coordinates, _coordinate_step_limit(sequence, axis))
+    points_map = triangulate_map(table, coordinates)
+    return Scan(cloud=_cloud(points_map, table.centre_world, coordinates, decoded), glow=report)
+
+
 def reconstruct_points(
     frames: np.ndarray,
     sequence: Sequence,
@@ -284,6 +363,7 @@ def reconstruct_points(
     *,
     table: TriangulationTable | None = None,
     gray_boundaries: bool = True,
+    saturation_level: float | None = None,
 ) -> dict[str, np.ndarray]:
     """Decode a capture and triangulate every valid camera pixel.
 
@@ -301,6 +381,8 @@ def reconstruct_points(
     gray_boundaries : bool
         Interpolate axes coded by Gray code alone between their stripe boundaries (``decode``'s option);
         False triangulates their stripe centres.
+    saturation_level : float, optional
+        The sensor's saturation grey level; default the dtype maximum.
 
     Returns
     -------
@@ -308,24 +390,7 @@ def reconstruct_points(
         ``x, y, z`` (float32 world mm), ``nx, ny, nz`` (unit normals, NaN at the cloud's border),
         ``u, v`` (camera pixel, float32), ``projector`` (decoded projector coordinate),
         ``quality``, ``modulation``, ``intensity`` (float32), one entry per reconstructed point, in
-        camera raster order.
+        camera raster order. :func:`reconstruct_scan` also says what a hot part's glow did.
     """
-    height, width = frames.shape[1:]
-    if (width, height) != camera.size:
-        raise ValueError(
-            f"The frames are {width}x{height} but the camera is calibrated for {camera.width}x{camera.height}."
-        )
-    axis = coded_axis(sequence.coded_axes, camera, projector)
-    if table is None:
-        table = rig_triangulation_table(camera, projector, axis)
-    elif table.axis != axis or table.pixel_geometry.shape[:2] != (height, width):
-        raise ValueError(f"The triangulation table is for projector {table.axis} and a "
-                         f"{table.pixel_geometry.shape[1]}x{table.pixel_geometry.shape[0]} camera, "
-                         "not for this capture.")
-    full_scale = np.iinfo(frames.dtype).max
-    decoded = decode(frames, sequence, min_quality=_MIN_QUALITY, edge_margin=0,
-                     min_modulation=_MIN_MODULATION_OF_FULL_SCALE * full_scale, gray_boundaries=gray_boundaries)
-    coordinates = _refined_coordinates(decoded, sequence, axis)
-    coordinates = remove_speckles(coordinates, _coordinate_step_limit(sequence, axis))
-    points_map = triangulate_map(table, coordinates)
-    return _cloud(points_map, table.centre_world, coordinates, decoded)
+    return reconstruct_scan(frames, sequence, camera, projector, table=table, gray_boundaries=gray_boundaries,
+                            saturation_level=saturation_level).cloud

@@ -1,0 +1,221 @@
+"""Decoding a capture of a glowing part: the drifting glow removed, thresholds that follow its shot noise.
+
+A hot part adds its own emission to every frame: an offset per pixel that drifts as the part cools,
+and shot noise that grows with it. Our hot-part sequences open and close with a black frame
+(``generate_sequence(closing_black=True)``); the offset is interpolated in time between the two and
+subtracted before any threshold, the camera noise is measured per pixel from the capture itself, and
+a pixel whose pattern the glow saturates or buries in noise gets a rejection code of its own
+(``GLOW_SATURATED``, ``GLOW_NOISE``) instead of a coordinate. See docs/hot-parts.md.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, replace
+
+import cv2
+import numpy as np
+
+from services.formats.sequence import Sequence
+from services.structured_light.decode import DecodedCapture, Rejection, decode
+
+# A pixel's phase must be measurable to this standard deviation (radians): with N = 12 steps the
+# modulation must then be at least 2.7 sigma, where a Gray plane is misread once in 10^4.
+MAX_PHASE_NOISE_RAD = 0.15
+_DARK_OF_FULL_SCALE = 0.02  # the cold decoder's darkness limit (decode's default min_intensity)
+_NOISE_WINDOW_PX = 9
+_LOG_LEVELS = 255  # noise variances are median-filtered as 8-bit codes of log2(variance)
+_LOG_RANGE = (-8.0, 40.0)
+_HINT_SHARE = 0.05  # the scan result carries a hint when the glow costs more than this share of the part
+_JUMP_OF_PERIOD = 0.5  # a coordinate step of half the finest period between neighbours: a depth step (mixed pixels)
+
+
+def glow_offset(frames: np.ndarray, sequence: Sequence) -> np.ndarray:
+    """Per-frame offset of a capture whose sequence opens and closes with a black frame, float32 (F, H, W).
+
+    Notes
+    -----
+    With D_0, D_1 the black frames at display positions i_0 < i_1, frame f's offset (ambient light,
+    projector black level and the part's glow, which cools slowly) is the linear interpolation
+    O_f = D_0 + (D_1 - D_0) (f - i_0) / (i_1 - i_0): exact for a drift linear in time over the sequence.
+    """
+    opening, closing = sequence.black_index, sequence.closing_black_index
+    if closing is None:
+        raise ValueError("The sequence has no closing black frame, so the glow's drift cannot be interpolated.")
+    first = frames[opening].astype(np.float32)
+    drift = frames[closing].astype(np.float32) - first
+    share = (np.arange(len(frames), dtype=np.float32) - opening) / np.float32(closing - opening)
+    return first[None] + share[:, None, None] * drift[None]
+
+
+def pixel_noise(modulation: np.ndarray, quality: np.ndarray, steps: int) -> np.ndarray:
+    """Camera noise per pixel (grey levels), from the residuals of the sinusoid fits in a 9 x 9 window.
+
+    Notes
+    -----
+    A pixel's residual energy is N B^2 (1 - q) / (2 q) over N - 3 degrees of freedom (see
+    ``low_snr.estimate_camera_noise``); its median over the window follows the noise wherever it
+    changes slowly, as the glow's shot noise does across a part, and ignores the few pixels whose
+    residual is model error (an edge, a mixed pixel). The median is taken of log2 variances coded in
+    8 bits (steps of 0.19 octave, 7 % in sigma), which OpenCV's median filter does in milliseconds.
+    """
+    if steps <= 3:
+        raise ValueError("Estimating the noise per pixel needs more than 3 phase steps.")
+    b = modulation.astype(np.float64)
+    q = quality.astype(np.float64)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        variance = steps * b * b * (1 - q) / (2 * q * (steps - 3))
+    low, high = _LOG_RANGE
+    with np.errstate(divide="ignore", invalid="ignore"):
+        code = (np.log2(variance) - low) / (high - low) * _LOG_LEVELS
+    code = np.where(np.isfinite(code), code, _LOG_LEVELS)  # no fit (a flat pixel): assume the worst
+    code = np.clip(np.rint(code), 0, _LOG_LEVELS).astype(np.uint8)
+    smoothed = cv2.medianBlur(cv2.medianBlur(code, 5), 5)  # two 5x5 passes: about a 9x9 median
+    return np.sqrt(2.0 ** (low + smoothed.astype(np.float32) * np.float32((high - low) / _LOG_LEVELS)))
+
+
+@dataclass(frozen=True)
+class GlowReport:
+    """What the glow did to one scan.
+
+    Attributes
+    ----------
+    glowing_fraction : float
+        Share of the camera's pixels where the glow is at least 2 % of full scale and at least the
+        reflected pattern: the hot part as the camera sees it.
+    saturated_fraction, lost_fraction : float
+        Shares of those glowing pixels rejected because the glow saturated their pattern
+        (``GLOW_SATURATED``) or buried it in its shot noise (``GLOW_NOISE``).
+    glow_level : float
+        99th percentile of the glow, as a fraction of full scale.
+    drift : float
+        Median relative change of the glow from the opening to the closing black frame on the glowing
+        pixels (negative: the part cooled).
+    hint : str or None
+        What to change when the glow costs more than 5 % of the part.
+    """
+
+    glowing_fraction: float
+    saturated_fraction: float
+    lost_fraction: float
+    glow_level: float
+    drift: float
+    hint: str | None
+
+    def as_dict(self) -> dict:
+        return {key: (round(value, 5) if isinstance(value, float) else value) for key, value in asdict(self).items()}
+
+
+def _hint(saturated: float, lost: float) -> str | None:
+    if saturated + lost <= _HINT_SHARE:
+        return None
+    if saturated >= lost:
+        return ("the part's glow saturates the camera: use a shorter exposure (automatic exposure or HDR), "
+                "or a blue projector and a band-pass filter")
+    return ("the part's glow buries the pattern in its shot noise: use a blue projector and a band-pass "
+            "filter on the camera")
+
+
+def decode_glowing(
+    frames: np.ndarray,
+    sequence: Sequence,
+    *,
+    saturation_level: float | None = None,
+    min_quality: float = 0.5,
+    consistency: float = 0.25,
+    max_phase_noise: float = MAX_PHASE_NOISE_RAD,
+) -> tuple[DecodedCapture, np.ndarray, GlowReport]:
+    """Decode a capture of a glowing part whose sequence opens and closes with a black frame.
+
+    Parameters
+    ----------
+    frames : (F, H, W) uint8 or uint16 array
+        One camera frame per manifest frame, in display order.
+    sequence : Sequence
+        With a phase-coded axis and a closing black frame.
+    saturation_level : float, optional
+        Grey level at which the sensor saturates (4095 for 12-bit frames); default the dtype maximum.
+    min_quality, consistency : float
+        As in :func:`decode`.
+    max_phase_noise : float
+        Largest phase standard deviation (radians) that the noise may leave a valid pixel.
+
+    Returns
+    -------
+    decoded : DecodedCapture
+        ``intensity`` is the pattern's white level above the offset; ``rejection`` adds
+        ``GLOW_SATURATED`` and ``GLOW_NOISE``.
+    noise : (H, W) float32 array
+        The camera noise per pixel, grey levels (``pixel_noise``).
+    report : GlowReport
+
+    Notes
+    -----
+    Frames minus their interpolated offset (``glow_offset``) are decoded without intensity or
+    saturation limits; then per pixel, in this order: a raw frame at ``saturation_level`` is
+    ``GLOW_SATURATED`` where the pixel glows (glow >= 2 % of full scale and >= the pattern) and
+    ``SATURATED`` elsewhere; with sigma the pixel's noise and B_min = sigma sqrt(2 / N) /
+    max_phase_noise the least modulation whose phase is that precise (sigma_phi = sigma sqrt(2 / N) / B
+    [1]_), a pattern below 2 % of full scale is ``DARK`` where 2 B_min is below that (a pattern could
+    have been seen); a modulation below B_min is ``GLOW_NOISE`` where the pixel glows and
+    ``LOW_MODULATION`` elsewhere.
+
+    References
+    ----------
+    .. [1] C. Zuo et al., "Phase shifting algorithms for fringe projection profilometry: a review",
+       Optics and Lasers in Engineering 109, 2018, section 5.
+    """
+    frames = np.asarray(frames)
+    if frames.ndim != 3 or frames.dtype not in (np.uint8, np.uint16):
+        raise ValueError(f"Frames must be a (F, H, W) uint8 or uint16 stack; got {frames.shape} {frames.dtype}.")
+    if len(frames) != len(sequence.frames):
+        raise ValueError(f"The sequence has {len(sequence.frames)} frames but {len(frames)} were given.")
+    groups = sequence.phase_groups()
+    if not groups:
+        raise ValueError("Decoding a glowing part needs phase-shifted frames to measure the noise from.")
+    full_scale = float(np.iinfo(frames.dtype).max if saturation_level is None else saturation_level)
+    offset = glow_offset(frames, sequence)
+    decoded = decode(frames.astype(np.float32) - offset, sequence, saturation_level=np.inf,
+                     min_intensity=-np.inf, min_modulation=0.0, min_quality=min_quality, consistency=consistency,
+                     edge_margin=0, max_jump=_JUMP_OF_PERIOD * min(group.period for group in groups))
+    steps = min(len(group.frames) for group in groups)
+    noise = pixel_noise(decoded.modulation, decoded.quality, steps)
+
+    glow = 0.5 * (offset[sequence.black_index] + offset[sequence.closing_black_index])
+    coded = [i for i, frame in enumerate(sequence.frames) if frame.kind in ("gray", "phase")]
+    saturated = np.any(frames[coded] >= full_scale, axis=0)
+    glowing = (glow >= _DARK_OF_FULL_SCALE * full_scale) & (saturated | (glow >= decoded.intensity))
+    least_modulation = noise * np.float32(np.sqrt(2.0 / steps) / max_phase_noise)
+    dark_limit = _DARK_OF_FULL_SCALE * full_scale
+    rejection = decoded.rejection.copy()
+    weak = decoded.modulation < least_modulation
+    codes = [
+        (saturated & glowing, Rejection.GLOW_SATURATED),
+        (saturated & ~glowing, Rejection.SATURATED),
+        ((decoded.intensity < dark_limit) & (2 * least_modulation < dark_limit), Rejection.DARK),
+        (weak & glowing, Rejection.GLOW_NOISE),
+        (weak & ~glowing, Rejection.LOW_MODULATION),
+    ]
+    decided = np.zeros(rejection.shape, dtype=bool)
+    for where, code in codes:
+        where = where & ~decided
+        rejection[where] = code
+        decided |= where
+    rejected = rejection != Rejection.VALID
+    x, y = decoded.projector_x.copy(), decoded.projector_y.copy()
+    x[rejected] = np.nan
+    y[rejected] = np.nan
+    decoded = replace(decoded, projector_x=x, projector_y=y, rejection=rejection)
+
+    glowing_count = int(glowing.sum())
+    share = (lambda code: float(np.sum(rejection[glowing] == code)) / glowing_count) if glowing_count else (
+        lambda code: 0.0)
+    drift = 0.0
+    if glowing_count:
+        opening = offset[sequence.black_index][glowing]
+        closing = offset[sequence.closing_black_index][glowing]
+        drift = float(np.median((closing - opening) / np.maximum(opening, 1.0)))
+    saturated_share, lost_share = share(Rejection.GLOW_SATURATED), share(Rejection.GLOW_NOISE)
+    report = GlowReport(glowing_fraction=glowing_count / glowing.size, saturated_fraction=saturated_share,
+                        lost_fraction=lost_share, glow_level=float(np.percentile(glow, 99)) / full_scale,
+                        drift=drift, hint=_hint(saturated_share, lost_share))
+    return decoded, noise, report
