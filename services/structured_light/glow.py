@@ -19,8 +19,8 @@ from services.formats.sequence import Sequence
 from services.structured_light.decode import DecodedCapture, Rejection, decode
 
 # A pixel's phase must be measurable to this standard deviation (radians): with N = 12 steps the
-# modulation must then be at least 2.7 sigma, where a Gray plane is misread once in 10^4.
-MAX_PHASE_NOISE_RAD = 0.15
+# modulation must then be at least 2.0 sigma, where a Gray plane and its inverse are misread once in 500.
+MAX_PHASE_NOISE_RAD = 0.2
 _DARK_OF_FULL_SCALE = 0.02  # the cold decoder's darkness limit (decode's default min_intensity)
 _NOISE_WINDOW_PX = 9
 _LOG_LEVELS = 255  # noise variances are median-filtered as 8-bit codes of log2(variance)

@@ -1,0 +1,89 @@
+import numpy as np
+import pytest
+
+from services.structured_light.decode import Rejection
+from services.structured_light.glow import decode_glowing, glow_offset, pixel_noise
+from services.structured_light.patterns import generate_sequence
+
+WIDTH, HEIGHT = 256, 8  # projector; the "camera" sees projector column c at pixel column c
+SATURATION = 4095.0
+
+
+def _frames(glow: np.ndarray, pattern: np.ndarray, drift: float = 0.0, noise: float = 0.0, seed: int = 0):
+    """Frames of a camera seeing each projector column at one pixel: glow (H, W) drifting by ``drift`` (a share
+    of itself) over the sequence plus ``pattern`` (H, W) times the projected value, Gaussian noise, 12 bits."""
+    sequence, patterns = generate_sequence(WIDTH, HEIGHT, closing_black=True)
+    rng = np.random.default_rng(seed)
+    share = np.linspace(0.0, 1.0, len(patterns))[:, None, None]
+    values = glow[None] * (1 + drift * share) + pattern[None] * (patterns / 255.0)
+    values = values + noise * rng.standard_normal(values.shape)
+    return sequence, np.clip(np.rint(values), 0, SATURATION).astype(np.uint16)
+
+
+def test_closing_black_frame_ends_the_sequence():
+    sequence, patterns = generate_sequence(WIDTH, HEIGHT, closing_black=True)
+    assert sequence.closing_black_index == len(sequence.frames) - 1 and not patterns[-1].any()
+    assert generate_sequence(WIDTH, HEIGHT)[0].closing_black_index is None
+
+
+def test_a_linearly_drifting_glow_is_removed_exactly():
+    glow = np.full((HEIGHT, WIDTH), 1500.0)
+    pattern = np.full((HEIGHT, WIDTH), 800.0)
+    sequence, frames = _frames(glow, pattern, drift=-0.05)
+    offset = glow_offset(frames, sequence)
+    np.testing.assert_allclose(offset[1:][[0, -1]], frames[[1, -1]], atol=0)
+    decoded, _, report = decode_glowing(frames, sequence, saturation_level=SATURATION)
+    valid = decoded.rejection[:, 2:-2] == Rejection.VALID
+    assert valid.all()
+    columns = np.broadcast_to(np.arange(WIDTH, dtype=np.float64), (HEIGHT, WIDTH))
+    assert np.abs(decoded.projector_x[:, 2:-2] - columns[:, 2:-2]).max() < 0.05
+    assert report.drift == pytest.approx(-0.05, abs=0.005)
+    assert report.glowing_fraction == 1.0 and report.lost_fraction == 0.0 and report.hint is None
+
+
+def test_noise_estimate_follows_each_regions_noise():
+    glow = np.full((HEIGHT * 8, WIDTH), 400.0)
+    pattern = np.full(glow.shape, 600.0)
+    sequence, patterns = generate_sequence(WIDTH, HEIGHT * 8, closing_black=True)
+    rng = np.random.default_rng(1)
+    sigma = np.where(np.arange(WIDTH) < WIDTH // 2, 3.0, 12.0)[None, :]
+    values = glow + pattern * patterns / 255.0 + sigma * rng.standard_normal(patterns.shape)
+    frames = np.clip(np.rint(values), 0, SATURATION).astype(np.uint16)
+    decoded, noise, _ = decode_glowing(frames, sequence, saturation_level=SATURATION)
+    assert np.median(noise[:, 20:100]) == pytest.approx(3.0, rel=0.15)
+    assert np.median(noise[:, 160:240]) == pytest.approx(12.0, rel=0.15)
+    with pytest.raises(ValueError, match="more than 3 phase steps"):
+        pixel_noise(decoded.modulation, decoded.quality, 3)
+
+
+def test_a_pattern_lost_under_the_glow_gets_its_own_code_and_no_coordinate():
+    glow = np.full((HEIGHT, WIDTH), 3000.0)
+    glow[:, : WIDTH // 2] = 4080.0  # the left half saturates with the pattern on top
+    pattern = np.full((HEIGHT, WIDTH), 60.0)
+    # shot noise of 3000 grey levels at 2.5 electrons per level: sqrt(3000 / 2.5) = 35 levels
+    sequence, frames = _frames(glow, pattern, noise=35.0)
+    decoded, _, report = decode_glowing(frames, sequence, saturation_level=SATURATION)
+    left, right = decoded.rejection[:, : WIDTH // 2], decoded.rejection[:, WIDTH // 2:]
+    assert np.all(left == Rejection.GLOW_SATURATED)
+    assert np.mean(right == Rejection.GLOW_NOISE) > 0.95
+    kept = np.isfinite(decoded.projector_x)
+    assert kept.mean() < 0.01  # the few kept are those whose phase the noise still allows, and right
+    assert np.all(np.abs(decoded.projector_x[kept] - np.nonzero(kept)[1]) < 3)
+    assert report.saturated_fraction == pytest.approx(0.5) and report.lost_fraction > 0.45
+    assert "glow" in report.hint
+
+
+def test_cold_pixels_keep_the_cold_codes():
+    glow = np.full((HEIGHT, WIDTH), 5.0)  # ambient light only
+    pattern = np.full((HEIGHT, WIDTH), 1000.0)
+    pattern[:, :64] = 2.0  # a projector shadow
+    sequence, frames = _frames(glow, pattern, noise=2.0)
+    decoded, _, report = decode_glowing(frames, sequence, saturation_level=SATURATION)
+    assert np.all(decoded.rejection[:, :60] == Rejection.DARK)
+    assert report.glowing_fraction == 0.0 and report.hint is None
+
+
+def test_refuses_a_sequence_without_closing_black():
+    sequence, patterns = generate_sequence(WIDTH, HEIGHT)
+    with pytest.raises(ValueError, match="no closing black frame"):
+        decode_glowing(np.repeat(patterns[:, :, :], 1, axis=0).astype(np.uint16), sequence)

@@ -1,0 +1,33 @@
+import numpy as np
+import pytest
+
+from services.structured_light.hdr import merge_exposures
+
+
+def test_each_pixel_takes_its_longest_unsaturated_exposure_scaled():
+    scene = np.array([[100.0, 1000.0, 6000.0]])  # grey levels per millisecond
+    exposures = [0.5, 2.0]
+    stacks = np.stack([np.minimum(np.rint(scene * t), 4095)[None].repeat(3, axis=0) for t in exposures])
+    merged, saturation = merge_exposures(stacks.astype(np.uint16), exposures, 4095)
+    assert saturation == 4 * 4095
+    np.testing.assert_array_equal(merged[0, 0], [200, 2000, 12000])  # units of the 2 ms exposure
+
+
+def test_a_pixel_saturated_at_every_exposure_reads_the_merged_saturation():
+    stacks = np.full((2, 3, 1, 2), 4095, dtype=np.uint16)
+    stacks[:, :, 0, 1] = [[10, 10, 10], [40, 40, 40]]
+    merged, saturation = merge_exposures(stacks, [1.0, 4.0], 4095)
+    assert np.all(merged[:, 0, 0] == saturation) and np.all(merged[:, 0, 1] == 40)
+
+
+def test_the_merge_fits_sixteen_bits():
+    stacks = np.full((2, 1, 1, 1), 100, dtype=np.uint16)
+    merged, saturation = merge_exposures(stacks, [1.0, 64.0], 4095)
+    assert saturation <= 65535 and merged.dtype == np.uint16
+
+
+def test_bad_exposures_are_refused():
+    with pytest.raises(ValueError, match="one exposure time each"):
+        merge_exposures(np.zeros((2, 1, 1, 1), np.uint16), [1.0], 255)
+    with pytest.raises(ValueError, match="must be positive"):
+        merge_exposures(np.zeros((1, 1, 1, 1), np.uint16), [0.0], 255)
