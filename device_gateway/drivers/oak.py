@@ -134,18 +134,46 @@ class _OakDevice(abc.ABC):
 
 
 class OakCamera(_OakDevice, Camera):
-    """An OAK colour/mono sensor as a grey 8-bit camera with fixed (manual) exposure."""
+    """An OAK colour/mono sensor as a grey 8-bit camera with manual exposure, settable between frames.
+
+    ``set_exposure`` sends a ``CameraControl`` with ``setManualExposure`` through the Camera node's
+    ``inputControl`` queue (depthai v3: ``Node.Input.createInputQueue``); frames report the exposure they
+    were taken with (``exposure_us`` in their metadata), and the station meters with those frames.
+    """
 
     role = "camera"
 
     def __init__(self, name: str = "camera", device_id: str | None = None, socket: str = "CAM_A",
                  width: int = 1280, height: int = 800, exposure_us: int = 8000, iso: int = 100) -> None:
         super().__init__(name, device_id, socket, width, height)
-        self.exposure_us, self.iso = exposure_us, iso
+        self._exposure_us, self.iso = exposure_us, iso
+        self._control: dai.InputQueue | None = None
+
+    @property
+    def exposure_us(self) -> int:
+        return self._exposure_us
+
+    def set_exposure(self, exposure_us: float) -> None:
+        if not exposure_us > 0:
+            raise ValueError(f"The exposure must be a positive number of microseconds; got {exposure_us}.")
+        self._exposure_us = max(1, round(exposure_us))
+        if self._control is not None:
+            control = dai.CameraControl()
+            control.setManualExposure(self._exposure_us, self.iso)
+            try:
+                self._control.send(control)
+            except RuntimeError as error:
+                self.close()
+                raise DeviceLost(f"{self.role} {self.name!r}: cannot set the exposure: {error}") from None
+
+    def close(self) -> None:
+        self._control = None
+        super().close()
 
     def _build(self, pipeline: dai.Pipeline) -> dai.Node.Output:
         node = pipeline.create(dai.node.Camera).build(self.socket)
-        node.initialControl.setManualExposure(self.exposure_us, self.iso)
+        node.initialControl.setManualExposure(self._exposure_us, self.iso)
+        self._control = node.inputControl.createInputQueue()
         return node.requestOutput((self.width, self.height), dai.ImgFrame.Type.GRAY8)
 
     def grab(self, timeout_s: float) -> Frame:
