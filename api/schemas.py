@@ -84,12 +84,26 @@ class TemperatureSummary(BaseModel):
     percentiles: dict[str, float] = Field(description="p5, p25, p50, p75, p95 in degrees Celsius.")
 
 
+class GlowSummary(BaseModel):
+    glowing_fraction: float = Field(description="Share of the camera's pixels where the part's glow is at least "
+                                                "2 % of full scale and at least the reflected pattern.")
+    saturated_fraction: float = Field(description="Share of the glowing pixels the glow saturates.")
+    lost_fraction: float = Field(description="Share of the glowing pixels whose pattern the glow's shot noise buries.")
+    lost_to_glow: float = Field(description="saturated_fraction + lost_fraction.")
+    glow_level: float = Field(description="99th percentile of the glow, as a fraction of full scale.")
+    drift: float = Field(description="Median relative change of the glow over the sequence (negative: cooling).")
+    hint: str | None = Field(description="What to change when the glow costs more than 5 % of the part.")
+    exposure_mode: str
+    exposures_us: list[float | None] | None
+
+
 class FieldSummary(BaseModel):
     point_count: int
     points_with_temperature: int
     bbox_min: list[float] = Field(description="World millimetres.")
     bbox_max: list[float]
     temperature: TemperatureSummary | None
+    glow: GlowSummary | None = Field(None, description="What a hot part's glow did (sequences closed by a black frame).")
 
 
 class ScanOut(BaseModel):

@@ -37,5 +37,5 @@ def create_gateway(settings: Settings, station: Station | None = None) -> FastAP
     """The gateway app for ``settings``, projecting the default sequence at the projector's resolution."""
     station = station or build_station(settings)
     projector = station.projector.info
-    sequence, patterns = generate_sequence(projector.width, projector.height)
+    sequence, patterns = generate_sequence(projector.width, projector.height, closing_black=settings.hot_part_sequence)
     return create_app(station, sequence, patterns)

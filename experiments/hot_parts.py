@@ -1,6 +1,6 @@
 """Hot parts: a glowing billet and dome before a cool fixture plate, scanned through the simulated station.
 
-Run:  .venv/bin/python experiments/hot_parts.py [--scale 1.0] [--out docs/hot-parts.md] [--figure PATH]
+Run:  .venv/bin/python experiments/hot_parts.py [--scale 1.0] [--figure docs/figures/hot-parts.png]
 
 Every case films ``presets.hot_part_scene`` with the forging rig's projector and camera through the
 simulated gateway (``SimulatedStation`` behind a ``Station``: metering, automatic exposure or HDR, the
@@ -27,8 +27,9 @@ import numpy as np
 from device_gateway.drivers.simulated import SimulatedStation, SimulationOptions
 from device_gateway.station import ExposureControl, Station
 from services.formats.rig import Device, Rig
-from services.simulation.presets import forging_rig, hot_optics, hot_part_scene
+from services.simulation.presets import HOT_STEEL_EMISSIVITY, forging_rig, hot_optics, hot_part_scene
 from services.simulation.render import CameraEffects, ProjectorEffects
+from services.simulation.thermal import ThermalEffects
 from services.structured_light.patterns import generate_sequence
 from services.structured_light.reconstruct import Scan, reconstruct_scan
 
@@ -54,7 +55,22 @@ CASES = (
     Case("white, 1000 C, auto, drift 5 K", 1000.0, "white", None, "auto", 5.0),
     Case("white, 1000 C, HDR", 1000.0, "white", None, "hdr"),
     Case("white, 1250 C, auto", 1250.0, "white", None, "auto"),
+    Case("white, 1250 C, HDR", 1250.0, "white", None, "hdr"),
 )
+
+
+def ratio_table() -> str:
+    """The model's glow-to-pattern ratios (part albedo 0.15, normal incidence) for the docs."""
+    temperatures = (900.0, 1000.0, 1100.0, 1200.0, 1250.0)
+    setups = (("white LED 20 W, no filter", hot_optics("white")),
+              ("blue LED 30 W, 450/40 filter", hot_optics("blue", (450.0, 40.0))),
+              ("blue LED 30 W, no filter", hot_optics("blue")))
+    lines = ["| projector, camera filter | " + " | ".join(f"{t:.0f} C" for t in temperatures) + " |",
+             "|---|" + "---|" * len(temperatures)]
+    for name, optics in setups:
+        ratios = optics.glow_to_pattern(np.array(temperatures), 1 - HOT_STEEL_EMISSIVITY)
+        lines.append(f"| {name} | " + " | ".join(f"{r:.3g}" for r in ratios) + " |")
+    return "\n".join(lines) + "\n"
 
 
 @dataclass(frozen=True)
@@ -102,7 +118,8 @@ def run_case(case: Case, scale: float = 1.0, seed: int = 0) -> Result:
     scene = hot_part_scene(case.peak_c, hot_optics(case.projector, case.band_pass), cooling_rate=cooling)
     options = SimulationOptions(camera_effects=CameraEffects(blur_sigma=0.5),
                                 projector_effects=ProjectorEffects(blur_sigma=0.5), seed=seed,
-                                frame_interval_s=FRAME_INTERVAL_S)
+                                frame_interval_s=FRAME_INTERVAL_S,
+                                thermal_effects=ThermalEffects(supersample=1))  # not scored here
     simulated = SimulatedStation(rig, scene, scene.temperature, options)
     station = Station(simulated.camera, simulated.thermal, simulated.projector, settle_s=0.0)
     capture = station.capture(sequence, patterns, exposure=ExposureControl(mode=case.exposure))
@@ -187,6 +204,7 @@ def main() -> None:
     parser.add_argument("--scale", type=float, default=1.0)
     parser.add_argument("--figure", type=Path, default=None)
     args = parser.parse_args()
+    print(ratio_table())
     results = []
     for case in CASES:
         result = run_case(case, args.scale)

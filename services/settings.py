@@ -51,6 +51,12 @@ class Settings(BaseSettings):
     camera_height: int = Field(800, gt=0, description="Height of the OAK camera frames.")
     camera_exposure_us: int = Field(8000, gt=0, description="Manual exposure time of the OAK camera, microseconds.")
     camera_iso: int = Field(100, ge=100, le=1600, description="Manual sensitivity of the OAK camera.")
+    camera_exposure_mode: Literal["fixed", "auto", "hdr"] = Field(
+        "fixed", description="Scan exposure: the camera's own, metered for a glowing part (glow plus pattern "
+                             "below saturation), or metered and HDR-merged (docs/hot-parts.md).")
+    hot_part_sequence: bool = Field(
+        False, description="The gateway's sequence closes with a second black frame, so that a cooling part's "
+                           "drifting glow is interpolated and removed (docs/hot-parts.md).")
     projector_display: int = Field(0, ge=0, description="Display number the projector is connected as.")
     projector_width: int = Field(1280, gt=0, description="Native width of the projector.")
     projector_height: int = Field(800, gt=0, description="Native height of the projector.")

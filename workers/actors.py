@@ -45,10 +45,11 @@ from services.registration.register import register as register_images
 from services.storage.artifacts import ArtifactStore
 from services.streaming.proxy import proxy_url
 from services.streaming.recording import StationView, scan_recording
-from services.structured_light.reconstruct import coded_axis, reconstruct_points, rig_triangulation_table
+from services.structured_light.reconstruct import Scan as ReconstructedScan
+from services.structured_light.reconstruct import coded_axis, reconstruct_scan, rig_triangulation_table
 from services.structured_light.triangulate import TriangulationTable
 from workers.runtime import Runtime, current_runtime
-from workers.summary import field_summary
+from workers.summary import field_summary, glow_summary
 
 _NOT_RETRIED = (ValueError,)
 
@@ -71,9 +72,10 @@ def scan(job_id: str) -> dict[str, Any]:
     stages = _Stages(runtime, job_id)
 
     with stages("capture", 0.05), GatewayClient(settings.gateway_url) as gateway:
-        capture = gateway.capture(thermal_frames=1)
+        capture = gateway.capture(thermal_frames=1, exposure=settings.camera_exposure_mode)
     with stages("reconstruct", 0.3):
-        cloud = _reconstruct(capture.frames, capture.sequence, rig, rig_digest)
+        reconstructed = _reconstruct(capture.frames, capture.sequence, rig, rig_digest, capture.exposure)
+        cloud = reconstructed.cloud
     with stages("fuse", 0.55):
         field = _fuse(cloud, capture.thermal, rig)
     with stages("store", 0.7):
@@ -83,6 +85,7 @@ def scan(job_id: str) -> dict[str, Any]:
             "frames.npy": store.put_bytes(_npy(capture.frames)),
             "thermal.npy": store.put_bytes(_npy(capture.thermal.astype(np.float32))),
             "sequence.json": store.put_bytes(sequence_to_json(capture.sequence).encode()),
+            "exposure.json": store.put_bytes(json.dumps(capture.exposure).encode()),
         }
     with stages("stream", 0.85):
         captured_at = float(capture.frame_timestamps[0]) if len(capture.frame_timestamps) else None
@@ -90,11 +93,12 @@ def scan(job_id: str) -> dict[str, Any]:
             scan_recording(params["scan_id"], field, rig, capture.thermal[0], captured_at))
         _station_view(settings.rerun_host, settings.rerun_port, settings.station).publish(
             field, rig, capture.thermal[0], captured_at)
-    summary = field_summary(field)
+    glow = glow_summary(reconstructed.glow, capture.exposure)
+    summary = {**field_summary(field), "glow": glow}
     with runtime.sessions.begin() as session:
         row = session.get(Scan, params["scan_id"])
         row.artifacts, row.summary = artifacts, summary
-    return {"scan_id": params["scan_id"], "artifacts": artifacts, "stage_seconds": stages.seconds}
+    return {"scan_id": params["scan_id"], "artifacts": artifacts, "stage_seconds": stages.seconds, "glow": glow}
 
 
 @dramatiq.actor(actor_name="reconstruct", **_options(max_retries=1, time_limit_s=120))
@@ -105,9 +109,13 @@ def reconstruct(job_id: str) -> dict[str, Any]:
     rig_digest, rig = _calibration_rig(runtime, params["calibration_set_id"])
     artifacts = _scan_artifacts(runtime, params["scan_id"])
     runtime.tracker.progress(job_id, "reconstruct", 0.1)
-    cloud = _reconstruct(_load_npy(runtime.store, artifacts["frames.npy"]),
-                         _load_sequence(runtime.store, artifacts["sequence.json"]), rig, rig_digest)
-    return {"artifacts": {"cloud.ply": _store_cloud(runtime.store, cloud)}, "point_count": len(cloud["x"])}
+    exposure = json.loads(runtime.store.path(artifacts["exposure.json"]).read_bytes()) if "exposure.json" in artifacts \
+        else {}
+    reconstructed = _reconstruct(_load_npy(runtime.store, artifacts["frames.npy"]),
+                                 _load_sequence(runtime.store, artifacts["sequence.json"]), rig, rig_digest, exposure)
+    cloud = reconstructed.cloud
+    return {"artifacts": {"cloud.ply": _store_cloud(runtime.store, cloud)}, "point_count": len(cloud["x"]),
+            "glow": glow_summary(reconstructed.glow, exposure)}
 
 
 @dramatiq.actor(actor_name="fuse", **_options(max_retries=1, time_limit_s=120))
@@ -202,14 +210,16 @@ def _thermal_board_image(temperature: np.ndarray) -> np.ndarray:
 ACTORS = {actor.actor_name: actor for actor in (scan, reconstruct, fuse, register, calibrate)}
 
 
-def _reconstruct(frames: np.ndarray, sequence: Sequence, rig: Rig, rig_digest: str) -> dict[str, np.ndarray]:
+def _reconstruct(frames: np.ndarray, sequence: Sequence, rig: Rig, rig_digest: str,
+                 exposure: dict[str, Any]) -> ReconstructedScan:
     camera_name, camera = rig.device(None, "camera")
     projector_name, projector = rig.device(None, "projector")
     axis = coded_axis(sequence.coded_axes, camera, projector)
     key = (rig_digest, camera_name, projector_name, axis)
     if key not in _triangulation_tables:
         _triangulation_tables[key] = rig_triangulation_table(camera, projector, axis)
-    return reconstruct_points(frames, sequence, camera, projector, table=_triangulation_tables[key])
+    return reconstruct_scan(frames, sequence, camera, projector, table=_triangulation_tables[key],
+                            saturation_level=exposure.get("saturation_level"))
 
 
 def _fuse(cloud: dict[str, np.ndarray], thermal_frames: np.ndarray, rig: Rig) -> dict[str, np.ndarray]:

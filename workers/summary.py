@@ -1,8 +1,13 @@
-"""The summary of a temperature field that the scan endpoint and MQTT events report."""
+"""The summary of a scan that the scan endpoint and MQTT events report: its temperature field and what a
+hot part's glow did to it."""
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
+
+from services.structured_light.glow import GlowReport
 
 PERCENTILES = (5, 25, 50, 75, 95)
 
@@ -32,3 +37,15 @@ def field_summary(field: dict[str, np.ndarray]) -> dict:
             "percentiles": {f"p{p}": round(float(v), 3) for p, v in zip(PERCENTILES, np.percentile(seen, PERCENTILES))},
         }
     return summary
+
+
+def glow_summary(report: GlowReport | None, exposure: dict[str, Any]) -> dict | None:
+    """What the glow did to a scan: shares of the glowing part saturated or lost in its shot noise, the glow
+    level and drift, the exposures used, and a hint when the glow cost more than 5 % of the part.
+
+    None when the capture's sequence does not close with a black frame (no glow measurement).
+    """
+    if report is None:
+        return None
+    return {**report.as_dict(), "lost_to_glow": round(report.saturated_fraction + report.lost_fraction, 5),
+            "exposure_mode": exposure.get("mode", "fixed"), "exposures_us": exposure.get("exposures_us")}
