@@ -7,6 +7,9 @@ Formats, chosen by the file and an optional sidecar JSON of the same stem
 - 16-bit PNG or TIFF (or uint16 ``.npy``): centikelvin, T = v / 100 - 273.15 degrees
   Celsius; 0 (no data) and 65535 (saturated) read as NaN. 16 bits reach only
   382 degrees C: store hot parts as float TIFF or raw counts;
+- 16-bit frames on a stated linear scale (the high-range "temperature linear" modes of
+  radiometric cameras, e.g. 0.1 K per count): sidecar ``{"unit": "linear", "scale": 0.1,
+  "offset": 0.0}``, T = offset + scale v kelvin; 0 and 65535 read as NaN;
 - raw sensor counts (any numeric type) when the sidecar says so:
 
 ```json
@@ -14,7 +17,7 @@ Formats, chosen by the file and an optional sidecar JSON of the same stem
  "emissivity": 0.9, "reflected_temperature": 20.0}
 ```
 
-``unit`` is one of ``celsius``, ``kelvin``, ``centikelvin``, ``counts``. Temperature
+``unit`` is one of ``celsius``, ``kelvin``, ``centikelvin``, ``linear``, ``counts``. Temperature
 frames are apparent (black-body) temperatures; when an emissivity below 1 is
 given (sidecar or caller), they are corrected for it on the sidecar's Planck curve
 (or the typical long-wave curve). See docs/temperature-field.md for the equation.
@@ -59,7 +62,9 @@ class ThermalSidecar(BaseModel):
 
     model_config = ConfigDict(extra="forbid", frozen=True)
 
-    unit: Literal["celsius", "kelvin", "centikelvin", "counts"]
+    unit: Literal["celsius", "kelvin", "centikelvin", "linear", "counts"]
+    scale: float | None = Field(None, gt=0.0, description="linear: kelvin per count")
+    offset: float | None = Field(None, description="linear: kelvin at count 0")
     planck: PlanckCurve | None = None
     emissivity: float = Field(1.0, gt=0.0, le=1.0)
     reflected_temperature: float = Field(20.0, gt=-KELVIN_OFFSET)
@@ -68,6 +73,9 @@ class ThermalSidecar(BaseModel):
     def _counts_need_planck(self) -> ThermalSidecar:
         if self.unit == "counts" and self.planck is None:
             raise ValueError("raw counts need the camera's 'planck' constants (R1, R2, B, F, O)")
+        if (self.unit == "linear") != (self.scale is not None):
+            raise ValueError("'scale' (kelvin per count) and 'offset' (kelvin at 0) go with unit 'linear', and "
+                             "only with it")
         return self
 
 
@@ -120,8 +128,11 @@ def _object_temperature(values: np.ndarray, sidecar: ThermalSidecar, emissivity:
     constants = sidecar.planck.constants() if sidecar.planck else None
     if sidecar.unit == "counts":
         return counts_to_temperature(values, constants, emissivity, sidecar.reflected_temperature)
-    offset, scale = {"celsius": (0.0, 1.0), "kelvin": (KELVIN_OFFSET, 1.0), "centikelvin": (KELVIN_OFFSET, 0.01)}[
-        sidecar.unit]
+    if sidecar.unit == "linear":
+        offset, scale = KELVIN_OFFSET - (sidecar.offset or 0.0), sidecar.scale
+    else:
+        offset, scale = {"celsius": (0.0, 1.0), "kelvin": (KELVIN_OFFSET, 1.0),
+                         "centikelvin": (KELVIN_OFFSET, 0.01)}[sidecar.unit]
     apparent = values * scale - offset
     if emissivity == 1.0:
         return apparent
@@ -166,7 +177,7 @@ def read_thermal_frame(
         )
     sidecar = sidecar or ThermalSidecar(unit=_default_unit(path, array))
     values = array.astype(np.float64)
-    if sidecar.unit == "centikelvin":
+    if sidecar.unit in ("centikelvin", "linear") and array.dtype == np.uint16:
         values[np.isin(array, _CENTIKELVIN_NO_DATA)] = np.nan
     if not np.isfinite(values).any():
         raise InputError(f"{path}: thermal frame has no finite value (all NaN or no data)")

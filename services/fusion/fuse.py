@@ -75,6 +75,7 @@ def _bilinear_samples(
     fy = pixels[:, 1] - top
     total = np.zeros((count, len(depth)))
     weight_sum = np.zeros((count, len(depth)))
+    unknown = np.zeros((count, len(depth)), dtype=bool)
     for dx, dy, weight in ((0, 0, (1 - fx) * (1 - fy)), (1, 0, fx * (1 - fy)),
                            (0, 1, (1 - fx) * fy), (1, 1, fx * fy)):
         column = left + dx
@@ -87,8 +88,11 @@ def _bilinear_samples(
         counted = surface & np.isfinite(values)
         total += np.where(counted, values, 0.0) * weight
         weight_sum += counted * weight
+        unknown |= surface & ~np.isfinite(values) & (weight > 0)
     with np.errstate(invalid="ignore", divide="ignore"):
-        return np.where(weight_sum > 0, total / weight_sum, np.nan)
+        # a point beside a pixel without a temperature (saturated, beyond the range) gets none rather than
+        # the lower temperature of its other neighbours
+        return np.where((weight_sum > 0) & ~unknown, total / weight_sum, np.nan)
 
 
 def sample_view(

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import cv2
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from services.formats.rig import Device
 from services.fusion.radiometry import PlanckConstants, blackbody_counts, blackbody_temperature
@@ -27,6 +27,9 @@ class ThermalEffects(BaseModel):
     equivalent temperature difference in kelvin (Gaussian noise of that standard
     deviation at every temperature). Area integration and blur act on radiance
     (counts on ``planck``'s curve), not on temperature, as in a real camera.
+    ``measuring_range`` (lowest, highest) degrees C is the gain mode's range
+    (``THERMAL_RANGES``): a pixel at or beyond it is saturated and reads NaN, never
+    a clipped temperature; None measures any temperature.
     """
 
     model_config = ConfigDict(extra="forbid", frozen=True)
@@ -35,6 +38,24 @@ class ThermalEffects(BaseModel):
     blur_sigma: float = Field(0.6, ge=0.0)
     netd: float = Field(0.05, ge=0.0)
     planck: PlanckConstants = Field(default_factory=PlanckConstants)
+    measuring_range: tuple[float, float] | None = None
+
+    @model_validator(mode="after")
+    def _range_is_ordered(self) -> ThermalEffects:
+        if self.measuring_range is not None and not self.measuring_range[0] < self.measuring_range[1]:
+            raise ValueError(f"measuring_range must be (lowest, highest) degrees C; got {self.measuring_range}")
+        return self
+
+
+# Measuring ranges (degrees C) of thermal camera gain modes. The OAK Thermal's core is an InfiRay TINY1C
+# (Luxonis product page); its two gain modes as InfiRay's datasheet is commonly quoted. A hot-forging
+# camera needs a high-temperature range such as the last (a radiometric short-wave or long-wave camera
+# with a high-temperature filter, e.g. 300..1500 C).
+THERMAL_RANGES: dict[str, tuple[float, float]] = {
+    "tiny1c_high_gain": (-20.0, 150.0),
+    "tiny1c_low_gain": (0.0, 550.0),
+    "forging_high_range": (300.0, 1500.0),
+}
 
 
 def render_thermal(
@@ -62,7 +83,7 @@ def render_thermal(
     Returns
     -------
     image : (height, width) float32 array
-        Temperature per pixel.
+        Temperature per pixel; NaN at or beyond the effects' measuring range.
 
     Notes
     -----
@@ -84,6 +105,9 @@ def render_thermal(
         counts = cv2.GaussianBlur(counts, (0, 0), effects.blur_sigma, borderType=cv2.BORDER_REPLICATE)
     image = blackbody_temperature(counts, effects.planck)
     image = image + rng.normal(0.0, effects.netd, image.shape)
+    if effects.measuring_range is not None:
+        lowest, highest = effects.measuring_range
+        image = np.where((image > lowest) & (image < highest), image, np.nan)
     return image.astype(np.float32)
 
 
@@ -120,5 +144,5 @@ def forging_temperatures() -> TemperatureScene:
     ])
 
 
-__all__ = ["Spot", "SurfaceTemperature", "TemperatureScene", "ThermalEffects", "forging_temperatures",
+__all__ = ["THERMAL_RANGES", "Spot", "SurfaceTemperature", "TemperatureScene", "ThermalEffects", "forging_temperatures",
            "render_thermal", "seen_by", "surface_temperature"]

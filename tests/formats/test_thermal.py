@@ -148,3 +148,20 @@ def test_writing_is_atomic_and_leaves_no_temporary(tmp_path, temperature):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["a.tif", "b.npy", "c.png"]
     with pytest.raises(ValueError, match="written as"):
         write_thermal_frame(tmp_path / "d.jpg", temperature)
+
+
+def test_16_bit_linear_frames_reach_forging_temperatures(tmp_path):
+    # 0.1 K per count from 0 K: 1473.15 K (1200 C) is count 14731.5, beyond centikelvin's 382 C
+    values = np.array([[14732, 12732], [0, 65535]], dtype=np.uint16)
+    cv2.imwrite(str(tmp_path / "hot.png"), values)
+    (tmp_path / "hot.json").write_text(json.dumps({"unit": "linear", "scale": 0.1, "offset": 0.0}))
+    temperature = read_thermal_frame(tmp_path / "hot.png")
+    np.testing.assert_allclose(temperature[0], [1200.05, 1000.05], atol=1e-3)
+    assert np.isnan(temperature[1]).all()  # no data and saturated
+
+
+def test_linear_unit_needs_its_scale(tmp_path):
+    cv2.imwrite(str(tmp_path / "hot.png"), np.full((2, 2), 100, np.uint16))
+    (tmp_path / "hot.json").write_text(json.dumps({"unit": "linear"}))
+    with pytest.raises(InputError, match="hot.json.*'scale'"):
+        read_thermal_frame(tmp_path / "hot.png")

@@ -99,3 +99,15 @@ def test_bad_arguments_are_refused(hot_scene):
         fuse_temperature(hot_scene.points, hot_scene.normals, [view], max_view_angle_deg=95)
     with pytest.raises(ValueError, match="for this device"):
         ThermalView(hot_scene.thermal, hot_scene.image[:100])
+
+
+def test_points_beside_a_saturated_pixel_get_no_temperature(hot_scene):
+    image = hot_scene.image.copy()
+    column = image.shape[1] // 2
+    image[:, column] = np.nan  # one saturated column: beyond the camera's measuring range
+    field = fuse_temperature(hot_scene.points, hot_scene.normals, [ThermalView(hot_scene.thermal, image)])
+    pixels = project_points(hot_scene.points, hot_scene.thermal.K_array, hot_scene.thermal.dist_array,
+                            hot_scene.thermal.R_array, hot_scene.thermal.t_array)
+    beside = (np.abs(pixels[:, 0] - column) < 0.99) & hot_scene.visible
+    assert beside.sum() > 20
+    assert np.all(np.isnan(field.temperature[beside]))  # never the lower temperature of the other neighbours

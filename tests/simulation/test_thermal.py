@@ -6,6 +6,7 @@ from services.fusion.radiometry import PlanckConstants, blackbody_counts, blackb
 from services.simulation.presets import forging_rig, forging_scene
 from services.simulation.scene import Plane, Scene, Sphere
 from services.simulation.thermal import (
+    THERMAL_RANGES,
     Spot, SurfaceTemperature, TemperatureScene, ThermalEffects, forging_temperatures, render_thermal, seen_by,
     surface_temperature,
 )
@@ -82,3 +83,16 @@ def test_mismatched_surface_count_is_refused():
     with pytest.raises(ValueError, match="one per surface"):
         render_thermal(Scene(surfaces=[WALL, WALL]), TemperatureScene(surfaces=[SurfaceTemperature(base=20)]),
                        CAMERA, ThermalEffects(), np.random.default_rng(0))
+
+
+def test_pixels_beyond_the_measuring_range_are_nan_not_clipped():
+    temperatures = TemperatureScene(surfaces=[SurfaceTemperature(base=800.0, spots=[
+        Spot(center=[0.0, 0.0, 500.0], radius=60.0, amplitude=400.0)])])
+    effects = ThermalEffects(netd=0.0, measuring_range=THERMAL_RANGES["tiny1c_low_gain"])
+    image = render_thermal(Scene(surfaces=[WALL]), temperatures, CAMERA, effects, np.random.default_rng(0))
+    assert np.isnan(image).all()  # 800..1200 C: every pixel beyond the 550 C of the low-gain mode
+    forging = ThermalEffects(netd=0.0, measuring_range=THERMAL_RANGES["forging_high_range"])
+    image = render_thermal(Scene(surfaces=[WALL]), temperatures, CAMERA, forging, np.random.default_rng(0))
+    assert np.isfinite(image).all() and image.max() > 1150
+    with pytest.raises(ValueError, match="lowest, highest"):
+        ThermalEffects(measuring_range=(500.0, 100.0))
