@@ -27,11 +27,15 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--out", required=True, type=Path, help="output point cloud (.ply)")
     parser.add_argument("--camera", help="camera device name (default: the rig's only camera)")
     parser.add_argument("--projector", help="projector device name (default: the rig's only projector)")
+    parser.add_argument("--saturation-level", type=float, default=None, metavar="GREY",
+                        help="grey level at which the camera saturates (4095 for 12-bit frames in 16-bit files; "
+                             "default the files' maximum, 255 or 65535)")
     parser.set_defaults(handler=_run)
 
 
 def reconstruct_from_files(rig_path: Path, captures: Path, camera_name: str | None = None,
-                           projector_name: str | None = None) -> dict[str, np.ndarray]:
+                           projector_name: str | None = None,
+                           saturation_level: float | None = None) -> dict[str, np.ndarray]:
     """Read a rig and a capture directory and reconstruct; every error names the file at fault."""
     rig = load_rig(rig_path)
     _, camera = rig.device(camera_name, "camera")
@@ -47,7 +51,10 @@ def reconstruct_from_files(rig_path: Path, captures: Path, camera_name: str | No
             f"{captures}: frames are {frames.shape[2]}x{frames.shape[1]} but the rig's camera is "
             f"{camera.width}x{camera.height}"
         )
-    cloud = reconstruct_points(frames, sequence, camera, projector)
+    if saturation_level is not None and not 0 < saturation_level <= np.iinfo(frames.dtype).max:
+        raise InputError(f"--saturation-level must be in (0, {np.iinfo(frames.dtype).max}] for "
+                         f"{frames.dtype} frames; got {saturation_level:g}")
+    cloud = reconstruct_points(frames, sequence, camera, projector, saturation_level=saturation_level)
     if len(cloud["x"]) == 0:
         counts = np.bincount(decode(frames, sequence).rejection.ravel())
         reasons = ", ".join(f"code {code}: {count} px" for code, count in enumerate(counts) if count)
@@ -59,7 +66,7 @@ def reconstruct_from_files(rig_path: Path, captures: Path, camera_name: str | No
 
 
 def _run(args: argparse.Namespace) -> int:
-    cloud = reconstruct_from_files(args.rig, args.captures, args.camera, args.projector)
+    cloud = reconstruct_from_files(args.rig, args.captures, args.camera, args.projector, args.saturation_level)
     write_cloud(args.out, cloud, comments=[f"thermofield reconstruct of {args.captures.name}"])
     print(f"{args.out}: {len(cloud['x'])} points")
     return 0
