@@ -206,16 +206,15 @@ def decode_glowing(
     y[rejected] = np.nan
     decoded = replace(decoded, projector_x=x, projector_y=y, rejection=rejection)
 
-    glowing_count = int(glowing.sum())
-    share = (lambda code: float(np.sum(rejection[glowing] == code)) / glowing_count) if glowing_count else (
-        lambda code: 0.0)
-    drift = 0.0
-    if glowing_count:
+    saturated_share, lost_share, drift = 0.0, 0.0, 0.0
+    if glowing.any():
+        codes_glowing = rejection[glowing]
+        saturated_share = float(np.mean(codes_glowing == Rejection.GLOW_SATURATED))
+        lost_share = float(np.mean(codes_glowing == Rejection.GLOW_NOISE))
         opening = offset[sequence.black_index][glowing]
         closing = offset[sequence.closing_black_index][glowing]
         drift = float(np.median((closing - opening) / np.maximum(opening, 1.0)))
-    saturated_share, lost_share = share(Rejection.GLOW_SATURATED), share(Rejection.GLOW_NOISE)
-    report = GlowReport(glowing_fraction=glowing_count / glowing.size, saturated_fraction=saturated_share,
+    report = GlowReport(glowing_fraction=float(glowing.mean()), saturated_fraction=saturated_share,
                         lost_fraction=lost_share, glow_level=float(np.percentile(glow, 99)) / full_scale,
                         drift=drift, hint=_hint(saturated_share, lost_share))
     return decoded, noise, report
