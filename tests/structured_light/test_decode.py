@@ -211,7 +211,8 @@ def test_default_thresholds_follow_the_bit_depth():
 @pytest.mark.parametrize(
     ("frames", "message"),
     [
-        (np.zeros((30, 4, 4), np.float32), "uint8 or uint16"),
+        (np.zeros((30, 4, 4), np.float64), "uint8, uint16 or float32"),
+        (np.zeros((30, 4, 4), np.float32), "need an explicit saturation_level"),
         (np.zeros((30, 16), np.uint8), "(F, H, W) stack"),
         (np.zeros((29, 4, 4), np.uint8), "30 frames but 29"),
     ],
