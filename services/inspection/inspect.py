@@ -1,0 +1,263 @@
+"""The inspection use case: a temperature field and a part file to cold dimensions, deviations and a verdict."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from services.formats.part import Feature, Part
+from services.inspection.alignment import Alignment, align_nominal
+from services.inspection.cold_equivalent import cold_equivalent
+from services.inspection.deviation import find_defects, summarize_deviation, surface_deviation
+from services.inspection.distance import feature_distance
+from services.inspection.features import (NominalFeature, element_position_std, fit_measured, fit_nominal_feature,
+                                          measure_std, measure_value)
+from services.inspection.nominal import NominalSurface
+from services.inspection.uncertainty import COVERAGE_FACTOR, TemperatureBudget, size_uncertainty, temperature_uncertainty
+from services.inspection.verdict import decide, overall
+
+REPORT_VERSION = 1
+_SEED_POINTS = 30000
+_SYSTEMATIC_FACTOR = {"diameter": 2.0, "distance": np.sqrt(2.0)}
+
+
+@dataclass(frozen=True)
+class PreparedPart:
+    """A part with its nominal surface and nominal feature fits, built once and reused for every scan."""
+
+    part: Part
+    nominal: NominalSurface
+    features: dict[str, NominalFeature]
+
+
+def prepare_part(part: Part) -> PreparedPart:
+    """Build the nominal surface's distance queries and fit each feature to the nominal (a ``ValueError``
+    names a feature whose region misses the nominal surface)."""
+    nominal = NominalSurface(part.vertices, part.triangles)
+    features = {feature.name: fit_nominal_feature(feature, nominal)
+                for feature in part.definition.features if feature.type != "distance"}
+    return PreparedPart(part, nominal, features)
+
+
+@dataclass(frozen=True)
+class Inspection:
+    """What an inspection found.
+
+    Attributes
+    ----------
+    report : dict
+        REPORT.json (docs/inspection.md).
+    cold_points : (N, 3) array
+        Cold-equivalent position of every field point, world frame (NaN for points not of the part).
+    deviation : (N,) float32 array
+        Signed deviation from the nominal surface, mm (NaN for points not of the part).
+    fallback : (N,) bool array
+        Part points whose temperature came from the part's trend, not their own.
+    alignment : Alignment
+        Part frame to world.
+    """
+
+    report: dict[str, Any]
+    cold_points: np.ndarray
+    deviation: np.ndarray
+    fallback: np.ndarray
+    alignment: Alignment
+
+
+def _budget(part: Part) -> TemperatureBudget:
+    budget = part.definition.uncertainty
+    return TemperatureBudget(emissivity=budget.emissivity, emissivity_uncertainty=budget.emissivity_uncertainty,
+                             calibration_fraction=budget.calibration_fraction,
+                             calibration_min_k=budget.calibration_min_k, netd_k=budget.netd_k)
+
+
+def _even(index: np.ndarray, wanted: int) -> np.ndarray:
+    return index if len(index) <= wanted else index[np.linspace(0, len(index) - 1, wanted).astype(np.intp)]
+
+
+def inspect_field(*, field: dict[str, np.ndarray], part: Part | PreparedPart) -> Inspection:
+    """Inspect one measured part: cold-equivalent geometry, alignment, features, surface deviation, verdicts.
+
+    Parameters
+    ----------
+    field : dict of 1-D arrays
+        A temperature field (``x, y, z`` world mm and ``temperature`` degrees C, NaN where unseen),
+        as ``thermofield field`` writes it; it may hold other surfaces than the part.
+    part : Part or PreparedPart
+        The part file, loaded (prepare it once with ``prepare_part`` to inspect many scans).
+
+    Returns
+    -------
+    Inspection
+        The report and the per-point results.
+
+    Notes
+    -----
+    1. Points at least ``segmentation.min_temperature_c`` hot seed the part; their cold equivalents
+       (``cold_equivalent``) are aligned to the nominal (``align_nominal``).
+    2. The expansion's fixed point is moved to the nominal's volume centroid as aligned, every
+       point with a temperature at least that hot or none is made cold-equivalent, the alignment is
+       refined, and the points within ``segmentation.max_distance_mm`` of the nominal surface are
+       the part's.
+    3. Each feature is fitted to the part's cold points in its region (part frame) and to the same
+       points hot; its deviation from nominal gets an expanded uncertainty (k = 2) from the budget
+       (``size_uncertainty``) and a verdict (``decide``).
+    4. The surface's verdict applies ``decide`` to the most negative and most positive 1 mm cell
+       means of the deviation map against ``surface_tolerance``.
+    """
+    prepared = part if isinstance(part, PreparedPart) else prepare_part(part)
+    part = prepared.part
+    definition = part.definition
+    missing = [name for name in ("x", "y", "z", "temperature") if name not in field]
+    if missing:
+        raise ValueError(f"The field lacks the properties {missing}; inspect a temperature field "
+                         "(thermofield field or fuse).")
+    points = np.column_stack([field["x"], field["y"], field["z"]]).astype(np.float64)
+    temperature = np.asarray(field["temperature"], dtype=np.float64)
+    finite = np.isfinite(points).all(axis=1)
+    hot = finite & (temperature >= definition.segmentation.min_temperature_c)
+    if hot.sum() < 100:
+        raise ValueError(f"Only {int(hot.sum())} points are at least {definition.segmentation.min_temperature_c:g} "
+                         "degC hot; the field shows no hot part (segmentation.min_temperature_c in the part file).")
+    max_distance = definition.segmentation.max_distance_mm
+
+    seed = _even(np.flatnonzero(hot), _SEED_POINTS)
+    first = cold_equivalent(points[seed], temperature[seed], part.material)
+    coarse = align_nominal(first.points, prepared.nominal, max_distance_mm=max_distance)
+    centre = coarse.to_world(prepared.nominal.centroid[None])[0]
+
+    candidates = np.flatnonzero(finite & (hot | ~np.isfinite(temperature)))
+    cold = cold_equivalent(points[candidates], temperature[candidates], part.material, centre=centre)
+    hot_seed = np.isin(candidates, seed)
+    alignment = align_nominal(cold.points[hot_seed], prepared.nominal, max_distance_mm=max_distance,
+                              start=coarse.matrix)
+    cold_part_frame = alignment.to_part(cold.points)
+    deviation = surface_deviation(cold_part_frame, prepared.nominal)
+    member = np.abs(deviation) <= max_distance
+
+    n = len(points)
+    cold_points = np.full((n, 3), np.nan)
+    cold_points[candidates[member]] = cold.points[member]
+    deviation_out = np.full(n, np.nan, dtype=np.float32)
+    deviation_out[candidates[member]] = deviation[member]
+    fallback = np.zeros(n, dtype=bool)
+    fallback[candidates[member]] = cold.fallback[member]
+
+    budget = _budget(part)
+    material_fraction = definition.uncertainty.material_fraction
+    if material_fraction is None:
+        material_fraction = part.material.relative_uncertainty
+    in_part = cold_part_frame[member]
+    hot_part_frame = alignment.to_part(points[candidates[member]])
+    used_temperature = cold.temperature[member]
+    used_fallback = cold.fallback[member]
+
+    fits: dict[str, tuple[Any, Any, float, float]] = {}
+    results = []
+    for feature in definition.features:
+        if feature.type == "distance":
+            continue
+        inside = feature.region.contains(in_part)
+        nominal_feature = prepared.features[feature.name]
+        try:
+            cold_element = fit_measured(nominal_feature, in_part[inside])
+        except ValueError as error:  # the view may not show every feature: say so, decide nothing
+            if feature.measure is not None:
+                results.append(_unmeasured(feature, str(error)))
+            continue
+        stretch = float(np.mean(1 + part.material.strain(used_temperature[inside])))
+        hot_element = fit_measured(nominal_feature, hot_part_frame[inside], stretch)
+        mean_t = float(np.mean(used_temperature[inside]))
+        u_t = _temperature_std(mean_t, budget, float(np.mean(used_fallback[inside])),
+                               definition.uncertainty.fallback_temperature_k)
+        fits[feature.name] = (cold_element, hot_element, mean_t, u_t)
+        if feature.measure is not None:
+            results.append(_feature_result(
+                feature, measure_value(feature, hot_element), measure_value(feature, cold_element),
+                measure_std(feature, cold_element), int(inside.sum()), mean_t, u_t, part, material_fraction))
+    for feature in definition.features:
+        if feature.type != "distance":
+            continue
+        if any(name not in fits for name in feature.between):
+            results.append(_unmeasured(feature, f"{' or '.join(feature.between)} could not be fitted"))
+            continue
+        a, b = (fits[name] for name in feature.between)
+        cold_value = feature_distance(a[0], b[0])
+        hot_value = feature_distance(a[1], b[1])
+        fit_std = float(np.hypot(element_position_std(a[0]), element_position_std(b[0])))
+        results.append(_feature_result(feature, hot_value, cold_value, fit_std,
+                                       a[0].count + b[0].count, (a[2] + b[2]) / 2, max(a[3], b[3]), part,
+                                       material_fraction))
+
+    surface = _surface_result(in_part, deviation[member], used_temperature, part, budget, material_fraction)
+    verdict = overall([result["verdict"] for result in results] + [surface["verdict"]])
+    report = {
+        "version": REPORT_VERSION,
+        "part": definition.name,
+        "verdict": verdict,
+        "features": results,
+        "surface": surface,
+        "alignment": {"rms_mm": alignment.rms_mm, "inlier_fraction": alignment.inlier_fraction,
+                      "matrix": alignment.matrix.tolist()},
+        "temperature": {"points": int(member.sum()), "fallback_points": int(used_fallback.sum()),
+                        "mean_c": float(np.mean(used_temperature)), "min_c": float(np.min(used_temperature)),
+                        "max_c": float(np.max(used_temperature)),
+                        "trend_c": cold.trend.tolist(), "material": part.material.name,
+                        "material_source": part.material.source},
+        "budget": {**definition.uncertainty.model_dump(), "material_fraction": material_fraction,
+                   "coverage_factor": COVERAGE_FACTOR},
+    }
+    return Inspection(report=report, cold_points=cold_points, deviation=deviation_out, fallback=fallback,
+                      alignment=alignment)
+
+
+def _temperature_std(mean_t: float, budget: TemperatureBudget, fallback_fraction: float, fallback_k: float) -> float:
+    """The feature's temperature uncertainty: the camera's at its mean temperature, plus the fallback points' share."""
+    camera = temperature_uncertainty(mean_t, budget)["total"]
+    return float(np.hypot(camera, fallback_fraction * fallback_k))
+
+
+def _unmeasured(feature: Feature, reason: str) -> dict[str, Any]:
+    return {"name": feature.name, "type": feature.type, "measure": feature.measure, "hot": None, "cold": None,
+            "nominal": feature.nominal, "deviation": None, "tolerance": list(feature.tolerance), "uncertainty": None,
+            "verdict": "NotDecidable", "points": 0, "error": reason}
+
+
+def _feature_result(feature: Feature, hot: float, cold: float, fit_std: float, count: int, mean_t: float,
+                    u_t: float, part: Part, material_fraction: float) -> dict[str, Any]:
+    systematic = part.definition.uncertainty.structured_light_systematic_mm * _SYSTEMATIC_FACTOR.get(feature.measure, 1.0)
+    terms = size_uncertainty(cold, mean_t, u_t, part.material, material_fraction, fit_std, systematic)
+    deviation = cold - feature.nominal
+    return {"name": feature.name, "type": feature.type, "measure": feature.measure, "hot": hot, "cold": cold,
+            "nominal": feature.nominal, "deviation": deviation, "tolerance": list(feature.tolerance),
+            "uncertainty": terms["expanded"], "verdict": decide(deviation, tuple(feature.tolerance), terms["expanded"]),
+            "points": count, "temperature_c": mean_t, "temperature_uncertainty_k": u_t,
+            "standard_uncertainties": {key: terms[key] for key in ("fit", "structured_light", "temperature",
+                                                                   "material", "combined")}}
+
+
+def _surface_result(in_part: np.ndarray, deviation: np.ndarray, temperature: np.ndarray, part: Part,
+                    budget: TemperatureBudget, material_fraction: float) -> dict[str, Any]:
+    definition = part.definition
+    tolerance = tuple(definition.surface_tolerance)
+    summary = summarize_deviation(deviation, tolerance)
+    defects = find_defects(in_part, deviation, definition.defect_threshold_mm)
+    cells = find_defects(in_part, deviation, 0.0, min_cells=1)  # every cell's extreme, either way
+    lowest = min((cell.depth_mm for cell in cells), default=float("nan"))
+    highest = max((cell.depth_mm for cell in cells), default=float("nan"))
+    # a cell's deviation: its mean noise, the structured light's systematic error and, far from the centre,
+    # the temperature and table errors acting on its distance from the centre
+    mean_t = float(np.mean(temperature))
+    reach = float(np.max(np.linalg.norm(in_part - in_part.mean(axis=0), axis=1))) if len(in_part) else 0.0
+    terms = size_uncertainty(reach, mean_t, temperature_uncertainty(mean_t, budget)["total"], part.material,
+                             material_fraction, definition.uncertainty.structured_light_noise_mm / np.sqrt(5),
+                             definition.uncertainty.structured_light_systematic_mm)
+    uncertainty = terms["expanded"]
+    verdicts = [decide(lowest, tolerance, uncertainty), decide(highest, tolerance, uncertainty)]
+    return {"points": summary.points, "mean": summary.mean, "std": summary.std, "min": summary.min,
+            "max": summary.max, "fraction_outside": summary.fraction_outside, "tolerance": list(tolerance),
+            "cell_min": lowest, "cell_max": highest, "uncertainty": uncertainty, "verdict": overall(verdicts),
+            "defects": [{"center": defect.center.tolist(), "depth": defect.depth_mm, "area_mm2": defect.area_mm2,
+                         "points": defect.points} for defect in defects]}

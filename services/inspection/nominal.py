@@ -1,0 +1,106 @@
+"""The nominal part's surface, prepared once per part: closest points, signed distances, surface samples."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from services.open3d_loader import open3d
+
+_SAMPLES = 60000
+
+
+@dataclass(frozen=True)
+class ClosestPoints:
+    """Per query point: the nearest surface point, that triangle's outward normal and the signed distance."""
+
+    points: np.ndarray
+    normals: np.ndarray
+    signed_distance: np.ndarray
+
+
+@dataclass(eq=False)
+class NominalSurface:
+    """A closed triangle mesh in the part frame (mm), with an Open3D ray-casting scene for distance queries.
+
+    Triangles are turned outward if the mesh's signed volume is negative, so a positive signed
+    distance means material outside the nominal surface and a negative one material missing.
+    """
+
+    vertices: np.ndarray
+    triangles: np.ndarray
+    _scene: object = field(init=False, repr=False)
+    samples: np.ndarray = field(init=False, repr=False)
+    sample_normals: np.ndarray = field(init=False, repr=False)
+    sample_tree: cKDTree = field(init=False, repr=False)
+    triangle_normals: np.ndarray = field(init=False, repr=False)
+
+    def __post_init__(self) -> None:
+        o3d = open3d()
+
+        vertices = np.ascontiguousarray(self.vertices, dtype=np.float64)
+        triangles = np.ascontiguousarray(self.triangles, dtype=np.int32)
+        corners = vertices[triangles]
+        if np.einsum("ij,ij->i", corners[:, 0], np.cross(corners[:, 1], corners[:, 2])).sum() < 0:
+            triangles = np.ascontiguousarray(triangles[:, ::-1])
+        self.vertices, self.triangles = vertices, triangles
+        scene = o3d.t.geometry.RaycastingScene()
+        scene.add_triangles(o3d.core.Tensor(vertices.astype(np.float32)), o3d.core.Tensor(triangles.astype(np.uint32)))
+        self._scene = scene
+        self.samples, self.sample_normals = _area_samples(vertices, triangles, _SAMPLES)
+        self.sample_tree = cKDTree(self.samples)
+        corners = vertices[triangles]
+        normals = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
+        with np.errstate(invalid="ignore", divide="ignore"):
+            self.triangle_normals = normals / np.linalg.norm(normals, axis=1, keepdims=True)
+
+    @property
+    def centroid(self) -> np.ndarray:
+        """Centre of the solid's volume (the divergence theorem over tetrahedra from the origin)."""
+        corners = self.vertices[self.triangles]
+        volume = np.einsum("ij,ij->i", corners[:, 0], np.cross(corners[:, 1], corners[:, 2])) / 6
+        if abs(volume.sum()) < 1e-9:
+            return self.samples.mean(axis=0)
+        return (volume[:, None] * corners.sum(axis=1) / 4).sum(axis=0) / volume.sum()
+
+
+    def closest(self, points: np.ndarray) -> ClosestPoints:
+        """Closest surface points of query points (N, 3) in the part frame, and their signed distances.
+
+        Notes
+        -----
+        The magnitude is the Euclidean distance to the nearest point q on the mesh (Open3D's
+        BVH query); the sign is that of (p - q) . n with n the outward normal of q's triangle.
+        """
+        o3d = open3d()
+
+        query = o3d.core.Tensor(np.ascontiguousarray(points, dtype=np.float32))
+        answer = self._scene.compute_closest_points(query)
+        nearest = answer["points"].numpy().astype(np.float64)
+        normals = self.triangle_normals[answer["primitive_ids"].numpy().astype(np.intp)]
+        offset = np.asarray(points, dtype=np.float64) - nearest
+        distance = np.sqrt(np.einsum("ij,ij->i", offset, offset))
+        sign = np.where(np.einsum("ij,ij->i", offset, normals) < 0, -1.0, 1.0)
+        return ClosestPoints(points=nearest, normals=normals, signed_distance=sign * distance)
+
+
+def _area_samples(vertices: np.ndarray, triangles: np.ndarray, count: int) -> tuple[np.ndarray, np.ndarray]:
+    """``count`` points spread over the surface in proportion to area (stratified, deterministic), with normals."""
+    corners = vertices[triangles]
+    cross = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
+    area = np.linalg.norm(cross, axis=1) / 2
+    cumulative = np.cumsum(area)
+    positions = (np.arange(count) + 0.5) / count * cumulative[-1]
+    which = np.minimum(np.searchsorted(cumulative, positions), len(area) - 1)
+    rng = np.random.default_rng(0)
+    u, v = rng.random(count), rng.random(count)
+    flip = u + v > 1
+    u, v = np.where(flip, 1 - u, u), np.where(flip, 1 - v, v)
+    chosen = corners[which]
+    points = chosen[:, 0] + u[:, None] * (chosen[:, 1] - chosen[:, 0]) + v[:, None] * (chosen[:, 2] - chosen[:, 0])
+    with np.errstate(invalid="ignore", divide="ignore"):
+        normals = cross[which] / np.linalg.norm(cross[which], axis=1, keepdims=True)
+    keep = np.isfinite(normals).all(axis=1)
+    return points[keep], normals[keep]

@@ -1,0 +1,266 @@
+"""A part as it is hot: its nominal cold mesh, dents or bulges of known size, expanded by a temperature field.
+
+The simulator's model of the hot part (the ground truth of the inspection experiments): the true
+cold part is the nominal mesh with smooth dents or bulges, placed in the world by a pose; every
+point X of it moves away from the part's centre c by the integral of (1 + eps(T)) along the segment
+from c, with T a volumetric temperature field in cold part coordinates,
+
+    X_hot = c + (X - c) int_0^1 (1 + eps(T(c + s (X - c)))) ds,
+
+eps the material's thermal elongation from 20 degC. A uniform field is a uniform scaling; a
+gradient or a hot spot is not. ``simulated_field`` then measures it as the station does: camera
+pixels where the projector lights the part, with structured-light noise along each line of sight,
+and the temperature where the thermal camera sees the point, with its noise.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from services.open3d_loader import open3d
+
+from services.formats.rig import Device
+from services.geometry.camera import camera_center, normalized_coordinates, pixel_grid, project_points
+from services.inspection.materials import Material
+from services.simulation.scene import Mesh
+from services.simulation.thermal import SurfaceTemperature
+
+_NODES = 8
+
+
+def cylinder_mesh(radius: float, length: float, segments: int = 360, rings: int | None = None,
+                  cap_rings: int | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """A closed cylinder along x centred at the origin, outward triangles; vertices (V, 3), triangles (T, 3).
+
+    ``rings`` divisions along the side (default about one per segment width) and ``cap_rings``
+    concentric rings on each end (default likewise), so dents can be modelled anywhere.
+    """
+    spacing = 2 * np.pi * radius / segments
+    rings = rings or max(1, int(np.ceil(length / spacing)))
+    cap_rings = cap_rings or max(1, int(np.ceil(radius / spacing)))
+    angles = np.arange(segments) * 2 * np.pi / segments
+    circle = np.column_stack([np.cos(angles), np.sin(angles)])
+    vertices, triangles = [], []
+
+    def ring(x: float, r: float) -> int:
+        vertices.append(np.column_stack([np.full(segments, x), r * circle]))
+        return sum(len(v) for v in vertices) - segments
+
+    def band(first: int, second: int, flip: bool) -> None:
+        a = first + np.arange(segments)
+        b = first + (np.arange(segments) + 1) % segments
+        c = second + np.arange(segments)
+        d = second + (np.arange(segments) + 1) % segments
+        quads = [np.column_stack([a, b, d]), np.column_stack([a, d, c])]
+        triangles.extend(q[:, ::-1] if flip else q for q in quads)
+
+    side = [ring(x, radius) for x in np.linspace(-length / 2, length / 2, rings + 1)]
+    for first, second in zip(side[:-1], side[1:]):
+        band(first, second, flip=True)
+    for end, flip in ((-length / 2, False), (length / 2, True)):
+        previous = side[0] if end < 0 else side[-1]
+        for k in range(cap_rings - 1, 0, -1):
+            current = ring(end, radius * k / cap_rings)
+            band(previous, current, flip=not flip)
+            previous = current
+        vertices.append(np.array([[end, 0.0, 0.0]]))
+        centre = sum(len(v) for v in vertices) - 1
+        a = previous + np.arange(segments)
+        b = previous + (np.arange(segments) + 1) % segments
+        fan = np.column_stack([a, b, np.full(segments, centre)])
+        triangles.append(fan if flip else fan[:, ::-1])
+    vertices = np.concatenate(vertices)
+    triangles = np.concatenate(triangles).astype(np.int32)
+    corners = vertices[triangles]
+    if np.einsum("ij,ij->i", corners[:, 0], np.cross(corners[:, 1], corners[:, 2])).sum() < 0:
+        triangles = triangles[:, ::-1].copy()
+    return vertices, triangles
+
+
+def vertex_normals(vertices: np.ndarray, triangles: np.ndarray) -> np.ndarray:
+    """Area-weighted unit vertex normals of a mesh."""
+    corners = vertices[triangles]
+    face = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
+    normals = np.zeros_like(vertices)
+    for k in range(3):
+        np.add.at(normals, triangles[:, k], face)
+    return normals / np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-300)
+
+
+@dataclass(frozen=True)
+class Bump:
+    """A smooth dent (``height_mm`` < 0) or bulge (> 0) on the cold part, part frame.
+
+    The surface moves along its normal by height * exp(-d^2 / (2 sigma^2)), d the distance of the
+    vertex from ``center``, so its extreme is ``height_mm`` at ``center``.
+    """
+
+    center: tuple[float, float, float]
+    sigma_mm: float
+    height_mm: float
+
+
+@dataclass(frozen=True)
+class HotPart:
+    """A cold part (part frame), where it lies in the world, what it is made of and how hot it is.
+
+    ``temperature`` is a volumetric field in cold part coordinates (degrees C); ``centre`` the
+    part-frame point that stays fixed (default the vertices' mean).
+    """
+
+    vertices: np.ndarray
+    triangles: np.ndarray
+    material: Material
+    temperature: SurfaceTemperature
+    pose: np.ndarray = field(default_factory=lambda: np.eye(4))
+    bumps: tuple[Bump, ...] = ()
+    centre: tuple[float, float, float] | None = None
+
+    def cold_vertices(self) -> np.ndarray:
+        """The true cold part: the nominal vertices with the bumps, part frame."""
+        vertices = np.asarray(self.vertices, dtype=np.float64)
+        if not self.bumps:
+            return vertices
+        normals = vertex_normals(vertices, self.triangles)
+        moved = vertices.copy()
+        for bump in self.bumps:
+            squared = np.sum((vertices - np.asarray(bump.center)) ** 2, axis=1)
+            moved += normals * (bump.height_mm * np.exp(-squared / (2 * bump.sigma_mm**2)))[:, None]
+        return moved
+
+    @property
+    def fixed_point(self) -> np.ndarray:
+        return np.mean(self.vertices, axis=0) if self.centre is None else np.asarray(self.centre, dtype=np.float64)
+
+    def stretch(self, cold_points: np.ndarray) -> np.ndarray:
+        """int_0^1 (1 + eps(T(c + s (X - c)))) ds for cold part-frame points (N, 3) (8-point Gauss-Legendre)."""
+        c = self.fixed_point
+        nodes, weights = np.polynomial.legendre.leggauss(_NODES)
+        total = np.zeros(len(cold_points))
+        for s, weight in zip((nodes + 1) / 2, weights / 2):
+            total += weight * self.material.strain(self.temperature.evaluate(c + s * (cold_points - c)))
+        return 1 + total
+
+    def hot_vertices_part(self) -> np.ndarray:
+        """The hot part's vertices, part frame."""
+        cold = self.cold_vertices()
+        c = self.fixed_point
+        return c + (cold - c) * self.stretch(cold)[:, None]
+
+    def to_world(self, points: np.ndarray) -> np.ndarray:
+        return np.asarray(points) @ self.pose[:3, :3].T + self.pose[:3, 3]
+
+    def surface(self) -> Mesh:
+        """The hot part as a scene mesh in the world frame (for ``render_view`` and ``render_thermal``)."""
+        return Mesh(vertices=self.to_world(self.hot_vertices_part()).tolist(), faces=self.triangles.tolist())
+
+    def surface_temperature(self, hot_world_points: np.ndarray) -> np.ndarray:
+        """True temperature at points of the hot surface (world frame), degrees C."""
+        hot = (np.asarray(hot_world_points, dtype=np.float64) - self.pose[:3, 3]) @ self.pose[:3, :3]
+        c = self.fixed_point
+        cold = hot
+        for _ in range(4):  # the stretch varies slowly, so the fixed point converges at once
+            cold = c + (hot - c) / self.stretch(cold)[:, None]
+        return self.temperature.evaluate(cold)
+
+
+@dataclass(frozen=True)
+class ScanNoise:
+    """The station's measurement errors: structured-light noise along each line of sight, thermal noise, bias."""
+
+    structured_light_mm: float = 0.02
+    netd_k: float = 0.05
+    temperature_bias_k: float = 0.0
+
+
+class _Raycaster:
+    """Open3D's Embree ray casting against the hot mesh (world frame): the mesh is large and fine."""
+
+    def __init__(self, vertices: np.ndarray, triangles: np.ndarray) -> None:
+        o3d = open3d()
+
+        self._o3d = o3d
+        self._scene = o3d.t.geometry.RaycastingScene()
+        self._scene.add_triangles(o3d.core.Tensor(vertices.astype(np.float32)),
+                                  o3d.core.Tensor(triangles.astype(np.uint32)))
+
+    def cast(self, origin: np.ndarray, directions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Distance (inf on a miss) and unit normal facing the ray, per unit direction."""
+        rays = np.column_stack([np.broadcast_to(origin, directions.shape), directions]).astype(np.float32)
+        answer = self._scene.cast_rays(self._o3d.core.Tensor(rays))
+        distance = answer["t_hit"].numpy().astype(np.float64)
+        normals = answer["primitive_normals"].numpy().astype(np.float64)
+        normals *= np.where(np.einsum("ij,ij->i", normals, directions) > 0, -1.0, 1.0)[:, None]
+        return distance, normals
+
+
+def simulated_field(part: HotPart, camera: Device, projector: Device, thermal: Device, rng: np.random.Generator,
+                    noise: ScanNoise = ScanNoise()) -> tuple[dict[str, np.ndarray], np.ndarray]:
+    """What the station measures of a hot part: a temperature field as ``thermofield field`` writes it.
+
+    Parameters
+    ----------
+    part : HotPart
+        The part, its pose and temperature.
+    camera, projector, thermal : Device
+        The structured-light camera and projector and the thermal camera.
+    rng : numpy.random.Generator
+        Source of the noise.
+    noise : ScanNoise
+        Measurement errors.
+
+    Returns
+    -------
+    field : dict of 1-D arrays
+        ``x, y, z`` (world mm), float32 ``temperature`` (NaN where the thermal camera does not see
+        the point) for every camera pixel whose centre ray meets the part where the projector lights it.
+    truth : (N, 3) array
+        The exact hot surface point of each field point.
+
+    Notes
+    -----
+    Each camera pixel-centre ray is cast against the hot mesh (Open3D's ray casting: the simulator's
+    own BVH builder is too slow for meshes of 10^5 triangles); a hit counts as measured when it faces
+    the projector, projects into the projector image and the projector's ray reaches it unobstructed.
+    The point is moved along its line of sight by N(0, sigma_SL^2). The temperature is the true
+    surface temperature plus the bias and N(0, NETD^2) where the thermal camera's ray reaches the
+    point and it falls in its image.
+    """
+    scene = _Raycaster(part.to_world(part.hot_vertices_part()), part.triangles)
+    origin = camera_center(camera.R_array, camera.t_array)
+    rays = normalized_coordinates(pixel_grid(camera.width, camera.height), camera.K_array, camera.dist_array)
+    directions = np.column_stack([rays, np.ones(len(rays))]) @ camera.R_array
+    directions /= np.linalg.norm(directions, axis=1, keepdims=True)
+    distance, normals = scene.cast(origin, directions)
+    hit = np.isfinite(distance)
+    points = origin + distance[hit, None] * directions[hit]
+    normals, directions = normals[hit], directions[hit]
+    measured = _reaches(scene, projector, points, normals)
+    points, directions = points[measured], directions[measured]
+    temperature = part.surface_temperature(points) + noise.temperature_bias_k
+    temperature += rng.normal(0.0, noise.netd_k, len(points))
+    normals = normals[measured]
+    seen = _reaches(scene, thermal, points, normals)
+    temperature = np.where(seen, temperature, np.nan)
+    noisy = points + directions * rng.normal(0.0, noise.structured_light_mm, len(points))[:, None]
+    field = {"x": noisy[:, 0].astype(np.float32), "y": noisy[:, 1].astype(np.float32),
+             "z": noisy[:, 2].astype(np.float32), "temperature": temperature.astype(np.float32)}
+    return field, points
+
+
+def _reaches(scene: _Raycaster, device: Device, points: np.ndarray, normals: np.ndarray) -> np.ndarray:
+    """Points that face the device, fall inside its image and that its rays reach unobstructed."""
+    centre = camera_center(device.R_array, device.t_array)
+    toward = centre - points
+    facing = np.einsum("ij,ij->i", normals, toward) > 0
+    pixels = project_points(points, device.K_array, device.dist_array, device.R_array, device.t_array)
+    inside = ((pixels[:, 0] >= -0.5) & (pixels[:, 0] <= device.width - 0.5)
+              & (pixels[:, 1] >= -0.5) & (pixels[:, 1] <= device.height - 0.5))
+    distance = np.linalg.norm(toward, axis=1)
+    candidate = np.flatnonzero(facing & inside)
+    reached = np.zeros(len(points), dtype=bool)
+    along = -toward[candidate] / distance[candidate, None]
+    reached[candidate] = scene.cast(centre, along)[0] >= distance[candidate] - 1e-3
+    return reached
