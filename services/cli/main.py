@@ -29,6 +29,7 @@ COMMAND_MODULES = [
     "services.cli.gateway",
     "services.cli.demo",
     "services.cli.register",
+    "services.cli.inspect",
 ]
 # Commands that run services: their logs (and their children's) are for the operator and stay on stderr.
 SERVICE_COMMANDS = frozenset({"serve", "api", "worker", "gateway", "demo"})

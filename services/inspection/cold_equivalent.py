@@ -10,6 +10,7 @@ from services.inspection.materials import Material
 
 _PATH_NODES = 6  # Gauss-Legendre nodes along each point's segment; exact for strains of degree <= 11 in s
 _TREND_SAMPLES = 20000
+_MIN_SCALE_K = 0.01  # below any camera's NETD: an exactly uniform field keeps its weights
 
 
 @dataclass(frozen=True)
@@ -62,9 +63,7 @@ def temperature_trend(points: np.ndarray, temperature: np.ndarray, iterations: i
         root = np.sqrt(weights)
         coefficients = np.linalg.lstsq(design * root[:, None], values * root, rcond=None)[0]
         residual = values - design @ coefficients
-        sigma = 1.4826 * np.median(np.abs(residual - np.median(residual)))
-        if sigma <= 0:
-            break
+        sigma = max(1.4826 * np.median(np.abs(residual - np.median(residual))), _MIN_SCALE_K)
         u = residual / (4.685 * sigma)
         weights = np.where(np.abs(u) < 1, (1 - u * u) ** 2, 0.0)
     return coefficients

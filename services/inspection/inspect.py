@@ -261,3 +261,27 @@ def _surface_result(in_part: np.ndarray, deviation: np.ndarray, temperature: np.
             "cell_min": lowest, "cell_max": highest, "uncertainty": uncertainty, "verdict": overall(verdicts),
             "defects": [{"center": defect.center.tolist(), "depth": defect.depth_mm, "area_mm2": defect.area_mm2,
                          "points": defect.points} for defect in defects]}
+
+
+def deviation_cloud(field: dict[str, np.ndarray], inspection: Inspection, part: Part) -> dict[str, np.ndarray]:
+    """The field with float32 ``deviation`` (mm, NaN off the part) and RGB from the deviation map."""
+    from services.inspection.deviation import deviation_colors
+
+    rgb = deviation_colors(inspection.deviation, tuple(part.definition.surface_tolerance))
+    cloud = {name: values for name, values in field.items() if name not in ("deviation", "red", "green", "blue")}
+    cloud.update(deviation=inspection.deviation, red=rgb[:, 0], green=rgb[:, 1], blue=rgb[:, 2])
+    return cloud
+
+
+def cold_cloud(field: dict[str, np.ndarray], inspection: Inspection, part: Part) -> dict[str, np.ndarray]:
+    """The part's points at their cold-equivalent positions (world frame) with temperature, fallback flag,
+    deviation and deviation colours."""
+    from services.inspection.deviation import deviation_colors
+
+    member = np.isfinite(inspection.deviation)
+    cold = inspection.cold_points[member]
+    rgb = deviation_colors(inspection.deviation[member], tuple(part.definition.surface_tolerance))
+    return {"x": cold[:, 0].astype(np.float32), "y": cold[:, 1].astype(np.float32), "z": cold[:, 2].astype(np.float32),
+            "temperature": np.asarray(field["temperature"], dtype=np.float32)[member],
+            "temperature_fallback": inspection.fallback[member].astype(np.uint8),
+            "deviation": inspection.deviation[member], "red": rgb[:, 0], "green": rgb[:, 1], "blue": rgb[:, 2]}

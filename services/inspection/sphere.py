@@ -7,7 +7,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.optimize import least_squares
 
-from services.inspection.robust import even_subset, form_range, parameter_std, robust_scale, tukey_weights
+from services.inspection.robust import TUKEY_C, even_subset, form_range, parameter_std, robust_scale, tukey_weights
 
 
 @dataclass(frozen=True)
@@ -39,7 +39,8 @@ def fit_sphere(points: np.ndarray) -> SphereFit:
     -----
     An algebraic fit |X|^2 = 2 c . X + (r^2 - |c|^2), linear in its unknowns, starts the geometric
     fit minimising sum rho(|X_i - c| - r) with scipy's trust-region least squares and the Cauchy
-    loss at three robust sigmas [1]_; the parameter covariance is s^2 (J^T W J)^-1 with Tukey's
+    loss at three robust sigmas [1]_, then plain least squares over the points within 4.685 robust
+    sigmas; the parameter covariance is s^2 (J^T W J)^-1 with Tukey's
     weights of the final residuals.
 
     References
@@ -58,16 +59,18 @@ def fit_sphere(points: np.ndarray) -> SphereFit:
     residual = np.linalg.norm(local - centre, axis=1) - radius
     scale = robust_scale(residual)
 
-    def residuals(parameters: np.ndarray) -> np.ndarray:
-        return np.linalg.norm(local - parameters[:3], axis=1) - parameters[3]
+    def residuals(parameters: np.ndarray, kept: np.ndarray = local) -> np.ndarray:
+        return np.linalg.norm(kept - parameters[:3], axis=1) - parameters[3]
 
-    def jacobian(parameters: np.ndarray) -> np.ndarray:
-        offset = local - parameters[:3]
+    def jacobian(parameters: np.ndarray, kept: np.ndarray = local) -> np.ndarray:
+        offset = kept - parameters[:3]
         distance = np.maximum(np.linalg.norm(offset, axis=1, keepdims=True), 1e-12)
-        return np.column_stack([-offset / distance, -np.ones(len(local))])
+        return np.column_stack([-offset / distance, -np.ones(len(kept))])
 
     result = least_squares(residuals, np.append(centre, radius), jac=jacobian, loss="cauchy", f_scale=3 * scale)
-    residual = result.fun
+    inliers = local[np.abs(result.fun) < TUKEY_C * robust_scale(result.fun)]
+    result = least_squares(residuals, result.x, jac=jacobian, args=(inliers,))
+    residual = residuals(result.x)
     scale = robust_scale(residual)
     weights = tukey_weights(residual, scale)
     std = parameter_std(jacobian(result.x), weights, scale)

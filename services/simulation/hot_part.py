@@ -264,3 +264,49 @@ def _reaches(scene: _Raycaster, device: Device, points: np.ndarray, normals: np.
     along = -toward[candidate] / distance[candidate, None]
     reached[candidate] = scene.cast(centre, along)[0] >= distance[candidate] - 1e-3
     return reached
+
+
+def billet_pose(tilt_deg: float = 30.0, roll_deg: float = 20.0, centre=(0.0, 20.0, 600.0)) -> np.ndarray:
+    """A billet lying before the forging rig (``presets.forging_rig``), its +x end turned toward the devices.
+
+    Part to world: a roll of ``roll_deg`` about the part's axis, then ``tilt_deg`` about world y, so that
+    the camera, projector and thermal camera see the side and the +x end face; the centre at ``centre``.
+    """
+    a, b = np.radians(roll_deg), np.radians(tilt_deg)
+    roll = np.array([[1.0, 0.0, 0.0], [0.0, np.cos(a), -np.sin(a)], [0.0, np.sin(a), np.cos(a)]])
+    tilt = np.array([[np.cos(b), 0.0, np.sin(b)], [0.0, 1.0, 0.0], [-np.sin(b), 0.0, np.cos(b)]])
+    pose = np.eye(4)
+    pose[:3, :3], pose[:3, 3] = tilt @ roll, centre
+    return pose
+
+
+def write_billet_part(directory, diameter: float = 90.0, length: float = 200.0, material: str = "carbon-steel",
+                      diameter_tolerance=(-0.3, 0.3), surface_tolerance=(-1.0, 1.0), segments: int = 360) -> "Path":
+    """Write a billet's nominal mesh (``billet.stl``) and part file (``part.json``) into ``directory``.
+
+    Features: ``body_diameter`` (cylinder over the middle 160 mm) and the end face ``face_b`` (+x)
+    with its ``flatness``.
+    """
+    import json
+    from pathlib import Path
+
+    o3d = open3d()
+    directory = Path(directory)
+    directory.mkdir(parents=True, exist_ok=True)
+    vertices, triangles = cylinder_mesh(diameter / 2, length, segments)
+    mesh = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(vertices), o3d.utility.Vector3iVector(triangles))
+    mesh.compute_triangle_normals()
+    o3d.io.write_triangle_mesh(str(directory / "billet.stl"), mesh)
+    half, r = length / 2, diameter / 2
+    part = {"version": 1, "name": f"billet-{diameter:g}", "material": material, "nominal": "billet.stl",
+            "features": [
+                {"name": "body_diameter", "type": "cylinder", "measure": "diameter",
+                 "region": {"min": [-0.8 * half, -r - 5, -r - 5], "max": [0.8 * half, r + 5, r + 5]},
+                 "nominal": diameter, "tolerance": list(diameter_tolerance)},
+                {"name": "face_b", "type": "plane", "measure": "flatness",
+                 "region": {"min": [half - 2, -0.6 * r, -0.6 * r], "max": [half + 2, 0.6 * r, 0.6 * r]},
+                 "nominal": 0.0, "tolerance": [0.0, 0.5]}],
+            "surface_tolerance": list(surface_tolerance)}
+    path = directory / "part.json"
+    path.write_text(json.dumps(part, indent=2))
+    return path

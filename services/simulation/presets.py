@@ -92,12 +92,19 @@ def gray_scanner_rig(scale: int = 1) -> Rig:
     })
 
 
-def forging_rig() -> Rig:
-    """The forging station: projector, visible camera and thermal camera (numbers in the module docstring)."""
+def forging_rig(scale: float = 1.0) -> Rig:
+    """The forging station: projector, visible camera and thermal camera (numbers in the module docstring).
+
+    ``scale`` shrinks the projector's and the camera's images and focal lengths alike (the same view
+    at a lower resolution, for fast tests); the thermal camera keeps its own.
+    """
+    def size(width: int, height: int) -> tuple[int, int]:
+        return round(width * scale), round(height * scale)
+
     return Rig(devices={
-        "projector": _device("projector", (1280, 800), 1500.0, [0.02, -0.01, 0.0, 0.0, 0.0],
+        "projector": _device("projector", size(1280, 800), 1500.0 * scale, [0.02, -0.01, 0.0, 0.0, 0.0],
                              np.eye(3), (0.0, 0.0, 0.0)),
-        "camera": _device("camera", (1280, 800), 1400.0, [-0.08, 0.12, 0.0005, -0.0003, -0.02],
+        "camera": _device("camera", size(1280, 800), 1400.0 * scale, [-0.08, 0.12, 0.0005, -0.0003, -0.02],
                           look_at_rotation((350.0, 0.0, 0.0), FORGING_AIM), (350.0, 0.0, 0.0)),
         "thermal": _device("thermal", (320, 256), 380.0, [-0.15, 0.08, 0.001, 0.0005, 0.0],
                            look_at_rotation((180.0, -120.0, 0.0), FORGING_AIM), (180.0, -120.0, 0.0)),

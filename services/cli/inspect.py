@@ -1,0 +1,72 @@
+"""``thermofield inspect``: a temperature field and a part file to cold dimensions, deviations and a verdict."""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+import numpy as np
+
+from services.errors import InputError
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    parser = subparsers.add_parser(
+        "inspect",
+        help="cold-equivalent dimensions, deviation from the nominal part and a verdict from a temperature field",
+        description="Move every point of a temperature field to where it will be when cold, align the part "
+                    "file's nominal mesh, fit its features, map the surface deviation and decide OK, NotOK "
+                    "or NotDecidable (docs/inspection.md).",
+    )
+    parser.add_argument("--field", required=True, type=Path, help="temperature field (.ply with x, y, z, temperature)")
+    parser.add_argument("--part", required=True, type=Path, help="part file (PART.json, docs/part-file.md)")
+    parser.add_argument("--out", required=True, type=Path, help="the report (REPORT.json)")
+    parser.add_argument("--cold-cloud", type=Path, metavar="COLD.ply",
+                        help="also write the part's cold-equivalent points with deviation and temperature")
+    parser.add_argument("--deviation", type=Path, metavar="DEVIATION.ply",
+                        help="also write the field with a per-point 'deviation' (mm) and deviation colours")
+    parser.add_argument("--picture", type=Path, metavar="DEVIATION.png", help="also draw the deviation map")
+    parser.set_defaults(handler=_run)
+
+
+def _run(args: argparse.Namespace) -> int:
+    from services.formats.json_files import write_text_atomically
+    from services.formats.part import load_part
+    from services.formats.ply import read_cloud, write_cloud
+    from services.inspection.inspect import deviation_cloud, cold_cloud, inspect_field, prepare_part
+    from services.inspection.picture import deviation_picture
+
+    part = load_part(args.part)
+    field = read_cloud(args.field)
+    try:
+        prepared = prepare_part(part)
+    except ValueError as error:
+        raise InputError(f"{args.part}: {error}") from None
+    try:
+        inspection = inspect_field(field=field, part=prepared)
+    except ValueError as error:
+        raise InputError(f"{args.field}: {error}") from None
+    write_text_atomically(args.out, json.dumps(inspection.report, indent=2, allow_nan=True) + "\n")
+    if args.deviation:
+        write_cloud(args.deviation, deviation_cloud(field, inspection, part))
+    if args.cold_cloud:
+        write_cloud(args.cold_cloud, cold_cloud(field, inspection, part))
+    if args.picture:
+        deviation_picture(inspection.alignment.to_part(inspection.cold_points), inspection.deviation,
+                          tuple(part.definition.surface_tolerance), args.picture,
+                          f"{part.name}: {inspection.report['verdict']}")
+    report = inspection.report
+    print(f"{part.name}: {report['verdict']}")
+    for feature in report["features"]:
+        if feature.get("cold") is None:
+            print(f"  {feature['name']}: not measured ({feature.get('error')})")
+            continue
+        print(f"  {feature['name']}: hot {feature['hot']:.3f}, cold {feature['cold']:.3f} (nominal "
+              f"{feature['nominal']:g}, deviation {feature['deviation']:+.3f} +- {feature['uncertainty']:.3f}) "
+              f"{feature['verdict']}")
+    surface = report["surface"]
+    print(f"  surface: deviation {surface['mean']:+.3f} +- {surface['std']:.3f} mm, "
+          f"{100 * surface['fraction_outside']:.2f} % outside, {len(surface['defects'])} defects "
+          f"{surface['verdict']}; alignment rms {report['alignment']['rms_mm']:.3f} mm")
+    return 0 if np.isfinite(surface["mean"]) else 1

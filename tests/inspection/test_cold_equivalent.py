@@ -1,0 +1,57 @@
+"""Cold-equivalent geometry against the simulator's hot part: uniform, gradient and hot-spot fields."""
+
+import numpy as np
+import pytest
+
+from services.inspection.cold_equivalent import cold_equivalent
+from services.inspection.materials import builtin_material
+from services.simulation.hot_part import HotPart, cylinder_mesh
+from services.simulation.thermal import Spot, SurfaceTemperature
+
+STEEL = builtin_material("carbon-steel")
+
+
+def _hot_and_cold(temperature):
+    vertices, triangles = cylinder_mesh(45.0, 200.0, 120)
+    part = HotPart(vertices, triangles, STEEL, temperature, centre=(0.0, 0.0, 0.0))
+    hot = part.hot_vertices_part()
+    measured = part.surface_temperature(hot)
+    return vertices, hot, measured
+
+
+def test_uniform_field_is_exact_scaling():
+    cold, hot, temperature = _hot_and_cold(SurfaceTemperature(base=1000.0))
+    result = cold_equivalent(hot, temperature, STEEL, centre=np.zeros(3))
+    assert np.abs(result.points - cold).max() < 1e-9
+    assert 2 * np.hypot(hot[:, 1], hot[:, 2]).max() == pytest.approx(91.242)
+    assert not result.fallback.any()
+
+
+def test_gradient_is_exact_where_a_uniform_scaling_is_not():
+    cold, hot, temperature = _hot_and_cold(SurfaceTemperature(base=1000.0, gradient=[0.3, 0.0, 0.0]))
+    result = cold_equivalent(hot, temperature, STEEL, centre=np.zeros(3))
+    uniform = cold_equivalent(hot, np.full(len(hot), np.mean(temperature)), STEEL, centre=np.zeros(3))
+    assert np.linalg.norm(result.points - cold, axis=1).max() < 1e-4
+    assert np.linalg.norm(uniform.points - cold, axis=1).max() > 0.02
+
+
+def test_hot_spot_interior_is_modelled_not_measured():
+    # the simulator's spot heats the interior too; the model sees only the surface, so the points whose
+    # segment from the centre passes the spot's core keep an error of a few hundredths of a millimetre
+    field = SurfaceTemperature(base=1000.0, spots=[Spot(center=[40.0, 0.0, 45.0], radius=20.0, amplitude=60.0)])
+    cold, hot, temperature = _hot_and_cold(field)
+    error = np.linalg.norm(cold_equivalent(hot, temperature, STEEL, centre=np.zeros(3)).points - cold, axis=1)
+    assert 0.005 < error.max() < 0.035
+    assert np.median(error) < 0.002
+
+
+def test_points_without_temperature_use_the_trend_and_are_flagged():
+    cold, hot, temperature = _hot_and_cold(SurfaceTemperature(base=950.0, gradient=[0.2, 0.0, 0.0]))
+    missing = np.zeros(len(hot), dtype=bool)
+    missing[::7] = True
+    result = cold_equivalent(hot, np.where(missing, np.nan, temperature), STEEL, centre=np.zeros(3))
+    assert (result.fallback == missing).all()
+    assert result.temperature[missing] == pytest.approx(temperature[missing], abs=0.5)
+    assert np.linalg.norm(result.points - cold, axis=1).max() < 0.005
+    with pytest.raises(ValueError, match="at least 4 are needed"):
+        cold_equivalent(hot[:3], np.full(3, np.nan), STEEL)
