@@ -73,9 +73,15 @@ def cylinder_mesh(radius: float, length: float, segments: int = 360, rings: int 
         triangles.append(fan if flip else fan[:, ::-1])
     vertices = np.concatenate(vertices)
     triangles = np.concatenate(triangles).astype(np.int32)
+    # turn every triangle outward: along +-x on the end faces, away from the axis on the side
     corners = vertices[triangles]
-    if np.einsum("ij,ij->i", corners[:, 0], np.cross(corners[:, 1], corners[:, 2])).sum() < 0:
-        triangles = triangles[:, ::-1].copy()
+    centre = corners.mean(axis=1)
+    normal = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
+    on_end = np.all(np.abs(np.abs(corners[:, :, 0]) - length / 2) < 1e-9, axis=1)
+    outward = np.where(on_end[:, None], np.column_stack([np.sign(centre[:, 0]), np.zeros((len(centre), 2))]),
+                       np.column_stack([np.zeros(len(centre)), centre[:, 1:]]))
+    inward = np.einsum("ij,ij->i", normal, outward) < 0
+    triangles[inward] = triangles[inward][:, ::-1]
     return vertices, triangles
 
 
