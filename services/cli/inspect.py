@@ -3,10 +3,7 @@
 from __future__ import annotations
 
 import argparse
-import json
 from pathlib import Path
-
-import numpy as np
 
 from services.errors import InputError
 
@@ -34,7 +31,7 @@ def _run(args: argparse.Namespace) -> int:
     from services.formats.json_files import write_text_atomically
     from services.formats.part import load_part
     from services.formats.ply import read_cloud, write_cloud
-    from services.inspection.inspect import deviation_cloud, cold_cloud, inspect_field, prepare_part
+    from services.inspection.inspect import cold_cloud, deviation_cloud, inspect_field, prepare_part, report_json
     from services.inspection.picture import deviation_picture
 
     part = load_part(args.part)
@@ -47,7 +44,7 @@ def _run(args: argparse.Namespace) -> int:
         inspection = inspect_field(field=field, part=prepared)
     except ValueError as error:
         raise InputError(f"{args.field}: {error}") from None
-    write_text_atomically(args.out, json.dumps(inspection.report, indent=2, allow_nan=True) + "\n")
+    write_text_atomically(args.out, report_json(inspection.report))
     if args.deviation:
         write_cloud(args.deviation, deviation_cloud(field, inspection, part))
     if args.cold_cloud:
@@ -69,4 +66,4 @@ def _run(args: argparse.Namespace) -> int:
     print(f"  surface: deviation {surface['mean']:+.3f} +- {surface['std']:.3f} mm, "
           f"{100 * surface['fraction_outside']:.2f} % outside, {len(surface['defects'])} defects "
           f"{surface['verdict']}; alignment rms {report['alignment']['rms_mm']:.3f} mm")
-    return 0 if np.isfinite(surface["mean"]) else 1
+    return 0

@@ -285,3 +285,23 @@ def cold_cloud(field: dict[str, np.ndarray], inspection: Inspection, part: Part)
             "temperature": np.asarray(field["temperature"], dtype=np.float32)[member],
             "temperature_fallback": inspection.fallback[member].astype(np.uint8),
             "deviation": inspection.deviation[member], "red": rgb[:, 0], "green": rgb[:, 1], "blue": rgb[:, 2]}
+
+
+def _json_safe(value: Any) -> Any:
+    """Non-finite floats as None (JSON has no NaN), numpy scalars as Python numbers, recursively."""
+    if isinstance(value, dict):
+        return {key: _json_safe(item) for key, item in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_json_safe(item) for item in value]
+    if isinstance(value, (float, np.floating)):
+        return float(value) if np.isfinite(value) else None
+    if isinstance(value, np.integer):
+        return int(value)
+    return value
+
+
+def report_json(report: dict[str, Any]) -> str:
+    """REPORT.json text: indented, strict JSON (non-finite numbers as null)."""
+    import json
+
+    return json.dumps(_json_safe(report), indent=2, allow_nan=False) + "\n"
