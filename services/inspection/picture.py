@@ -6,6 +6,8 @@ from pathlib import Path
 
 import numpy as np
 
+from services.formats.files import atomic_output
+
 
 def deviation_picture(points_part: np.ndarray, deviation: np.ndarray, tolerance: tuple[float, float],
                       path: str | Path, title: str = "") -> Path:
@@ -35,9 +37,9 @@ def deviation_picture(points_part: np.ndarray, deviation: np.ndarray, tolerance:
     axes.set_title(title or "deviation from the nominal surface")
     figure.colorbar(scatter, ax=axes, label="deviation, mm (cold-equivalent)")
     figure.tight_layout()
-    path = Path(path)
-    temporary = path.with_name(path.name + ".part.png")
-    figure.savefig(temporary)
-    plt.close(figure)
-    temporary.replace(path)
-    return path
+    try:
+        with atomic_output(path) as temporary:
+            figure.savefig(temporary)
+    finally:
+        plt.close(figure)
+    return Path(path)

@@ -290,8 +290,9 @@ def write_billet_part(directory, diameter: float = 90.0, length: float = 200.0, 
                       diameter_tolerance=(-0.3, 0.3), surface_tolerance=(-1.0, 1.0), segments: int = 360) -> "Path":
     """Write a billet's nominal mesh (``billet.stl``) and part file (``part.json``) into ``directory``.
 
-    Features: ``body_diameter`` (cylinder over the middle 160 mm) and the end face ``face_b`` (+x)
-    with its ``flatness``.
+    Features: ``body_diameter`` (a cylinder over the middle 160 mm). The billet is symmetric end to
+    end, so the alignment cannot tell its ends apart and a feature of one end face would be measured
+    on whichever end the view shows; hence no end-face features.
     """
     import json
     from pathlib import Path
@@ -308,10 +309,7 @@ def write_billet_part(directory, diameter: float = 90.0, length: float = 200.0, 
             "features": [
                 {"name": "body_diameter", "type": "cylinder", "measure": "diameter",
                  "region": {"min": [-0.8 * half, -r - 5, -r - 5], "max": [0.8 * half, r + 5, r + 5]},
-                 "nominal": diameter, "tolerance": list(diameter_tolerance)},
-                {"name": "face_b", "type": "plane", "measure": "flatness",
-                 "region": {"min": [half - 2, -0.6 * r, -0.6 * r], "max": [half + 2, 0.6 * r, 0.6 * r]},
-                 "nominal": 0.0, "tolerance": [0.0, 0.5]}],
+                 "nominal": diameter, "tolerance": list(diameter_tolerance)}],
             "surface_tolerance": list(surface_tolerance)}
     path = directory / "part.json"
     path.write_text(json.dumps(part, indent=2))

@@ -1,4 +1,4 @@
-"""A simulated station and billet for the inspection tests: the forging rig at 40 % resolution."""
+"""A simulated station and billet for the inspection tests: the forging rig at 35 % resolution."""
 
 from dataclasses import dataclass
 
@@ -11,7 +11,7 @@ from services.simulation.hot_part import HotPart, billet_pose, cylinder_mesh, si
 from services.simulation.presets import forging_rig
 from services.simulation.thermal import SurfaceTemperature
 
-SEGMENTS = 240
+SEGMENTS = 180
 
 
 @dataclass
@@ -35,4 +35,4 @@ class Station:
 def station(tmp_path_factory):
     path = write_billet_part(tmp_path_factory.mktemp("billet"), segments=SEGMENTS)
     part = load_part(path)
-    return Station(path, part, prepare_part(part), forging_rig(0.4))
+    return Station(path, part, prepare_part(part), forging_rig(0.35))
