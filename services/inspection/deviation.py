@@ -76,8 +76,9 @@ def find_defects(points_part: np.ndarray, deviation: np.ndarray, threshold_mm: f
     Notes
     -----
     The points are binned into cubic cells of edge ``cell_mm``; each cell's deviation is the mean
-    of its points'. Cells beyond the threshold are grouped by 26-connectivity
-    (``scipy.ndimage.label``). A patch's depth is the extreme cell mean, its centre that cell's
+    of its points'. Cells beyond the threshold are grouped by 26-connectivity after a one-cell
+    dilation (``scipy.ndimage``), so that the gaps of a cloud sparser than the cells do not split a
+    patch. A patch's depth is the extreme cell mean, its centre that cell's
     point centroid, its area the cell count times cell_mm^2.
     """
     finite = np.isfinite(deviation) & np.isfinite(points_part).all(axis=1)
@@ -99,7 +100,9 @@ def find_defects(points_part: np.ndarray, deviation: np.ndarray, threshold_mm: f
             continue
         grid = np.zeros(np.prod(shape), dtype=bool)
         grid[keys[beyond]] = True
-        labels, _ = ndimage.label(grid.reshape(shape), structure=np.ones((3, 3, 3)))
+        # cells one empty cell apart belong together: a cloud sparser than the cells leaves such gaps
+        bridged = ndimage.binary_dilation(grid.reshape(shape), structure=np.ones((3, 3, 3)))
+        labels, _ = ndimage.label(bridged, structure=np.ones((3, 3, 3)))
         cell_labels = labels.ravel()[keys[beyond]]
         beyond_index = np.flatnonzero(beyond)
         for label in np.unique(cell_labels):
