@@ -23,13 +23,12 @@ from pathlib import Path
 from typing import Annotated, Literal
 
 import numpy as np
-
-from services.open3d_loader import open3d
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 from services.errors import InputError
 from services.formats.json_files import read_text, validate_json
 from services.inspection.materials import Material, builtin_material
+from services.open3d_loader import open3d
 
 PART_FILE_VERSION = 1
 MESH_SUFFIXES = (".stl", ".ply", ".obj")
@@ -154,7 +153,8 @@ class Segmentation(BaseModel):
 
     min_temperature_c: float = Field(
         300.0, description="points at least this hot belong to the part (they seed the alignment)")
-    max_distance_mm: float = Field(5.0, gt=0, description="after alignment, points this near the nominal are the part's")
+    max_distance_mm: float = Field(5.0, gt=0,
+                                   description="after alignment, points this near the nominal are the part's")
 
 
 class PartFile(BaseModel):

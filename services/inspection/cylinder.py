@@ -56,7 +56,8 @@ def fit_cylinder(points: np.ndarray, axis_point: np.ndarray, axis: np.ndarray, r
     direction (alpha, beta, 1) / |(alpha, beta, 1)| and the residual of X is its distance from that
     line minus r. sum rho(r_i) is minimised with scipy's trust-region least squares and the Cauchy
     loss at three robust sigmas, then plain least squares over the points within 4.685 robust sigmas
-    (the Cauchy loss alone leaves a bias of a few micrometres from far outliers); the radius's standard deviation comes from s^2 (J^T W J)^-1 with
+    (the Cauchy loss alone leaves a bias of a few micrometres from far outliers); the radius's
+    standard deviation comes from s^2 (J^T W J)^-1 with
     Tukey's weights of the final residuals [1]_.
 
     References

@@ -40,13 +40,15 @@ def feature_distance(first: Element, second: Element) -> float:
     """
     kinds = (type(first), type(second))
     if kinds == (PlaneFit, PlaneFit):
-        return float((abs(first.normal @ (second.point - first.point)) + abs(second.normal @ (first.point - second.point))) / 2)
+        offset = second.point - first.point
+        return float((abs(first.normal @ offset) + abs(second.normal @ offset)) / 2)
     if PlaneFit in kinds:
         plane, other = (first, second) if isinstance(first, PlaneFit) else (second, first)
         point = other.center if isinstance(other, SphereFit) else other.point
         return float(abs(plane.normal @ (point - plane.point)))
     if kinds == (CylinderFit, CylinderFit):
-        return (_point_line(second.point, first.point, first.axis) + _point_line(first.point, second.point, second.axis)) / 2
+        return (_point_line(second.point, first.point, first.axis)
+                + _point_line(first.point, second.point, second.axis)) / 2
     if CylinderFit in kinds:
         cylinder, sphere = (first, second) if isinstance(first, CylinderFit) else (second, first)
         return _point_line(sphere.center, cylinder.point, cylinder.axis)

@@ -15,7 +15,8 @@ from services.inspection.distance import feature_distance
 from services.inspection.features import (NominalFeature, element_position_std, fit_measured, fit_nominal_feature,
                                           measure_std, measure_value)
 from services.inspection.nominal import NominalSurface
-from services.inspection.uncertainty import COVERAGE_FACTOR, TemperatureBudget, size_uncertainty, temperature_uncertainty
+from services.inspection.uncertainty import (COVERAGE_FACTOR, TemperatureBudget, size_uncertainty,
+                                             temperature_uncertainty)
 from services.inspection.verdict import decide, overall
 
 REPORT_VERSION = 1
@@ -227,7 +228,8 @@ def _unmeasured(feature: Feature, reason: str) -> dict[str, Any]:
 
 def _feature_result(feature: Feature, hot: float, cold: float, fit_std: float, count: int, mean_t: float,
                     u_t: float, part: Part, material_fraction: float) -> dict[str, Any]:
-    systematic = part.definition.uncertainty.structured_light_systematic_mm * _SYSTEMATIC_FACTOR.get(feature.measure, 1.0)
+    systematic = (part.definition.uncertainty.structured_light_systematic_mm
+                  * _SYSTEMATIC_FACTOR.get(feature.measure, 1.0))
     terms = size_uncertainty(cold, mean_t, u_t, part.material, material_fraction, fit_std, systematic)
     deviation = cold - feature.nominal
     return {"name": feature.name, "type": feature.type, "measure": feature.measure, "hot": hot, "cold": cold,

@@ -15,15 +15,16 @@ and the temperature where the thermal camera sees the point, with its noise.
 
 from __future__ import annotations
 
+import json
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
-
-from services.open3d_loader import open3d
 
 from services.formats.rig import Device
 from services.geometry.camera import camera_center, normalized_coordinates, pixel_grid, project_points
 from services.inspection.materials import Material
+from services.open3d_loader import open3d
 from services.simulation.scene import Mesh
 from services.simulation.thermal import SurfaceTemperature
 
@@ -287,16 +288,13 @@ def billet_pose(tilt_deg: float = 30.0, roll_deg: float = 20.0, centre=(0.0, 20.
 
 
 def write_billet_part(directory, diameter: float = 90.0, length: float = 200.0, material: str = "carbon-steel",
-                      diameter_tolerance=(-0.3, 0.3), surface_tolerance=(-1.0, 1.0), segments: int = 360) -> "Path":
+                      diameter_tolerance=(-0.3, 0.3), surface_tolerance=(-1.0, 1.0), segments: int = 360) -> Path:
     """Write a billet's nominal mesh (``billet.stl``) and part file (``part.json``) into ``directory``.
 
     Features: ``body_diameter`` (a cylinder over the middle 160 mm). The billet is symmetric end to
     end, so the alignment cannot tell its ends apart and a feature of one end face would be measured
     on whichever end the view shows; hence no end-face features.
     """
-    import json
-    from pathlib import Path
-
     o3d = open3d()
     directory = Path(directory)
     directory.mkdir(parents=True, exist_ok=True)

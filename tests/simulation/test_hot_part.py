@@ -28,7 +28,8 @@ def test_uniform_expansion_and_bumps():
     hot = HotPart(vertices, triangles, STEEL, SurfaceTemperature(base=1000.0)).hot_vertices_part()
     assert 2 * np.hypot(hot[:, 1], hot[:, 2]).max() == pytest.approx(91.242, abs=1e-9)
     assert np.ptp(hot[:, 0]) == pytest.approx(200 * 1.0138, abs=1e-9)
-    dented = HotPart(vertices, triangles, STEEL, SurfaceTemperature(base=20.0), bumps=(Bump((0.0, 0.0, 45.0), 4.0, -0.3),))
+    dented = HotPart(vertices, triangles, STEEL, SurfaceTemperature(base=20.0),
+                     bumps=(Bump((0.0, 0.0, 45.0), 4.0, -0.3),))
     moved = np.linalg.norm(dented.cold_vertices() - vertices, axis=1)
     assert moved.max() == pytest.approx(0.3, abs=0.01)
     normals = vertex_normals(vertices, triangles)
