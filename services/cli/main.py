@@ -30,6 +30,7 @@ COMMAND_MODULES = [
     "services.cli.demo",
     "services.cli.register",
     "services.cli.inspect",
+    "services.cli.rig",
 ]
 # Commands that run services: their logs (and their children's) are for the operator and stay on stderr.
 SERVICE_COMMANDS = frozenset({"serve", "api", "worker", "gateway", "demo"})
