@@ -17,6 +17,7 @@ _MIN_HALF_WINDOW = 2
 _SUBPIX_CRITERIA = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 100, 1e-6)
 _WEAKEST_CORNER = 0.3  # every detected corner must be an X-junction this strong relative to the median
 _UPSAMPLE_BELOW = 480  # frames smaller than this (shorter side) are also searched at twice the size
+_DOWNSAMPLE_FROM = 960  # frames at least this large (shorter side) are also searched at half the size
 _CLASSIC_FLAGS = cv2.CALIB_CB_ADAPTIVE_THRESH | cv2.CALIB_CB_NORMALIZE_IMAGE
 _SECTOR_FLAGS = cv2.CALIB_CB_NORMALIZE_IMAGE
 
@@ -62,7 +63,9 @@ def detect_board(image: np.ndarray, board: BoardSpec) -> BoardDetection | None:
     Chessboards are located by OpenCV's sector-based detector [2]_, falling back to the quad
     detector (which finds boards whose quiet zone is cut by the image border but misplaces
     the outer corners of a board without a light frame, such as a hollowed infrared board)
-    and, for frames under 480 pixels, to both on a twice-upsampled frame. Each corner is
+    and, for frames under 480 pixels, to both on a twice-upsampled frame (for frames of 960 pixels
+    or more, on a half-size frame: the sector detector misses large, dim, unevenly lit boards, such
+    as SLStudio's calibration sequence 2, at full size). Each corner is
     refined as the saddle point of the intensity, the point q where
     sum_i (grad I(p_i) . (p_i - q)) = 0 over a window [1]_ (``cv2.cornerSubPix``). The half
     window is a quarter of the corner's distance to its nearest neighbour, so it adapts to
@@ -115,9 +118,10 @@ def _detect_chessboard(grey: np.ndarray, levels: np.ndarray, board: ChessboardSp
                        polarities: tuple[str, ...]) -> BoardDetection | None:
     """Locate on the 8-bit ``grey`` (each locator with every polarity), refine and check on ``levels``."""
     size = board.pattern_size
-    scales = (1, 2) if min(grey.shape) < _UPSAMPLE_BELOW else (1,)
+    scales = (1, 2) if min(grey.shape) < _UPSAMPLE_BELOW else (1, 0.5) if min(grey.shape) >= _DOWNSAMPLE_FROM else (1,)
     for scale in scales:
-        frame = grey if scale == 1 else cv2.resize(grey, None, fx=scale, fy=scale, interpolation=cv2.INTER_CUBIC)
+        interpolation = cv2.INTER_CUBIC if scale > 1 else cv2.INTER_AREA
+        frame = grey if scale == 1 else cv2.resize(grey, None, fx=scale, fy=scale, interpolation=interpolation)
         for locate in (_locate_by_sectors, _locate_by_quads):
             for polarity in polarities:
                 corners = locate(frame if polarity == "normal" else 255 - frame, size)

@@ -24,6 +24,8 @@ class StereoCalibration:
         RMS of each view in the reference and in the device.
     baseline_mm : float
         Distance between the two optical centres, |t|.
+    pose_std : (6,) array
+        Standard deviations of the Rodrigues vector of R (rad) and of t (mm).
     """
 
     R: np.ndarray
@@ -31,6 +33,7 @@ class StereoCalibration:
     rms: float
     per_view_rms: np.ndarray
     baseline_mm: float
+    pose_std: np.ndarray
 
 
 def calibrate_stereo(
@@ -62,7 +65,10 @@ def calibrate_stereo(
     -----
     With both intrinsics fixed, ``cv2.stereoCalibrate`` minimises the reprojection error in
     both images over the board poses B_i seen by the reference and one shared transform
-    (R, t), the device seeing B_i through x_dev = R x_ref + t [1]_.
+    (R, t), the device seeing B_i through x_dev = R x_ref + t [1]_. The standard deviations
+    of (R, t) are sqrt(diag((J^T J)^-1) sigma^2) over all the estimated poses, J the Jacobian
+    of both images' residuals (``cv2.projectPoints`` chained with ``cv2.composeRT``) and
+    sigma^2 the residual variance per coordinate.
 
     References
     ----------
@@ -80,10 +86,40 @@ def calibrate_stereo(
     (K1, d1), (K2, d2) = reference_intrinsics, device_intrinsics
     K1, K2 = np.asarray(K1, np.float64), np.asarray(K2, np.float64)
     d1, d2 = np.asarray(d1, np.float64).ravel(), np.asarray(d2, np.float64).ravel()
-    rms, _, _, _, _, R, t, _, _, _, _, per_view = cv2.stereoCalibrateExtended(
+    rms, _, _, _, _, R, t, _, _, rvecs, tvecs, per_view = cv2.stereoCalibrateExtended(
         objects, first, second, K1, d1, K2, d2, tuple(int(s) for s in image_size), None, None,
         flags=cv2.CALIB_FIX_INTRINSIC, criteria=_CRITERIA,
     )
     t = t.ravel()
+    pose_std = _pose_std(objects, first, second, (K1, d1), (K2, d2), R, t, rvecs, tvecs)
     return StereoCalibration(R=R, t=t, rms=float(rms), per_view_rms=np.asarray(per_view).reshape(-1, 2),
-                             baseline_mm=float(np.linalg.norm(t)))
+                             baseline_mm=float(np.linalg.norm(t)), pose_std=pose_std)
+
+
+def _pose_std(objects, first, second, reference_intrinsics, device_intrinsics, R, t, rvecs, tvecs) -> np.ndarray:
+    """Standard deviations of the stereo pose (Rodrigues vector, t) from the Jacobian of all residuals."""
+    views = len(objects)
+    rvec = cv2.Rodrigues(R)[0]
+    tvec = t.reshape(3, 1)
+    blocks, residuals = [], []
+    for index, (obj, seen_first, seen_second) in enumerate(zip(objects, first, second)):
+        board_r, board_t = np.asarray(rvecs[index], np.float64), np.asarray(tvecs[index], np.float64)
+        columns = slice(6 + 6 * index, 12 + 6 * index)
+        projected, jacobian = cv2.projectPoints(obj, board_r, board_t, *reference_intrinsics)
+        block = np.zeros((2 * len(obj), 6 + 6 * views))
+        block[:, columns] = jacobian[:, :6]
+        blocks.append(block)
+        residuals.append(seen_first.reshape(-1) - projected.reshape(-1))
+        r3, t3, dr3dr1, dr3dt1, dr3dr2, dr3dt2, dt3dr1, dt3dt1, dt3dr2, dt3dt2 = cv2.composeRT(
+            board_r, board_t, rvec, tvec)
+        projected, jacobian = cv2.projectPoints(obj, r3, t3, *device_intrinsics)
+        d_pose = jacobian[:, :6]  # d projection / d (r3, t3)
+        block = np.zeros((2 * len(obj), 6 + 6 * views))
+        block[:, :6] = d_pose @ np.block([[dr3dr2, dr3dt2], [dt3dr2, dt3dt2]])
+        block[:, columns] = d_pose @ np.block([[dr3dr1, dr3dt1], [dt3dr1, dt3dt1]])
+        blocks.append(block)
+        residuals.append(seen_second.reshape(-1) - projected.reshape(-1))
+    J, r = np.vstack(blocks), np.concatenate(residuals)
+    variance = float(r @ r) / max(1, len(r) - J.shape[1])
+    covariance = np.linalg.pinv(J.T @ J) * variance
+    return np.sqrt(np.diag(covariance)[:6])

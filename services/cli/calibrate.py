@@ -43,7 +43,13 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
     camera = topics.add_parser("camera", help="intrinsics of one camera from board images (Zhang's method)")
     camera.add_argument("--board", required=True, type=Path, help="board specification JSON")
-    camera.add_argument("--images", required=True, type=Path, help="directory of board images")
+    source = camera.add_mutually_exclusive_group(required=True)
+    source.add_argument("--images", type=Path, help="directory of board images")
+    source.add_argument("--captures", type=Path, nargs="+",
+                        help="structured-light capture directories, one per board pose: the board is found in each "
+                             "capture's decoded intensity (the mean of its phase frames, or its white frame)")
+    camera.add_argument("--manifest", type=Path, default=None,
+                        help="with --captures: the sequence manifest of every capture (default: each DIR/sequence.json)")
     camera.add_argument("--out", required=True, type=Path, help="calibration JSON to write (report PNGs beside it)")
     camera.add_argument("--name", default=None, help="device name (default: the --kind)")
     camera.add_argument("--kind", choices=("camera", "thermal"), default="camera")
@@ -56,6 +62,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     projector.add_argument("--board", required=True, type=Path)
     projector.add_argument("--captures", required=True, type=Path, nargs="+",
                            help="capture directories (sequence.json + frames, both axes coded), one per board pose")
+    projector.add_argument("--manifest", type=Path, default=None,
+                           help="the sequence manifest of every capture (default: each DIR/sequence.json)")
     projector.add_argument("--camera", required=True, type=Path, help="the camera's calibration JSON")
     projector.add_argument("--out", required=True, type=Path,
                            help="rig JSON to write (camera at the origin); the projector report goes beside it")
@@ -88,12 +96,13 @@ def list_frames(directory: Path) -> list[Path]:
     return frames
 
 
-def detect_in_frames(paths: list[Path], board: BoardSpec) -> tuple[list[BoardDetection], tuple[int, int]]:
-    """Detect the board in every frame; one error lists every frame that failed and why."""
+def detect_in_frames(paths: list[Path], board: BoardSpec, read=read_frame) -> tuple[list[BoardDetection], tuple[int, int]]:
+    """Detect the board in every frame (``read(path)`` gives its image); one error lists every frame that
+    failed and why."""
     detections, problems, size = [], [], None
     for path in paths:
         try:
-            image = read_frame(path)
+            image = read(path)
         except InputError as error:
             problems.append(str(error))
             continue
@@ -121,15 +130,28 @@ def _describe(board: BoardSpec) -> str:
     return f"{board.type} of {cols}x{rows} {feature}s"
 
 
+def capture_board_image(directory: Path, manifest: Path | None = None) -> np.ndarray:
+    """The board image of a structured-light capture: its decoded intensity (white frame, or the mean of the
+    phase frames), in the frames' dtype."""
+    sequence, frames = read_capture(directory, manifest)
+    intensity = decode(frames, sequence, edge_margin=0).intensity
+    return np.clip(np.round(intensity), 0, np.iinfo(frames.dtype).max).astype(frames.dtype)
+
+
 def run_camera(args: argparse.Namespace) -> int:
     board = load_board(args.board)
-    paths = list_frames(args.images)
+    if args.captures is not None:
+        paths, names = list(args.captures), [str(directory) for directory in args.captures]
+        read = lambda directory: capture_board_image(directory, args.manifest)  # noqa: E731
+        source = "captures"
+    else:
+        paths = list_frames(args.images)
+        names, read, source = [p.name for p in paths], read_frame, f"{args.images}: images"
     if len(paths) < MIN_VIEWS:
-        raise InputError(f"{args.images}: {len(paths)} images; calibration needs at least {MIN_VIEWS} views")
-    detections, size = detect_in_frames(paths, board)
+        raise InputError(f"{len(paths)} {source}; calibration needs at least {MIN_VIEWS} views")
+    detections, size = detect_in_frames(paths, board, read)
     object_points = [board.object_points()[d.ids] for d in detections]
     result = calibrate_camera(object_points, [d.image_points for d in detections], size, args.distortion)
-    names = [p.name for p in paths]
     views = [
         CalibratedView(image=names[i], rms_px=float(rms), polarity=detections[i].polarity, R=R.tolist(),
                        t=t.tolist(), pose_std=std.tolist())
@@ -182,7 +204,7 @@ def run_projector(args: argparse.Namespace) -> int:
                          "board poses")
     objects, camera_points, projector_points, problems, projector_size = [], [], [], [], None
     for directory in args.captures:
-        sequence, frames = read_capture(directory)
+        sequence, frames = read_capture(directory, args.manifest)
         size = (sequence.projector.width, sequence.projector.height)
         if projector_size is not None and size != projector_size:
             problems.append(f"{directory}: projector is {size[0]}x{size[1]} but {args.captures[0]} has "
@@ -193,7 +215,9 @@ def run_projector(args: argparse.Namespace) -> int:
             problems.append(f"{directory}: frames are {frames.shape[2]}x{frames.shape[1]} but {args.camera} is "
                             f"for {camera.width}x{camera.height}")
             continue
-        decoded = decode(frames, sequence)
+        # No EDGE margin: it is for depth outlines, and around each pixel rejected inside the board (a noisy
+        # dark square) it would drop 49 good ones; the corners' homographies need the whole window.
+        decoded = decode(frames, sequence, edge_margin=0)
         if set(decoded.coded_axes) != {"x", "y"}:
             problems.append(f"{directory}: the sequence codes only {'/'.join(decoded.coded_axes)}; both axes are "
                             "needed (thermofield patterns --axes xy)")
@@ -224,6 +248,8 @@ def run_projector(args: argparse.Namespace) -> int:
         projector_rms_px=result.projector.rms, stereo_rms_px=result.stereo.rms, baseline_mm=result.stereo.baseline_mm,
         std=result.projector.std, views=[names[i] for i in result.projector.views],
         per_view_rms_px=result.projector.per_view_rms.tolist(),
+        stereo_std=dict(zip(("rx", "ry", "rz", "tx", "ty", "tz"), result.stereo.pose_std.tolist())),
+        stereo_per_view_rms_px=result.stereo.per_view_rms.tolist(),
         rejected=[RejectedView(image=names[i], reason=reason) for i, reason in result.projector.rejected],
     )
     args.out.parent.mkdir(parents=True, exist_ok=True)

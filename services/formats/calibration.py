@@ -103,6 +103,8 @@ class ProjectorCalibrationFile(BaseModel):
     views: list[str]
     per_view_rms_px: list[float]
     rejected: list[RejectedView]
+    stereo_std: dict[str, float] = {}
+    stereo_per_view_rms_px: list[list[float]] = []
 
 
 class StereoCalibrationFile(BaseModel):

@@ -303,8 +303,16 @@ def save_sequence(sequence: Sequence, directory: str | Path) -> Path:
     return write_text_atomically(Path(directory) / MANIFEST_NAME, sequence_to_json(sequence) + "\n")
 
 
-def read_capture(directory: str | Path) -> tuple[Sequence, np.ndarray]:
+def read_capture(directory: str | Path, manifest: str | Path | None = None) -> tuple[Sequence, np.ndarray]:
     """Read a capture directory: its manifest and the camera frames it names, in display order.
+
+    Parameters
+    ----------
+    directory : path
+        The capture directory; frame file names are relative to it.
+    manifest : path, optional
+        The manifest to use instead of ``directory/sequence.json``: for captures made by other
+        software (which write no manifest) or kept read-only, one manifest serves them all.
 
     Returns
     -------
@@ -322,7 +330,10 @@ def read_capture(directory: str | Path) -> tuple[Sequence, np.ndarray]:
     directory = Path(directory)
     if not directory.is_dir():
         raise InputError(f"{directory}: capture directory does not exist")
-    sequence = load_sequence(directory)
+    if manifest is None:
+        sequence = load_sequence(directory)
+    else:
+        sequence = parse_sequence(read_text(manifest, "sequence manifest"), str(manifest))
     frames = read_frame_stack([directory / frame.file for frame in sequence.frames])
     _check_references(sequence, frames, directory)
     return sequence, frames

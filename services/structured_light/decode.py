@@ -32,6 +32,7 @@ class Rejection(enum.IntEnum):
     EDGE = 6  #: next to a rejected pixel or across a coordinate jump: a camera pixel mixing two surfaces
     GLOW_SATURATED = 7  #: a hot part's own glow saturates the pattern (``glow.decode_glowing`` only)
     GLOW_NOISE = 8  #: the pattern is below what the glow's shot noise allows (``glow.decode_glowing`` only)
+    INDIRECT = 9  #: fringe visibility far below the capture's direct light: inter-reflections, scattering
 
 
 @dataclass(frozen=True)
@@ -177,6 +178,7 @@ def _decode_kernel(frames, saturation_level, white, black, mean_frames, axis_siz
         total = np.empty((n_groups, width))
         squares = np.empty((n_groups, width))
         offset = np.empty(width)
+        mean_level = np.empty(width)
         mid_level = np.empty(width)
         white_level = np.empty(width)
         pixel_modulation = np.empty(width)
@@ -226,6 +228,13 @@ def _decode_kernel(frames, saturation_level, white, black, mean_frames, axis_siz
                 steps = group_start[n_groups] - group_start[n_groups - 1]
                 for col in range(width):
                     offset[col] = total[n_groups - 1, col] / steps
+                # The intensity without a white frame: the mean of every phase frame, the least noisy
+                # offset (a board image with a twelfth of one frame's noise variance for SLStudio's 12).
+                mean_level[:] = 0.0
+                for g in range(n_groups):
+                    for col in range(width):
+                        mean_level[col] += total[g, col]
+                mean_level /= group_start[n_groups]
             else:
                 for f in range(frames.shape[0]):
                     samples = frames[f, row]
@@ -243,7 +252,7 @@ def _decode_kernel(frames, saturation_level, white, black, mean_frames, axis_siz
                 threshold = mid_level
                 for col in range(width):
                     threshold[col] = 0.5 * (float(frames[white, row, col]) + float(frames[black, row, col]))
-            level = offset
+            level = mean_level if n_groups > 0 else offset
             if white >= 0:
                 level = white_level
                 for col in range(width):
@@ -394,6 +403,21 @@ def _interpolate_gray_only_axes(frames: np.ndarray, sequence: Sequence, coordina
             coordinates[:, lost] = np.nan
 
 
+def _reject_indirect(coordinates: np.ndarray, modulation: np.ndarray, intensity: np.ndarray, rejection: np.ndarray,
+                     max_indirect: float) -> None:
+    """Mark valid pixels whose visibility B / intensity says indirect light exceeds ``max_indirect`` times the
+    direct light (see :func:`decode`)."""
+    valid = rejection == Rejection.VALID
+    if not valid.any():
+        return
+    visibility = np.where(intensity > 0, modulation / np.maximum(intensity, 1e-6), 0.0)
+    bright = valid & (modulation >= np.median(modulation[valid]))
+    direct_visibility = float(np.median(visibility[bright]))
+    indirect = valid & (visibility * (1.0 + max_indirect) < direct_visibility)
+    rejection[indirect] = Rejection.INDIRECT
+    coordinates[:, indirect] = np.nan
+
+
 def decode(
     frames: np.ndarray,
     sequence: Sequence,
@@ -406,6 +430,7 @@ def decode(
     edge_margin: int = 3,
     max_jump: float = np.inf,
     gray_boundaries: bool = True,
+    max_indirect: float = np.inf,
 ) -> DecodedCapture:
     """Decode camera frames of a structured-light sequence into projector coordinates.
 
@@ -445,6 +470,12 @@ def decode(
         For axes coded by Gray code alone, interpolate the coordinate between the stripe boundaries
         located in the image (``gray_subpixel``); pixels without boundaries on both sides (or one side,
         within a stripe) are then ``INCONSISTENT``. False gives the stripe centres.
+    max_indirect : float
+        Valid pixels of a phase-coded capture whose indirect light is estimated at
+        more than this multiple of their direct light are ``INDIRECT`` (see Notes):
+        inter-reflections in concavities, subsurface scattering. Infinite (off) by
+        default: unmodulated light from other sources (ambient light, the glow of a
+        hot part) lowers the visibility in the same way without biasing the phase.
 
     Returns
     -------
@@ -477,10 +508,20 @@ def decode(
     ``modulation`` is ``B`` of the finest period, or the mean Gray plane margin
     ``|I - I_inverse| / 2`` or ``|I - threshold|``.
 
+    Indirect light: light that reaches a pixel after another bounce sums the
+    fringes over many projector pixels, so at a fine period it is unmodulated [2]_
+    while it biases the phase of coarse periods. With direct light D and indirect
+    light G, the fringe visibility ``V = B / intensity`` is ``V_0 D / (D + G)``,
+    ``V_0`` that of direct light alone, estimated as the median visibility of the
+    valid pixels brighter (in ``B``) than the median. A pixel is ``INDIRECT`` when
+    ``G / D = V_0 / V - 1 > max_indirect``.
+
     References
     ----------
     .. [1] Q. Zhang, X. Su, L. Xiang, X. Sun, "3-D shape measurement based on
        complementary Gray-code light", Optics and Lasers in Engineering 50(4), 574-579 (2012).
+    .. [2] S. K. Nayar, G. Krishnan, M. D. Grossberg, R. Raskar, "Fast separation of direct and
+       global components of a scene using high frequency illumination", ACM TOG 25(3), 935-944 (2006).
     """
     frames = np.asarray(frames)
     if frames.ndim != 3:
@@ -495,6 +536,8 @@ def decode(
         raise ValueError(f"consistency must be between 0 and 1; got {consistency}.")
     if edge_margin < 0:
         raise ValueError(f"edge_margin must be a non-negative number of pixels; got {edge_margin}.")
+    if not max_indirect > 0:
+        raise ValueError(f"max_indirect must be a positive ratio of indirect to direct light; got {max_indirect}.")
     full_scale = float(np.iinfo(frames.dtype).max if saturation_level is None else saturation_level)
     min_intensity = 0.02 * full_scale if min_intensity is None else min_intensity
     min_modulation = 0.012 * full_scale if min_modulation is None else min_modulation
@@ -512,6 +555,8 @@ def decode(
         tables.group_period, float(min_intensity), float(min_modulation), float(min_quality), float(consistency),
         min(height, 4 * get_num_threads()), coordinates, modulation, intensity, quality, rejection,
     )
+    if np.isfinite(max_indirect) and sequence.phase_groups():
+        _reject_indirect(coordinates, modulation, intensity, rejection, max_indirect)
     if edge_margin > 0 or np.isfinite(max_jump):
         _edge_kernel(coordinates, rejection, int(edge_margin), float(max_jump))
     if gray_boundaries:

@@ -302,6 +302,8 @@ def reconstruct_scan(
     table: TriangulationTable | None = None,
     gray_boundaries: bool = True,
     saturation_level: float | None = None,
+    max_indirect: float = np.inf,
+    consistency: float = 0.25,
 ) -> Scan:
     """Decode a capture and triangulate every valid camera pixel, reporting what a hot part's glow did.
 
@@ -324,6 +326,15 @@ def reconstruct_scan(
     saturation_level : float, optional
         The sensor's saturation grey level (4095 for 12-bit frames in 16-bit files); default the
         dtype maximum.
+    max_indirect : float
+        Reject pixels whose indirect light (inter-reflections) exceeds this multiple of their direct
+        light, estimated from the fringe visibility (``decode``'s ``INDIRECT``); off by default,
+        since ambient light and a hot part's glow lower the visibility too.
+    consistency : float
+        ``decode``'s tolerance of a Gray code or coarser period against the unwrapped phase, as a
+        fraction of the unwrapping margin. Raise it (e.g. to 0.5) for sequences unwrapped by a much
+        coarser period with few steps, whose coarse phase is noisy (SLStudio's 3 steps at 16
+        periods): unwrapping slips then leave islands a period off, which the speckle filter removes.
 
     Returns
     -------
@@ -348,7 +359,8 @@ def reconstruct_scan(
                                                 min_quality=_MIN_QUALITY)
     else:
         decoded = decode(frames, sequence, min_quality=_MIN_QUALITY, edge_margin=0, saturation_level=full_scale,
-                         min_modulation=_MIN_MODULATION_OF_FULL_SCALE * full_scale, gray_boundaries=gray_boundaries)
+                         min_modulation=_MIN_MODULATION_OF_FULL_SCALE * full_scale, gray_boundaries=gray_boundaries,
+                         max_indirect=max_indirect, consistency=consistency)
     coordinates = _refined_coordinates(decoded, sequence, axis, noise)
     coordinates = remove_speckles(coordinates, _coordinate_step_limit(sequence, axis))
     points_map = triangulate_map(table, coordinates)
@@ -364,6 +376,8 @@ def reconstruct_points(
     table: TriangulationTable | None = None,
     gray_boundaries: bool = True,
     saturation_level: float | None = None,
+    max_indirect: float = np.inf,
+    consistency: float = 0.25,
 ) -> dict[str, np.ndarray]:
     """Decode a capture and triangulate every valid camera pixel.
 
@@ -383,6 +397,15 @@ def reconstruct_points(
         False triangulates their stripe centres.
     saturation_level : float, optional
         The sensor's saturation grey level; default the dtype maximum.
+    max_indirect : float
+        Reject pixels whose indirect light (inter-reflections) exceeds this multiple of their direct
+        light, estimated from the fringe visibility (``decode``'s ``INDIRECT``); off by default,
+        since ambient light and a hot part's glow lower the visibility too.
+    consistency : float
+        ``decode``'s tolerance of a Gray code or coarser period against the unwrapped phase, as a
+        fraction of the unwrapping margin. Raise it (e.g. to 0.5) for sequences unwrapped by a much
+        coarser period with few steps, whose coarse phase is noisy (SLStudio's 3 steps at 16
+        periods): unwrapping slips then leave islands a period off, which the speckle filter removes.
 
     Returns
     -------
@@ -393,4 +416,5 @@ def reconstruct_points(
         camera raster order. :func:`reconstruct_scan` also says what a hot part's glow did.
     """
     return reconstruct_scan(frames, sequence, camera, projector, table=table, gray_boundaries=gray_boundaries,
-                            saturation_level=saturation_level).cloud
+                            saturation_level=saturation_level, max_indirect=max_indirect,
+                            consistency=consistency).cloud
