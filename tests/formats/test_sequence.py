@@ -137,6 +137,22 @@ def test_read_capture_returns_frames_in_manifest_order(tmp_path, dtype):
     assert sequence.frames[1].file == "b.tif"
 
 
+def test_read_capture_takes_a_manifest_from_elsewhere(tmp_path):
+    """Captures of other software have no sequence.json (and may be read-only): one manifest serves them all."""
+    capture = tmp_path / "capture"
+    capture.mkdir()
+    images = _write_capture(capture)
+    manifest = tmp_path / "foreign.json"
+    (capture / "sequence.json").rename(manifest)
+    sequence, stack = read_capture(capture, manifest)
+    np.testing.assert_array_equal(stack, np.stack(images))
+    with pytest.raises(InputError, match="cannot read the sequence manifest"):
+        read_capture(capture)
+    manifest.write_text('{"projector": {"width": 4, "height": 1}, "frames": []}')
+    with pytest.raises(InputError, match=f"{manifest}: frames"):
+        read_capture(capture, manifest)
+
+
 def test_read_capture_names_a_missing_frame(tmp_path):
     _write_capture(tmp_path)
     (tmp_path / "g0.png").unlink()

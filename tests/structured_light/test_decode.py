@@ -1,6 +1,7 @@
 """Decoding: exact round trips for the default and foreign sequences, rejections, noise, bit depths."""
 
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -247,3 +248,41 @@ def test_polynomial_atan2_matches_numpy_to_2e8_rad():
     samples = np.concatenate([rng.normal(size=(2, 2000)), [[0, 1, -1, 0, 1e-300], [1, 0, 0, -1, -1e-300]]], axis=1)
     errors = [abs(_polynomial_atan2(y, x) - np.arctan2(y, x)) for y, x in samples.T]
     assert max(errors) < 2e-8
+
+
+def test_slstudio_sequence_is_described_exactly():
+    """SLStudio's 3-step phase shift at period 114 with a one-period cue (1824): I = 1/2 (1 + cos(2 pi c / P -
+    2 pi k / 3)), pixel centres at integers; the manifest in experiments/slstudio renders it and decodes it."""
+    manifest = Path(__file__).resolve().parents[2] / "experiments" / "slstudio" / "calibration_sequence.json"
+    sequence = parse_sequence(manifest.read_text())
+    patterns = render_patterns(sequence)
+    columns = np.arange(1824)
+    expected = 0.5 * (1 + np.cos(2 * np.pi * columns / 114.0 - 2 * np.pi * 1 / 3))
+    np.testing.assert_allclose(patterns[1, 0].astype(float) / 255, expected, atol=0.5 / 255 + 1e-9)
+    rows = np.arange(1140)
+    expected = 0.5 * (1 + np.cos(2 * np.pi * rows / 1140.0 - 2 * np.pi * 2 / 3))
+    np.testing.assert_allclose(patterns[11, :, 0].astype(float) / 255, expected, atol=0.5 / 255 + 1e-9)
+    decoded = decode(_camera(patterns[:, ::57, ::57]), sequence, edge_margin=0)
+    truth_x, truth_y = np.meshgrid(np.arange(0, 1824, 57), np.arange(0, 1140, 57))
+    assert decoded.valid.all()
+    # 8-bit rounding of 3 steps at period 71.25 gives up to 0.06 px
+    assert np.abs(decoded.projector_x - truth_x).max() < 0.1 and np.abs(decoded.projector_y - truth_y).max() < 0.1
+
+
+def test_indirect_light_is_rejected_by_its_fringe_visibility():
+    """Light arriving after a bounce is unmodulated at a fine period: where it exceeds max_indirect times the
+    direct light, the pixel is INDIRECT; ambient-free direct light is kept, and the test is off by default."""
+    sequence, patterns = generate_sequence(256, 40, period=16, steps=4)
+    direct = 0.5 * patterns.astype(np.float64)  # 127.5 grey levels under the white frame
+    indirect = np.zeros(direct.shape[1:])
+    indirect[:6] = 0.5 * 127.5  # G / D = 0.5
+    indirect[6:12] = 0.2 * 127.5  # G / D = 0.2
+    frames = np.clip(np.rint(direct + indirect + 10), 0, 255).astype(np.uint8)
+    frames[sequence.black_index] = 10  # the projector is off: no direct nor indirect light
+    assert decode(frames, sequence, edge_margin=0).valid.all()
+    decoded = decode(frames, sequence, edge_margin=0, max_indirect=0.33)
+    assert np.all(decoded.rejection[:6] == Rejection.INDIRECT)
+    assert np.all(decoded.rejection[6:] == Rejection.VALID)
+    assert np.isnan(decoded.projector_x[:6]).all()
+    with pytest.raises(ValueError, match="max_indirect"):
+        decode(frames, sequence, max_indirect=0)
