@@ -143,12 +143,12 @@ def run_camera(args: argparse.Namespace) -> int:
     if args.captures is not None:
         paths, names = list(args.captures), [str(directory) for directory in args.captures]
         read = lambda directory: capture_board_image(directory, args.manifest)  # noqa: E731
-        source = "captures"
+        source = f"{len(paths)} captures"
     else:
         paths = list_frames(args.images)
-        names, read, source = [p.name for p in paths], read_frame, f"{args.images}: images"
+        names, read, source = [p.name for p in paths], read_frame, f"{args.images}: {len(paths)} images"
     if len(paths) < MIN_VIEWS:
-        raise InputError(f"{len(paths)} {source}; calibration needs at least {MIN_VIEWS} views")
+        raise InputError(f"{source}; calibration needs at least {MIN_VIEWS} views")
     detections, size = detect_in_frames(paths, board, read)
     object_points = [board.object_points()[d.ids] for d in detections]
     result = calibrate_camera(object_points, [d.image_points for d in detections], size, args.distortion)
