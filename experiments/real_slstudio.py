@@ -21,6 +21,9 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from services.cli.main import main as thermofield
+from services.calibration.corners import detect_board
+from services.calibration.projector import projector_corners
+from services.formats.board import ChessboardSpec
 from services.formats.rig import Device, load_rig
 from services.formats.sequence import read_capture
 from services.geometry.camera import normalized_coordinates, project_points
@@ -83,6 +86,40 @@ def displacement_at_depth(reference: tuple[Device, Device], other: tuple[Device,
     return np.linalg.norm(moved - points[inside], axis=1)
 
 
+def board_corners(sequences: list[int]) -> dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    """Per calseq: the board's detected camera corners, their decoded projector column and the board grid (mm),
+    as ``thermofield calibrate projector`` measures them."""
+    board = ChessboardSpec(**BOARD)
+    corners = {}
+    for n in sequences:
+        sequence, frames = read_capture(CALIBRATION / f"calseq{n}", CALIBRATION_MANIFEST)
+        decoded = decode(frames, sequence, edge_margin=0)
+        detection = detect_board(np.clip(np.round(decoded.intensity), 0, 255).astype(np.uint8), board)
+        spacing = np.median(np.linalg.norm(np.diff(detection.image_points.reshape(9, 13, 2), axis=1), axis=-1))
+        projector, found = projector_corners(detection.image_points, decoded.projector_x, decoded.projector_y,
+                                             max(2, int(0.5 * spacing)), decoded.modulation)
+        corners[n] = (detection.image_points[found], projector[found, 0], board.object_points()[detection.ids[found]])
+    return corners
+
+
+def board_geometry_errors(rig: tuple[Device, Device], corners: tuple[np.ndarray, np.ndarray, np.ndarray]
+                          ) -> tuple[float, float]:
+    """Triangulate the board corners with a rig and fit the true board by a similarity: the RMS distance (mm)
+    of the corners from the fitted board, and the fitted scale minus one (the rig's length error)."""
+    camera, projector = rig
+    pixels, columns, grid = corners
+    rays = normalized_coordinates(pixels, camera.K_array, camera.dist_array)
+    points = triangulate(rays, columns, "x", camera.R_array, camera.t_array, projector.K_array, projector.dist_array,
+                         projector.R_array, projector.t_array).astype(np.float64)
+    measured, truth = points - points.mean(axis=0), grid - grid.mean(axis=0)
+    u, singular, vt = np.linalg.svd(truth.T @ measured)
+    flip = np.diag([1.0, 1.0, np.sign(np.linalg.det(u @ vt))])
+    rotation = (u @ flip @ vt).T
+    scale = float(np.sum(singular * np.diag(flip)) / np.sum(truth ** 2))
+    residual = measured - scale * truth @ rotation.T
+    return float(np.sqrt(np.mean(np.sum(residual ** 2, axis=1)))), scale - 1.0
+
+
 def devices(rig) -> tuple[Device, Device]:
     return rig.device(None, "camera")[1], rig.device(None, "projector")[1]
 
@@ -134,7 +171,9 @@ def _markdown(header: list[str], rows: list[list]) -> str:
 
 
 def _value(mean: float, std: float | None, digits: int) -> str:
-    return f"{mean:.{digits}f}" if std is None else f"{mean:.{digits}f} ± {std:.{digits}f}"
+    if std is None:
+        return f"{mean:.{digits}f} (fixed)"
+    return f"{mean:.{digits}f} ± {std:.{digits}f}"
 
 
 def parameter_table(ours: dict, slstudio) -> str:
@@ -214,6 +253,18 @@ def main() -> None:
         rows.append([label, f"{np.median(shift):.3f}", f"{np.percentile(shift, 95):.3f}", f"{shift.max():.3f}"])
     print(_markdown(["calibrations", "median (mm)", "95th percentile (mm)", "max (mm)"], rows))
 
+    print("\n## The board, triangulated with each calibration (13x9 corners, 10 mm)\n")
+    corners = board_corners([1, 2, 3, 4, 5, 6])
+    rigs = {"ours (six)": six, "ours (five)": five, "SLStudio": devices(slstudio)}
+    rows = []
+    for n, seen in corners.items():
+        row = [f"calseq{n}"]
+        for rig in rigs.values():
+            rms, scale = board_geometry_errors(rig, seen)
+            row.append(f"{rms:.3f} mm, {100 * scale:+.2f} %")
+        rows.append(row)
+    print(_markdown(["sequence", *[f"{label}: RMS from the board, scale error" for label in rigs]], rows))
+
     print("\n## skull_2x3\n")
     sequence, frames = read_capture(SKULL, SKULL_MANIFEST)
     shape = frames.shape[1:]
@@ -245,7 +296,7 @@ def main() -> None:
         cv2.imwrite(str(FIGURES / f"skull_{name}.png"), shaded_picture(points, normals, box))
     distance = np.full(shape, np.nan)
     distance[both] = same_pixel
-    scaled = np.clip(distance / 1.0 * 255, 0, 255)
+    scaled = np.clip(distance / 5.0 * 255, 0, 255)  # 0 (dark blue) .. 5 mm (yellow)
     coloured = cv2.applyColorMap(np.nan_to_num(scaled).astype(np.uint8), cv2.COLORMAP_VIRIDIS)
     coloured[~both] = 0
     cv2.imwrite(str(FIGURES / "skull_distance.png"), coloured[box])
