@@ -171,3 +171,52 @@ def infrared_from_visible(
     infrared = cv2.GaussianBlur(infrared, (0, 0), 0.8)
     infrared += noise * rng.standard_normal(infrared.shape).astype(np.float32)
     return _to_counts(infrared, 0.0, 1.6)
+
+
+def moved_view(
+    rng: np.random.Generator,
+    image: np.ndarray,
+    max_shift: float = 30.0,
+    max_angle: float = 4.0,
+    scale_range: tuple[float, float] = (0.93, 1.07),
+    largest_fraction: float = 0.9,
+) -> tuple[np.ndarray, np.ndarray]:
+    """The image moved by a random similarity and cut to a view that lies wholly inside the original.
+
+    The similarity S maps original pixels to moved pixels about the image
+    centres: S(x) = c' + d + s R(theta) (x - c), with each component of d
+    uniform in +-``max_shift`` pixels, theta uniform in +-``max_angle``
+    degrees and s uniform in ``scale_range``. The view keeps the original
+    aspect ratio at the largest fraction (at most ``largest_fraction``) of
+    its size whose every pixel comes from inside the original, so that no
+    pixel is invented.
+
+    Returns
+    -------
+    moved : 2-D array
+        The moved view, of the image's dtype (bilinear resampling).
+    view_to_original : (3, 3) array
+        S^-1: moved-view pixel coordinates to original pixel coordinates, so
+        a registration H of the original becomes H @ S^-1 for the view.
+    """
+    image = np.asarray(image)
+    height, width = image.shape[:2]
+    scale = rng.uniform(*scale_range)
+    angle = np.deg2rad(rng.uniform(-max_angle, max_angle))
+    shift = rng.uniform(-max_shift, max_shift, size=2)
+    centre = np.array([(width - 1) / 2.0, (height - 1) / 2.0])
+    for fraction in np.arange(largest_fraction, 0.2, -0.01):
+        size = (int(fraction * width), int(fraction * height))
+        view_centre = (np.asarray(size, dtype=float) - 1.0) / 2.0
+        forward = similarity_about_centres(centre, view_centre, scale, angle, shift)
+        view_to_original = np.linalg.inv(forward)
+        corners = np.array([[0.0, 0.0, 1.0], [size[0] - 1.0, 0.0, 1.0], [0.0, size[1] - 1.0, 1.0],
+                            [size[0] - 1.0, size[1] - 1.0, 1.0]]) @ view_to_original.T
+        if (corners[:, :2].min() >= 1.0 and corners[:, 0].max() <= width - 2.0
+                and corners[:, 1].max() <= height - 2.0):
+            break
+    else:
+        raise ValueError(f"No view of a {width}x{height} image stays inside it under a shift of {max_shift} px.")
+    moved = cv2.warpAffine(image, view_to_original[:2], size, flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
+                           borderMode=cv2.BORDER_REPLICATE)
+    return moved, view_to_original
