@@ -34,9 +34,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--out", required=True, type=Path, help="output registration (REG.json)")
     parser.add_argument("--overlay", type=Path, metavar="PNG", help="write a fused grey overlay (paper's Figure 12)")
     parser.add_argument("--checkerboard", type=Path, metavar="PNG", help="write a checkerboard blend")
-    parser.add_argument("--preprocess", choices=PREPROCESSING, default="gradient",
-                        help="intensity preprocessing (default %(default)s; 'paper' = invert + equalise)")
-    parser.add_argument("--metric", choices=METRICS, default="nmi", help="objective maximised (default %(default)s)")
+    parser.add_argument("--preprocess", choices=PREPROCESSING,
+                        help="intensity preprocessing (default: 'none' for ngf, 'gradient' for mi and nmi; "
+                             "'paper' = invert + equalise)")
+    parser.add_argument("--metric", choices=METRICS, default="ngf",
+                        help="objective maximised: normalised gradient fields, mutual information or normalised "
+                             "mutual information (default %(default)s)")
     parser.add_argument("--bins", type=int, default=DEFAULT_BINS, help="histogram bins per image (default %(default)s)")
     parser.add_argument("--log-base", type=float, default=DEFAULT_LOG_BASE,
                         help="logarithm base of the reported MI (default %(default)s: bits)")

@@ -4,7 +4,9 @@ Both images are quantised to [0, bins - 1] once (see
 :func:`services.registration.mutual_information.quantize`); the fixed image is
 then sampled at ``H @ u`` for every moving pixel ``u`` with bilinear
 interpolation, and samples that touch the outside of the fixed image are
-dropped, which handles partial overlap.
+dropped, which handles partial overlap. The ``"ngf"`` metric compares the
+normalised gradient fields of the sampled fixed image and of the moving image
+instead (:mod:`services.registration.gradient_fields`).
 """
 
 from __future__ import annotations
@@ -12,9 +14,10 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
+from services.registration.gradient_fields import sampled_tensor_similarity
 from services.registration.mutual_information import quantized_information
 
-METRICS = ("mi", "nmi")
+METRICS = ("mi", "nmi", "ngf")
 OUTSIDE = -1.0e4  # far below 0, so any bilinear sample touching the outside comes out negative (invalid)
 
 
@@ -46,3 +49,13 @@ def score(
     if count < min_overlap * moving.size:
         return -np.inf
     return mi if metric == "mi" else nmi
+
+
+def field_score(
+    fixed_samples: np.ndarray, fixed_epsilon: float, moving_x: np.ndarray, moving_y: np.ndarray, min_overlap: float
+) -> float:
+    """Normalised-gradient-field similarity of the sampled fixed image and the moving field, -inf below overlap."""
+    value, count = sampled_tensor_similarity(fixed_samples, fixed_epsilon, moving_x, moving_y)
+    if count < min_overlap * moving_x.size:
+        return -np.inf
+    return value

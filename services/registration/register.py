@@ -15,17 +15,19 @@ median corner error on the rendered scenes).
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import cv2
 import numpy as np
 from scipy.optimize import minimize
 
+from services.registration.gradient_fields import gradient_epsilon, normalized_gradient_field
 from services.registration.models import MODELS, PARAMETER_COUNTS, update_matrix
 from services.registration.mutual_information import DEFAULT_BINS, DEFAULT_LOG_BASE, quantize
-from services.registration.objective import METRICS, information, sample_fixed, score
+from services.registration.objective import METRICS, field_score, information, sample_fixed, score
 from services.registration.preprocess import PREPROCESSING, preprocess
-from services.registration.search import coarse_search
+from services.registration.search import coarse_search, gradient_field_search
 
 _COARSEST_SIZE = 48  # the coarsest level keeps at least this many moving pixels across
 _SEARCH_STEP = 2.0  # coarse-search grid step, in coarse moving pixels of corner motion
@@ -35,6 +37,8 @@ _CANDIDATES = 3
 _FINE_STEP = 0.5  # first Powell step below the coarsest level, where the start is within about a pixel
 _POWELL_TOLERANCE = 0.02  # moving pixels at the level being refined
 _POWELL_FTOL = 1e-5  # relative change of the objective that ends a Powell iteration
+_FIELD_SIGMA = 1.0  # Gaussian smoothing (pixels) before gradient fields are taken
+DEFAULT_PREPROCESSING = {"mi": "gradient", "nmi": "gradient", "ngf": "none"}  # NGF takes its own gradients
 
 
 @dataclass(frozen=True)
@@ -53,7 +57,7 @@ class Registration:
     log_base: float
 
 
-def _check_inputs(fixed: np.ndarray, moving: np.ndarray, model: str, preprocessing: str, metric: str) -> None:
+def _check_inputs(fixed: np.ndarray, moving: np.ndarray, model: str, preprocessing: str | None, metric: str) -> None:
     for name, image in (("fixed", fixed), ("moving", moving)):
         if np.ndim(image) != 2:
             raise ValueError(f"The {name} image must be a 2-D grey image; got shape {np.shape(image)}.")
@@ -62,7 +66,7 @@ def _check_inputs(fixed: np.ndarray, moving: np.ndarray, model: str, preprocessi
                              f"pixels, at least {2 * _COARSEST_SIZE} needed on each side.")
     if model not in MODELS:
         raise ValueError(f"Unknown registration model {model!r}; choose one of {', '.join(MODELS)}.")
-    if preprocessing not in PREPROCESSING:
+    if preprocessing is not None and preprocessing not in PREPROCESSING:
         raise ValueError(f"Unknown preprocessing {preprocessing!r}; choose one of {', '.join(PREPROCESSING)}.")
     if metric not in METRICS:
         raise ValueError(f"Unknown metric {metric!r}; choose one of {', '.join(METRICS)}.")
@@ -99,9 +103,23 @@ def _level_matrix(matrix: np.ndarray, level: int) -> np.ndarray:
     return down @ matrix @ np.linalg.inv(down)
 
 
+def _level_objective(
+    fixed: np.ndarray, moving: np.ndarray, bins: int, log_base: float, metric: str, min_overlap: float
+) -> Callable[[np.ndarray], float]:
+    """The objective of one pyramid level, as a function of the fixed image sampled on the moving grid.
+
+    ``fixed`` and ``moving`` are quantised images for MI and NMI, smoothed grey images for NGF.
+    """
+    if metric == "ngf":
+        fixed_epsilon = gradient_epsilon(fixed)
+        moving_x, moving_y = normalized_gradient_field(moving, gradient_epsilon(moving))
+        return lambda samples: field_score(samples, fixed_epsilon, moving_x, moving_y, min_overlap)
+    return lambda samples: score(samples, moving, bins, log_base, metric, min_overlap)
+
+
 def _refine(
-    fixed: np.ndarray, moving: np.ndarray, start: np.ndarray, model: str,
-    bins: int, log_base: float, metric: str, min_overlap: float, step: float = 1.0,
+    fixed: np.ndarray, moving: np.ndarray, start: np.ndarray, model: str, objective: Callable[[np.ndarray], float],
+    step: float = 1.0,
 ) -> tuple[np.ndarray, float]:
     """Maximise the objective over ``start @ G(p)`` with Powell's method; return the matrix and its value.
 
@@ -111,7 +129,7 @@ def _refine(
 
     def negative_score(parameters: np.ndarray) -> float:
         matrix = start @ update_matrix(model, parameters, width, height)
-        value = score(sample_fixed(fixed, matrix, width, height), moving, bins, log_base, metric, min_overlap)
+        value = objective(sample_fixed(fixed, matrix, width, height))
         return -value if np.isfinite(value) else 1.0e6
 
     count = PARAMETER_COUNTS[model]
@@ -145,10 +163,10 @@ def register(
     moving: np.ndarray,
     model: str = "similarity",
     *,
-    preprocessing: str = "gradient",
+    preprocessing: str | None = None,
     bins: int = DEFAULT_BINS,
     log_base: float = DEFAULT_LOG_BASE,
-    metric: str = "nmi",
+    metric: str = "ngf",
     scale: float | None = None,
     max_shift: float | None = None,
     max_angle: float = 6.0,
@@ -221,15 +239,21 @@ def register(
     if not nominal > 0.0:
         raise ValueError(f"The nominal scale must be positive; got {nominal}.")
     reduction = min(1.0, 1.0 / nominal)
-    fixed_reduced = _reduce(fixed, reduction)
-    fixed_pre = preprocess(fixed_reduced, preprocessing, invert=True)
+    preprocessing = preprocessing if preprocessing is not None else DEFAULT_PREPROCESSING[metric]
+    fixed_pre = preprocess(_reduce(fixed, reduction), preprocessing, invert=True)
     moving_pre = preprocess(moving, preprocessing)
+    if metric == "ngf":
+        fixed_pre = cv2.GaussianBlur(fixed_pre, (0, 0), _FIELD_SIGMA)
+        moving_pre = cv2.GaussianBlur(moving_pre, (0, 0), _FIELD_SIGMA)
     levels = int(np.floor(np.log2(min(moving_height, moving_width) / _COARSEST_SIZE)))  # >= 1 by the size check
     fixed_levels, moving_levels = _pyramid(fixed_pre, levels), _pyramid(moving_pre, levels)
-    fixed_pyramid = [quantize(level, bins) for level in fixed_levels]
-    moving_pyramid = [quantize(level, bins) for level in moving_levels]
-    search_bins = min(bins, _SEARCH_BINS)
-    search_fixed, search_moving = quantize(fixed_levels[-1], search_bins), quantize(moving_levels[-1], search_bins)
+    if metric == "ngf":
+        fixed_pyramid, moving_pyramid = fixed_levels, moving_levels
+    else:
+        fixed_pyramid = [quantize(level, bins) for level in fixed_levels]
+        moving_pyramid = [quantize(level, bins) for level in moving_levels]
+    objectives = [_level_objective(f, m, bins, log_base, metric, min_overlap)
+                  for f, m in zip(fixed_pyramid, moving_pyramid)]
 
     coarse_fixed, coarse_moving = fixed_pyramid[levels], moving_pyramid[levels]
     angles, factors = _search_grid(model, coarse_moving.shape, max_angle, max_scale_change)
@@ -237,23 +261,31 @@ def register(
     shift_range = max_shift if max_shift is not None else default_shift
     reduced_scale = nominal * reduction
     coarse_shift = int(np.ceil(shift_range / (nominal * 2**levels)))
-    candidates = coarse_search(search_fixed, search_moving, reduced_scale, angles, factors, coarse_shift,
-                               search_bins, log_base, metric, min_overlap, _CANDIDATES)
+    if metric == "ngf":
+        candidates = gradient_field_search(coarse_fixed, coarse_moving, reduced_scale, angles, factors, coarse_shift,
+                                           min_overlap, _CANDIDATES)
+    else:
+        search_bins = min(bins, _SEARCH_BINS)
+        search_fixed, search_moving = quantize(fixed_levels[-1], search_bins), quantize(moving_levels[-1], search_bins)
+        candidates = coarse_search(search_fixed, search_moving, reduced_scale, angles, factors, coarse_shift,
+                                   search_bins, log_base, metric, min_overlap, _CANDIDATES)
     if not candidates:
         raise ValueError("The images do not overlap enough anywhere in the search range; "
                          "check the nominal scale and the search range.")
 
-    refined = [_refine(coarse_fixed, coarse_moving, candidate.matrix, _coarse_model(model), bins, log_base, metric,
-                       min_overlap) for candidate in candidates]
+    refined = [_refine(coarse_fixed, coarse_moving, candidate.matrix, _coarse_model(model), objectives[levels])
+               for candidate in candidates]
     matrix = _level_matrix(max(refined, key=lambda item: item[1])[0], -levels)
     for level in range(levels - 1, -1, -1):
         level_start = _level_matrix(matrix, level)
         level_model = "affine" if model == "homography" and level > 0 else model
         level_matrix, _ = _refine(fixed_pyramid[level], moving_pyramid[level], level_start, level_model,
-                                  bins, log_base, metric, min_overlap, _FINE_STEP)
+                                  objectives[level], _FINE_STEP)
         matrix = _level_matrix(level_matrix, -level)
 
-    samples = sample_fixed(fixed_pyramid[0], matrix, moving_width, moving_height)
-    mi, nmi, _ = information(samples, moving_pyramid[0], bins, log_base)
+    fixed_quantized, moving_quantized = (quantize(fixed_levels[0], bins), quantize(moving_levels[0], bins)) if (
+        metric == "ngf") else (fixed_pyramid[0], moving_pyramid[0])
+    samples = sample_fixed(fixed_quantized, matrix, moving_width, moving_height)
+    mi, nmi, _ = information(samples, moving_quantized, bins, log_base)
     full_matrix = np.linalg.inv(_scaling(reduction)) @ matrix
     return Registration(model, full_matrix / full_matrix[2, 2], mi, nmi, bins, log_base)

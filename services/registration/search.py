@@ -5,16 +5,19 @@ MI maximum; a shift of 40 px is many capture ranges at full resolution. At the
 coarsest pyramid level the whole plausible range is cheap to scan: for each
 (rotation, scale) the fixed image is warped once onto a moving-grid canvas
 widened by the shift range, and every integer shift is then a slice of it,
-scored with a hard-binned joint histogram.
+scored with a hard-binned joint histogram (MI, NMI) or, for normalised
+gradient fields, by correlation of structure tensors (all shifts at once).
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
 
+import cv2
 import numba
 import numpy as np
 
+from services.registration.gradient_fields import gradient_epsilon, normalized_gradient_field, tensor_similarity_map
 from services.registration.models import corner_error, similarity_about_centres
 from services.registration.mutual_information import joint_entropies
 from services.registration.objective import sample_fixed
@@ -135,6 +138,72 @@ def coarse_search(
             values = _scan_shifts(_bin_indices(canvas), moving_bins, margin, bins, log_base, metric == "nmi",
                                   min_overlap * moving.size)
             for row, column in zip(*np.nonzero(np.isfinite(values))):
+                shift = np.array([[1.0, 0.0, column - margin], [0.0, 1.0, row - margin], [0.0, 0.0, 1.0]])
+                candidates.append(Candidate(base @ shift, float(values[row, column])))
+    return _distinct_best(candidates, count, width, height, spacing=1.5)
+
+
+_PEAKS_PER_CANVAS = 20  # best shifts kept per (rotation, scale) before choosing distinct candidates
+
+
+def _field_canvas(canvas: np.ndarray, epsilon: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Gradient field of a sampled canvas, zero where a central difference would touch the outside."""
+    valid = cv2.erode((canvas >= 0.0).astype(np.uint8), np.ones((3, 3), np.uint8)).astype(np.float32)
+    field_x, field_y = normalized_gradient_field(np.where(canvas >= 0.0, canvas, 0.0), epsilon)
+    return field_x * valid, field_y * valid, valid
+
+
+def gradient_field_search(
+    fixed: np.ndarray,
+    moving: np.ndarray,
+    scale: float,
+    angles: np.ndarray,
+    scale_factors: np.ndarray,
+    max_shift: int,
+    min_overlap: float = 0.3,
+    count: int = 6,
+) -> list[Candidate]:
+    """Scan similarity transforms about the image centres by normalised-gradient-field similarity.
+
+    Parameters
+    ----------
+    fixed, moving : 2-D float32 arrays
+        Smoothed grey images at the search resolution.
+    scale, angles, scale_factors, max_shift, min_overlap, count
+        As :func:`coarse_search`.
+
+    Returns
+    -------
+    list of Candidate
+        Best first, at least 1.5 moving pixels apart at the corners.
+
+    Notes
+    -----
+    Same transforms H(u) = c_f + s R(theta) (u - c_m + d) as
+    :func:`coarse_search`; for each (theta, s) the field of the warped canvas
+    is compared with the moving field at every shift d by
+    :func:`services.registration.gradient_fields.tensor_similarity_map`.
+    """
+    if max_shift < 0:
+        raise ValueError(f"The search range must be non-negative; got max_shift={max_shift}.")
+    height, width = moving.shape
+    moving_centre = np.array([(width - 1) / 2.0, (height - 1) / 2.0])
+    fixed_centre = np.array([(fixed.shape[1] - 1) / 2.0, (fixed.shape[0] - 1) / 2.0])
+    margin = int(max_shift)
+    canvas_to_moving = np.array([[1.0, 0.0, -margin], [0.0, 1.0, -margin], [0.0, 0.0, 1.0]])
+    fixed_epsilon = gradient_epsilon(fixed)
+    moving_x, moving_y = normalized_gradient_field(moving, gradient_epsilon(moving))
+    candidates = []
+    for angle in angles:
+        for factor in scale_factors:
+            base = similarity_about_centres(moving_centre, fixed_centre, scale * factor, angle, np.zeros(2))
+            canvas = sample_fixed(fixed, base @ canvas_to_moving, width + 2 * margin, height + 2 * margin)
+            values = tensor_similarity_map(*_field_canvas(canvas, fixed_epsilon), moving_x, moving_y,
+                                           min_overlap * moving.size)
+            for index in np.argsort(values, axis=None)[::-1][:_PEAKS_PER_CANVAS]:
+                row, column = np.unravel_index(index, values.shape)
+                if not np.isfinite(values[row, column]):
+                    break
                 shift = np.array([[1.0, 0.0, column - margin], [0.0, 1.0, row - margin], [0.0, 0.0, 1.0]])
                 candidates.append(Candidate(base @ shift, float(values[row, column])))
     return _distinct_best(candidates, count, width, height, spacing=1.5)

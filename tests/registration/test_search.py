@@ -4,7 +4,7 @@ import pytest
 
 from services.registration.models import apply_homography, corner_error, similarity_about_centres
 from services.registration.mutual_information import quantize
-from services.registration.search import coarse_search
+from services.registration.search import coarse_search, gradient_field_search
 
 
 def _blobs(shape: tuple[int, int], seed: int) -> np.ndarray:
@@ -39,3 +39,14 @@ def test_negative_search_range_is_refused():
     image = quantize(_blobs((64, 64), 3), 8)
     with pytest.raises(ValueError, match="non-negative"):
         coarse_search(image, image, 1.0, np.zeros(1), np.ones(1), -1, 8, 2.0)
+
+
+def test_gradient_field_search_finds_the_move_of_a_contrast_inverted_image():
+    fixed = _blobs((120, 160), 3)
+    truth = similarity_about_centres(np.array([39.5, 31.5]), np.array([79.5, 59.5]), 1.05, np.deg2rad(-4.0),
+                                     np.array([-7.0, 4.0]))
+    moving = 1.0 - cv2.warpAffine(fixed, truth[:2], (80, 64), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP)
+    candidates = gradient_field_search(fixed, moving, 1.0, np.deg2rad([-4.0, 0.0, 4.0]), np.array([0.95, 1.0, 1.05]),
+                                       8, count=3)
+    assert len(candidates) == 3 and candidates[0].value >= candidates[1].value
+    assert corner_error(truth, candidates[0].matrix, 80, 64) < 0.75

@@ -4,6 +4,7 @@ from services.registration.models import apply_homography
 from services.registration.synthetic_pairs import (
     INFRARED_LEVELS,
     infrared_from_visible,
+    moved_view,
     random_transform,
     render_scene_pair,
 )
@@ -38,3 +39,18 @@ def test_infrared_from_visible_is_a_negative_of_the_photograph_seen_through_the_
     infrared = infrared_from_visible(rng, visible, matrix, blobs=0, noise=0.0).astype(float)
     assert infrared[100, 175] < infrared[20, 20]  # inside the bright rectangle (visible 350, 200): cold
     assert infrared[100, 95] > infrared[100, 105]  # the rectangle's left edge sits at infrared x = 100
+
+
+def test_moved_view_stays_inside_the_image_and_knows_its_move():
+    rng = np.random.default_rng(4)
+    image = np.arange(300 * 400, dtype=np.float32).reshape(300, 400)  # value = 400 y + x
+    moved, view_to_original = moved_view(rng, image, max_shift=30.0, max_angle=4.0, scale_range=(0.93, 1.07))
+    height, width = moved.shape
+    assert 0.5 * 400 <= width <= 0.9 * 400 and abs(height / width - 0.75) < 0.01
+    ys, xs = np.mgrid[0:height, 0:width]
+    original = np.stack([xs.ravel(), ys.ravel(), np.ones(xs.size)]).T @ view_to_original.T
+    assert original[:, 0].min() >= 1.0 and original[:, 0].max() <= 398.0 and original[:, 1].max() <= 298.0
+    np.testing.assert_allclose(moved.ravel(), 400.0 * original[:, 1] + original[:, 0], atol=0.05)
+    forward = np.linalg.inv(view_to_original)
+    scale = np.sqrt(np.linalg.det(forward[:2, :2]))
+    assert 0.93 <= scale <= 1.07 and abs(np.degrees(np.arctan2(forward[1, 0], forward[0, 0]))) <= 4.0
