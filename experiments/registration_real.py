@@ -11,8 +11,9 @@ with the move, H0 S^-1. Consistency = mean distance of the view's four corner
 pixels under H1 and H0 S^-1 (visible pixels). The distance of H0 to the hand
 alignment (the identity) is reported too.
 
-Methods, same pairs, same run: thermofield (`register`, similarity, default
-preprocessing and metric, nominal scale 1, shift range 45 px) and
+Methods, same pairs, same run: thermofield (`register`, similarity, nominal
+scale 1, shift range 45 px) with normalised gradient fields (``metric="ngf"``)
+and with the default gradient-magnitude NMI, and
 SimpleITK's Mattes MI (benchmarks/bench_registration.py's settings, from
 the centred start). Times: each method in-process, and the whole
 `thermofield register` process (python -m services.cli.main, start-up
@@ -20,12 +21,13 @@ included) on the moved pair.
 
 Usage: .venv/bin/python experiments/registration_real.py [--pairs 1 2 ...] [--seed 0] [--no-simpleitk]
        [--no-cli] [--figure]
-Prints Markdown tables; --figure writes docs/figures/registration/real_pair_*.png.
+Prints Markdown tables; --figure N writes docs/figures/registration/real_pair_NN_edges.png.
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import subprocess
 import sys
 import tempfile
@@ -40,7 +42,6 @@ sys.path.insert(0, str(ROOT))
 
 from services.formats.registration import load_registration  # noqa: E402
 from services.registration.models import corner_error  # noqa: E402
-from services.registration.overlay import fused_overlay  # noqa: E402
 from services.registration.register import register  # noqa: E402
 from services.registration.synthetic_pairs import moved_view  # noqa: E402
 
@@ -62,15 +63,19 @@ def load_pair(number: int) -> tuple[np.ndarray, np.ndarray]:
 
 
 def moved_pairs(numbers: list[int], seed: int):
-    """(number, visible, infrared, moved infrared view, view-to-infrared matrix); pair n's move is seeded by (seed, n)."""
+    """(number, visible, infrared, moved view, view-to-infrared matrix); pair n's move is seeded by (seed, n)."""
     for number in numbers:
         visible, infrared = load_pair(number)
         moved, view_to_infrared = moved_view(np.random.default_rng([seed, number]), infrared)
         yield number, visible, infrared, moved, view_to_infrared
 
 
-def thermofield_matrix(visible: np.ndarray, infrared: np.ndarray) -> np.ndarray:
-    return register(visible, infrared, "similarity", scale=1.0, max_shift=MAX_SHIFT).matrix
+def thermofield_matrix(visible: np.ndarray, infrared: np.ndarray, metric: str = "ngf") -> np.ndarray:
+    return register(visible, infrared, "similarity", metric=metric, scale=1.0, max_shift=MAX_SHIFT).matrix
+
+
+def thermofield_nmi_matrix(visible: np.ndarray, infrared: np.ndarray) -> np.ndarray:
+    return thermofield_matrix(visible, infrared, "nmi")
 
 
 def simpleitk_matrix(visible: np.ndarray, infrared: np.ndarray) -> np.ndarray:
@@ -86,7 +91,7 @@ def cli_matrix(visible: np.ndarray, infrared: np.ndarray) -> tuple[np.ndarray, f
         cv2.imwrite(str(fixed), visible)
         cv2.imwrite(str(moving), infrared)
         command = [sys.executable, "-m", "services.cli.main", "register", "--fixed", str(fixed), "--moving",
-                   str(moving), "--scale", "1", "--max-shift", str(MAX_SHIFT), "--out", str(out)]
+                   str(moving), "--metric", "ngf", "--scale", "1", "--max-shift", str(MAX_SHIFT), "--out", str(out)]
         start = time.perf_counter()
         subprocess.run(command, check=True, cwd=ROOT, capture_output=True,
                        env={"PYTHONPATH": str(ROOT), "PATH": "/usr/bin:/bin"})
@@ -102,11 +107,11 @@ def _timed(method, *images) -> tuple[np.ndarray, float]:
 
 def evaluate(numbers: list[int], seed: int, simpleitk: bool, cli: bool) -> list[dict]:
     rows = []
-    methods = {"thermofield": thermofield_matrix}
+    methods = {"thermofield NGF": thermofield_matrix, "thermofield NMI": thermofield_nmi_matrix}
     if simpleitk:
         methods["SimpleITK Mattes"] = simpleitk_matrix
     for number, visible, infrared, moved, view_to_infrared in moved_pairs(numbers, seed):
-        row = {"pair": number, "size": infrared.shape[::-1], "view": moved.shape[::-1]}
+        row = {"pair": number, "size": list(infrared.shape[::-1]), "view": list(moved.shape[::-1])}
         height, width = infrared.shape
         for name, method in methods.items():
             unmoved, _ = _timed(method, visible, infrared)
@@ -115,13 +120,13 @@ def evaluate(numbers: list[int], seed: int, simpleitk: bool, cli: bool) -> list[
                 "consistency": corner_error(unmoved @ view_to_infrared, matrix, moved.shape[1], moved.shape[0]),
                 "hand": corner_error(np.eye(3), unmoved, width, height),
                 "seconds": seconds,
-                "unmoved": unmoved,
+                "unmoved": unmoved.tolist(),
             }
         if cli:
             matrix, seconds = cli_matrix(visible, moved)
+            reference = np.asarray(row["thermofield NGF"]["unmoved"]) @ view_to_infrared
             row["cli"] = {"seconds": seconds,
-                          "agrees": corner_error(row["thermofield"]["unmoved"] @ view_to_infrared, matrix,
-                                                 moved.shape[1], moved.shape[0])}
+                          "agrees": corner_error(reference, matrix, moved.shape[1], moved.shape[0])}
         rows.append(row)
         print(f"pair {number}: " + ", ".join(f"{name} {row[name]['consistency']:.3f} px" for name in methods),
               file=sys.stderr, flush=True)
@@ -135,7 +140,7 @@ def _summary(values: list[float]) -> str:
 
 
 def print_tables(rows: list[dict]) -> None:
-    methods = [name for name in ("thermofield", "SimpleITK Mattes") if name in rows[0]]
+    methods = [name for name in ("thermofield NGF", "thermofield NMI", "SimpleITK Mattes") if name in rows[0]]
     print("| pair | size | view | " + " | ".join(f"{name} consistency (px) | {name} from hand (px)"
                                                  for name in methods) + " |")
     print("|---|---|---|" + "---|---|" * len(methods))
@@ -158,13 +163,30 @@ def print_tables(rows: list[dict]) -> None:
               f"(its matrix vs the in-process consistency reference: median {agrees:.3f} px)")
 
 
-def figure(number: int, seed: int) -> None:
-    """Overlay of one real pair at the hand alignment and after registration, side by side."""
+def _edges(image: np.ndarray) -> np.ndarray:
+    return cv2.Canny(cv2.GaussianBlur(image, (0, 0), 1.5), 30, 80) > 0
+
+
+def _edge_overlay(visible: np.ndarray, infrared: np.ndarray, matrix: np.ndarray) -> np.ndarray:
+    """The infrared image (dimmed) with its edges in red, the registered visible image's in green, both white."""
+    height, width = infrared.shape
+    warped = cv2.warpPerspective(visible, matrix, (width, height), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP)
+    infrared_edges, visible_edges = _edges(infrared), _edges(warped)
+    picture = np.dstack([infrared // 3] * 3)
+    picture[infrared_edges] = (0, 0, 255)
+    picture[visible_edges] = (0, 255, 0)
+    picture[infrared_edges & visible_edges] = (255, 255, 255)
+    return picture
+
+
+def figure(number: int) -> None:
+    """Edges of one real pair at the hand alignment (left) and after NGF registration (right)."""
     visible, infrared = load_pair(number)
     matrix = thermofield_matrix(visible, infrared)
     FIGURES.mkdir(parents=True, exist_ok=True)
-    before, after = fused_overlay(visible, infrared, np.eye(3)), fused_overlay(visible, infrared, matrix)
-    cv2.imwrite(str(FIGURES / f"real_pair_{number:02d}.png"), np.hstack([before, after]))
+    gap = np.full((infrared.shape[0], 8, 3), 255, np.uint8)
+    cv2.imwrite(str(FIGURES / f"real_pair_{number:02d}_edges.png"),
+                np.hstack([_edge_overlay(visible, infrared, np.eye(3)), gap, _edge_overlay(visible, infrared, matrix)]))
 
 
 def main() -> None:
@@ -174,11 +196,20 @@ def main() -> None:
     parser.add_argument("--no-simpleitk", action="store_true")
     parser.add_argument("--no-cli", action="store_true")
     parser.add_argument("--figure", type=int, metavar="PAIR", help="write the before/after overlay of this pair")
+    parser.add_argument("--rows-out", type=Path, help="also save the per-pair results as JSON")
+    parser.add_argument("--from-rows", type=Path, nargs="+",
+                        help="print the tables of saved results (e.g. of runs on parts of the pairs) instead")
     args = parser.parse_args()
-    rows = evaluate(args.pairs, args.seed, not args.no_simpleitk, not args.no_cli)
+    if args.from_rows:
+        rows = sorted((row for path in args.from_rows for row in json.loads(path.read_text())),
+                      key=lambda row: row["pair"])
+    else:
+        rows = evaluate(args.pairs, args.seed, not args.no_simpleitk, not args.no_cli)
+        if args.rows_out is not None:
+            args.rows_out.write_text(json.dumps(rows))
     print_tables(rows)
     if args.figure is not None:
-        figure(args.figure, args.seed)
+        figure(args.figure)
 
 
 if __name__ == "__main__":

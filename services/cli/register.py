@@ -37,9 +37,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--preprocess", choices=PREPROCESSING,
                         help="intensity preprocessing (default: 'none' for ngf, 'gradient' for mi and nmi; "
                              "'paper' = invert + equalise)")
-    parser.add_argument("--metric", choices=METRICS, default="ngf",
-                        help="objective maximised: normalised gradient fields, mutual information or normalised "
-                             "mutual information (default %(default)s)")
+    parser.add_argument("--metric", choices=METRICS, default="nmi",
+                        help="objective maximised: normalised or plain mutual information, or normalised gradient "
+                             "fields, best on real infrared/visible pairs (default %(default)s)")
     parser.add_argument("--bins", type=int, default=DEFAULT_BINS, help="histogram bins per image (default %(default)s)")
     parser.add_argument("--log-base", type=float, default=DEFAULT_LOG_BASE,
                         help="logarithm base of the reported MI (default %(default)s: bits)")

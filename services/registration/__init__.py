@@ -1,1 +1,4 @@
-"""Infrared-to-visible image registration by mutual information; see docs/registration.md."""
+"""Infrared-to-visible image registration by mutual information or normalised gradient fields.
+
+See docs/registration.md.
+"""

@@ -22,11 +22,11 @@ import cv2
 import numba
 import numpy as np
 
-_EPSILON_PERCENTILE = 80.0  # eps = this percentile of the gradient magnitude: the strongest fifth of the edges count fully
+_EPSILON_PERCENTILE = 80.0  # eps = this percentile of |grad I|: the strongest fifth of the edges count fully
 
 
 def _central_gradients(image: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Central differences (one-sided-free: the outer rows and columns are zero)."""
+    """Central differences; the outer rows and columns, which have no two neighbours, are zero."""
     gx = np.zeros_like(image, dtype=np.float32)
     gy = np.zeros_like(image, dtype=np.float32)
     gx[:, 1:-1] = 0.5 * (image[:, 2:] - image[:, :-2])

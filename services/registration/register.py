@@ -1,6 +1,7 @@
 """Register an infrared image to a visible one by maximising mutual information.
 
-Pipeline: (1) bring the visible image to about the infrared pixel size (an
+Pipeline (objective MI, NMI or normalised gradient fields): (1) bring the
+visible image to about the infrared pixel size (an
 anti-aliasing blur and an exact isotropic down-scaling, so every model stays
 the same model); (2) preprocess both images (the paper's inversion and
 histogram equalisation, or CLAHE, or gradient magnitude); (3) build Gaussian
@@ -33,7 +34,7 @@ _COARSEST_SIZE = 48  # the coarsest level keeps at least this many moving pixels
 _SEARCH_STEP = 2.0  # coarse-search grid step, in coarse moving pixels of corner motion
 _DEFAULT_SHIFT_RANGE = 0.12  # of the moving image's smaller side
 _SEARCH_BINS = 16  # fewer bins at the coarse level: a few thousand samples fill 16 x 16 cells, not 32 x 32
-_CANDIDATES = 3
+_CANDIDATES = {"mi": 3, "nmi": 3, "ngf": 5}
 _FINE_STEP = 0.5  # first Powell step below the coarsest level, where the start is within about a pixel
 _POWELL_TOLERANCE = 0.02  # moving pixels at the level being refined
 _POWELL_FTOL = 1e-5  # relative change of the objective that ends a Powell iteration
@@ -166,7 +167,7 @@ def register(
     preprocessing: str | None = None,
     bins: int = DEFAULT_BINS,
     log_base: float = DEFAULT_LOG_BASE,
-    metric: str = "ngf",
+    metric: str = "nmi",
     scale: float | None = None,
     max_shift: float | None = None,
     max_angle: float = 6.0,
@@ -184,16 +185,21 @@ def register(
     model : {"translation", "rigid", "similarity", "affine", "homography"}
         Geometric model. Translation and rigid keep the nominal ``scale``
         (the two cameras' pixel-size ratio is not a motion).
-    preprocessing : {"paper", "clahe", "gradient", "none"}
+    preprocessing : {"paper", "clahe", "gradient", "none"}, optional
         See :mod:`services.registration.preprocess`; the visible image is
         inverted (its negative resembles infrared) except for ``"gradient"``.
+        By default ``"gradient"`` for MI and NMI, ``"none"`` for NGF (which
+        takes its own gradients).
     bins : int
         Intensity bins per image of the joint histogram.
     log_base : float
         Logarithm base of the reported MI (2: bits).
-    metric : {"nmi", "mi"}
+    metric : {"nmi", "mi", "ngf"}
         Objective to maximise. NMI is the default because it does not
-        favour transforms that shrink the overlap.
+        favour transforms that shrink the overlap; ``"ngf"`` (normalised
+        gradient fields, :mod:`services.registration.gradient_fields`)
+        compares edge directions and is the better choice for real
+        infrared/visible pairs.
     scale : float, optional
         Nominal fixed pixels per moving pixel; by default the ratio that fits
         the moving image inside the fixed one, min(W_f / W_m, H_f / H_m).
@@ -217,13 +223,17 @@ def register(
     H(A, B), the paper's equation (5)) of the preprocessed fixed image A
     sampled at H u and the moving image B at its pixels u, with the
     bilinear-Parzen histogram estimator of
-    :mod:`services.registration.mutual_information`.
+    :mod:`services.registration.mutual_information`; or, for NGF,
+    S = sum (n_B . n_A)^2 / sqrt(sum |n_B|^4 sum |n_A|^4) of the normalised
+    gradient fields n = grad I / sqrt(|grad I|^2 + eps^2).
 
     References
     ----------
     .. [1] Paper, section 4.
     .. [2] F. Maes et al., "Multimodality image registration by maximization
        of mutual information", IEEE TMI 16(2), 1997.
+    .. [3] E. Haber, J. Modersitzki, "Intensity gradient based registration and
+       fusion of multi-modal images", MICCAI 2006.
     """
     _check_inputs(fixed, moving, model, preprocessing, metric)
     if bins < 4:
@@ -263,20 +273,26 @@ def register(
     coarse_shift = int(np.ceil(shift_range / (nominal * 2**levels)))
     if metric == "ngf":
         candidates = gradient_field_search(coarse_fixed, coarse_moving, reduced_scale, angles, factors, coarse_shift,
-                                           min_overlap, _CANDIDATES)
+                                           min_overlap, _CANDIDATES[metric])
     else:
         search_bins = min(bins, _SEARCH_BINS)
         search_fixed, search_moving = quantize(fixed_levels[-1], search_bins), quantize(moving_levels[-1], search_bins)
         candidates = coarse_search(search_fixed, search_moving, reduced_scale, angles, factors, coarse_shift,
-                                   search_bins, log_base, metric, min_overlap, _CANDIDATES)
+                                   search_bins, log_base, metric, min_overlap, _CANDIDATES[metric])
     if not candidates:
         raise ValueError("The images do not overlap enough anywhere in the search range; "
                          "check the nominal scale and the search range.")
 
     refined = [_refine(coarse_fixed, coarse_moving, candidate.matrix, _coarse_model(model), objectives[levels])
                for candidate in candidates]
-    matrix = _level_matrix(max(refined, key=lambda item: item[1])[0], -levels)
-    for level in range(levels - 1, -1, -1):
+    chosen_level = levels
+    if metric == "ngf" and levels >= 2:  # choose among the candidates one level finer, where edges are sharper
+        chosen_level = levels - 1
+        refined = [_refine(fixed_pyramid[chosen_level], moving_pyramid[chosen_level],
+                           _level_matrix(_level_matrix(candidate, -levels), chosen_level), _coarse_model(model),
+                           objectives[chosen_level], _FINE_STEP) for candidate, _ in refined]
+    matrix = _level_matrix(max(refined, key=lambda item: item[1])[0], -chosen_level)
+    for level in range(chosen_level - 1, -1, -1):
         level_start = _level_matrix(matrix, level)
         level_model = "affine" if model == "homography" and level > 0 else model
         level_matrix, _ = _refine(fixed_pyramid[level], moving_pyramid[level], level_start, level_model,

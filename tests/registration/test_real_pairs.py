@@ -34,8 +34,8 @@ def _pair(number: int) -> tuple[np.ndarray, np.ndarray]:
 def _consistency(number: int) -> tuple[float, float]:
     visible, infrared = _pair(number)
     moved, view_to_infrared = moved_view(np.random.default_rng([0, number]), infrared)
-    whole = register(visible, infrared, "similarity", scale=1.0, max_shift=45.0).matrix
-    view = register(visible, moved, "similarity", scale=1.0, max_shift=45.0).matrix
+    whole = register(visible, infrared, "similarity", metric="ngf", scale=1.0, max_shift=45.0).matrix
+    view = register(visible, moved, "similarity", metric="ngf", scale=1.0, max_shift=45.0).matrix
     height, width = infrared.shape
     return (corner_error(whole @ view_to_infrared, view, moved.shape[1], moved.shape[0]),
             corner_error(np.eye(3), whole, width, height))
@@ -46,6 +46,6 @@ def test_registration_of_moved_real_infrared_views_is_consistent_to_a_fraction_o
     consistency = np.array([value for value, _ in results])
     assert np.median(consistency) <= 0.5, consistency
     assert np.all(consistency < 1.0), consistency
-    # the hand alignment is approximate (about a pixel by the README; several pixels on some pairs), so only
-    # gross disagreement with it would mean a wrong registration
-    assert all(from_hand < 10.0 for _, from_hand in results), results
+    # the hand alignment is approximate (about a pixel by the README, but 5-10 px at the corners on pairs 11-18,
+    # see docs/registration.md), so only a gross disagreement with it would mean a wrong registration
+    assert all(from_hand < 15.0 for _, from_hand in results), results
