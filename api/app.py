@@ -7,7 +7,7 @@ from fastapi.routing import APIRoute
 
 from api.deps import KeyCache
 from api.metrics import ApiMetrics, MetricsMiddleware
-from api.problems import install_problem_handlers
+from api.problems import install_problem_handlers, problem_responses
 from api.ratelimit import RateLimiter
 from api.routers import apikeys, calibrations, devices, health, jobs, scans
 from workers.runtime import Runtime
@@ -33,7 +33,7 @@ def create_app(runtime: Runtime) -> FastAPI:
     install_problem_handlers(app)
     app.add_middleware(MetricsMiddleware, metrics=app.state.metrics)
     app.include_router(health.router)
-    v1 = APIRouter(prefix="/v1")
+    v1 = APIRouter(prefix="/v1", responses=problem_responses(401, 403, 422, 429, 503))
     for module in (scans, jobs, calibrations, devices, apikeys):
         v1.include_router(module.router)
     app.include_router(v1)

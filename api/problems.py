@@ -2,18 +2,54 @@
 
 from __future__ import annotations
 
+import errno
 from http import HTTPStatus
 from typing import Any
 
 from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
+from pydantic import BaseModel, ConfigDict
+from sqlalchemy.exc import DBAPIError, OperationalError
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from services.errors import InputError
 
 PROBLEM_MEDIA_TYPE = "application/problem+json"
 PROBLEM_TYPE_BASE = "https://thermofield.example/problems/"
+RETRY_AFTER_S = 5  # seconds a client waits after a 503 (database or storage down, queue full)
+
+
+class ProblemDetails(BaseModel):
+    """RFC 9457 problem details; extensions (e.g. ``errors`` of a 422) may follow."""
+
+    model_config = ConfigDict(extra="allow")
+
+    type: str
+    title: str
+    status: int
+    detail: str
+    instance: str
+
+
+_PROBLEM_DESCRIPTIONS = {
+    401: "No API key, or an unknown or revoked one.",
+    403: "The API key lacks the scope.",
+    404: "No such resource, or not produced yet.",
+    409: "The request conflicts with the station's state.",
+    413: "An upload is too large.",
+    422: "The request or an uploaded file is invalid.",
+    429: "The API key is over its rate limit; see Retry-After.",
+    502: "The device gateway is unreachable.",
+    503: "The database or the artifact store is unavailable, or the job queue is full; see Retry-After.",
+}
+
+
+def problem_responses(*statuses: int) -> dict[int, dict[str, Any]]:
+    """OpenAPI ``responses`` declaring problem+json answers for ``statuses``."""
+    return {status: {"description": _PROBLEM_DESCRIPTIONS[status], "model": ProblemDetails,
+                     "content": {PROBLEM_MEDIA_TYPE: {"schema": {"$ref": "#/components/schemas/ProblemDetails"}}}}
+            for status in statuses}
 
 
 class Problem(Exception):
@@ -65,6 +101,20 @@ def install_problem_handlers(app: FastAPI) -> None:
         kind = HTTPStatus(error.status_code).phrase.lower().replace(" ", "-")
         return problem_response(error.status_code, kind, str(error.detail), request.url.path,
                                 getattr(error, "headers", None))
+
+    @app.exception_handler(DBAPIError)
+    async def _database_down(request: Request, error: DBAPIError) -> JSONResponse:
+        if not (isinstance(error, OperationalError) or error.connection_invalidated):
+            return await _bug(request, error)
+        return problem_response(503, "database-unavailable", "The database is unavailable; retry shortly.",
+                                request.url.path, {"Retry-After": str(RETRY_AFTER_S)})
+
+    @app.exception_handler(OSError)
+    async def _storage(request: Request, error: OSError) -> JSONResponse:
+        if error.errno not in (errno.ENOSPC, errno.EDQUOT, errno.EROFS):
+            return await _bug(request, error)
+        return problem_response(503, "storage-full", "The artifact store cannot take more data now; retry "
+                                                     "later.", request.url.path, {"Retry-After": str(RETRY_AFTER_S)})
 
     @app.exception_handler(Exception)
     async def _bug(request: Request, error: Exception) -> JSONResponse:

@@ -77,6 +77,10 @@ class Settings(BaseSettings):
     )
     rate_limit_burst: int = Field(100, ge=1, description="Requests an API key may make at once above its rate.")
 
+    max_image_bytes: int = Field(64 << 20, gt=0, description="Largest uploaded image (413 beyond).")
+    min_free_bytes: int = Field(
+        1 << 30, ge=0, description="Free space the artifact store needs for /readyz to say ready (a scan takes ~100 MB)."
+    )
     idempotency_ttl_s: float = Field(86400.0, gt=0, description="How long an Idempotency-Key's answer is replayed.")
     retention_keep_scans: int = Field(100, ge=0, description="Scans per station that keep their artifacts, newest first.")
     retention_keep_days: float = Field(7.0, ge=0, description="Days a scan keeps its artifacts (whatever its rank).")

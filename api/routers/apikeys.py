@@ -6,7 +6,7 @@ from fastapi import APIRouter, Request
 from fastapi.concurrency import run_in_threadpool
 
 from api.deps import AdminKey, SessionDep
-from api.problems import Problem
+from api.problems import Problem, problem_responses
 from api.schemas import ApiKeyCreated, ApiKeyOut, ApiKeyRequest
 from services.db.apikeys import create_api_key, list_api_keys, revoke_api_key
 from services.db.models import ApiKey
@@ -33,7 +33,7 @@ def list_keys(session: SessionDep, _: AdminKey) -> list[ApiKeyOut]:
     return [api_key_out(key) for key in list_api_keys(session)]
 
 
-@router.delete("/{api_key_id}", name="revoke_api_key", responses={404: {"description": "No such key."}})
+@router.delete("/{api_key_id}", name="revoke_api_key", responses=problem_responses(404))
 async def revoke_key(api_key_id: str, request: Request, session: SessionDep, _: AdminKey) -> ApiKeyOut:
     """Revoke a key: it stops working at once on this API process, within 5 s on the others."""
 

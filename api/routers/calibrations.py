@@ -7,6 +7,9 @@ import json
 from pathlib import PurePath
 from typing import Annotated
 
+import cv2
+import numpy as np
+
 from fastapi import APIRouter, Depends, File, Form, Request, UploadFile
 from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import Response
@@ -15,7 +18,7 @@ from sqlalchemy.orm import Session
 
 from api.deps import AdminKey, ReaderKey, RuntimeDep, SessionDep
 from api.idempotency import IdempotencyKeyHeader, Outcome, request_digest, respond_once
-from api.problems import Problem
+from api.problems import Problem, problem_responses
 from api.schemas import Accepted, CalibrationSetOut, StereoCaptureRequest
 from services.db.calibrations import activate_calibration
 from services.db.models import CalibrationSet
@@ -49,16 +52,15 @@ def _existing_calibration(calibration_set_id: str, session: SessionDep, _: Reade
 ExistingCalibration = Annotated[CalibrationSet, Depends(_existing_calibration)]
 
 
-@router.post("", name="create_calibration_set", status_code=201, response_model=CalibrationSetOut)
+@router.post("", name="create_calibration_set", status_code=201, response_model=CalibrationSetOut,
+             responses=problem_responses(413))
 async def create_calibration_set(request: Request, session: SessionDep, runtime: RuntimeDep, key: AdminKey,
                                  rig: Annotated[UploadFile, File(description="A rig file (docs/rig-file.md).")],
                                  name: Annotated[str, Form(min_length=1, max_length=200)],
                                  activate: Annotated[bool, Form()] = False,
                                  idempotency_key: IdempotencyKeyHeader = None):
     """Store an uploaded, validated rig file as a calibration set of this station."""
-    text = (await rig.read(_MAX_RIG_BYTES + 1))
-    if len(text) > _MAX_RIG_BYTES:
-        raise Problem(413, "too-large", f"rig: the file {rig.filename!r} is larger than {_MAX_RIG_BYTES} bytes.")
+    text = await _read_limited(rig, "rig", _MAX_RIG_BYTES)
     parsed = parse_rig(text.decode("utf-8", errors="replace"), f"rig ({rig.filename})")
     rig_digest = runtime.store.put_bytes(rig_to_json(parsed).encode())
 
@@ -78,7 +80,8 @@ async def create_calibration_set(request: Request, session: SessionDep, runtime:
 
 
 @router.post("/{calibration_set_id}/stereo", name="start_stereo_calibration", status_code=202,
-             response_model=Accepted, responses={202: {"headers": {"Location": {"description": "The job."}}}})
+             response_model=Accepted, responses={202: {"headers": {"Location": {"description": "The job."}}},
+                                                 **problem_responses(404, 413)})
 async def start_stereo_calibration(
     request: Request, key: AdminKey, calibration: ExistingCalibration, session: SessionDep, runtime: RuntimeDep,
     board: Annotated[UploadFile, File(description="Board specification JSON (docs/calibration.md).")],
@@ -97,20 +100,26 @@ async def start_stereo_calibration(
     if len(reference_images) != len(device_images) or len(reference_images) < MIN_VIEWS:
         raise Problem(422, "invalid-input", f"reference_images, device_images: give the same number of images, at "
                                             f"least {MIN_VIEWS}; got {len(reference_images)} and {len(device_images)}.")
-    board_text = await board.read(_MAX_RIG_BYTES)
+    board_text = await _read_limited(board, "board", _MAX_RIG_BYTES)
     parse_board(board_text.decode("utf-8", errors="replace"), f"board ({board.filename})")
     hasher = hashlib.sha256(board_text)
-    images = {}
+    _, camera = rig.device(None, "camera")
+    sizes = {"reference_images": (camera.width, camera.height),
+             "device_images": (rig.devices[device].width, rig.devices[device].height)}
+    checked = {}  # every upload is checked before anything is stored
     for field, uploads in (("reference_images", reference_images), ("device_images", device_images)):
-        images[field] = []
+        checked[field] = []
         for upload in uploads:
             suffix = PurePath(upload.filename or "").suffix.lower()
             if suffix not in FRAME_SUFFIXES:
                 raise Problem(422, "invalid-input", f"{field}: {upload.filename!r} is not one of "
                                                     f"{', '.join(FRAME_SUFFIXES)}.")
-            content = await upload.read()
+            content = await _read_limited(upload, field, runtime.settings.max_image_bytes)
+            _check_image(content, field, upload.filename, sizes[field])
             hasher.update(content)
-            images[field].append([runtime.store.put_bytes(content), suffix])
+            checked[field].append((content, suffix))
+    images = {field: [[runtime.store.put_bytes(content), suffix] for content, suffix in uploads]
+              for field, uploads in checked.items()}
     params = {"calibration_set_id": calibration.id, "station": calibration.station, "device": device,
               "name": name, "activate": activate, "board": runtime.store.put_bytes(board_text), **images}
 
@@ -122,7 +131,8 @@ async def start_stereo_calibration(
 
 
 @router.post("/{calibration_set_id}/stereo-captures", name="start_stereo_capture", status_code=202,
-             response_model=Accepted, responses={202: {"headers": {"Location": {"description": "The job."}}}})
+             response_model=Accepted, responses={202: {"headers": {"Location": {"description": "The job."}}},
+                                                 **problem_responses(404)})
 async def start_stereo_capture(request: Request, key: AdminKey, calibration: ExistingCalibration,
                                body: StereoCaptureRequest, session: SessionDep, runtime: RuntimeDep,
                                idempotency_key: IdempotencyKeyHeader = None):
@@ -139,6 +149,26 @@ async def start_stereo_capture(request: Request, key: AdminKey, calibration: Exi
     return await run_in_threadpool(respond_once, session, key, idempotency_key, digest,
                                    lambda: _start_calibrate_job(runtime, session, params),
                                    runtime.settings.idempotency_ttl_s)
+
+
+async def _read_limited(upload: UploadFile, field: str, limit: int) -> bytes:
+    content = await upload.read(limit + 1)
+    if len(content) > limit:
+        raise Problem(413, "too-large", f"{field}: {upload.filename!r} is larger than {limit} bytes.")
+    return content
+
+
+def _check_image(content: bytes, field: str, filename: str | None, size: tuple[int, int]) -> None:
+    """An upload that decodes to an 8- or 16-bit image of the device's size, or a 422 naming it."""
+    image = cv2.imdecode(np.frombuffer(content, np.uint8), cv2.IMREAD_UNCHANGED) if content else None
+    if image is None:
+        raise Problem(422, "invalid-input", f"{field}: {filename!r} is not a readable PNG, BMP or TIFF image.")
+    if image.dtype not in (np.uint8, np.uint16):
+        raise Problem(422, "invalid-input", f"{field}: {filename!r} is {image.dtype}; board images are 8- or "
+                                            "16-bit.")
+    if (image.shape[1], image.shape[0]) != size:
+        raise Problem(422, "invalid-input", f"{field}: {filename!r} is {image.shape[1]}x{image.shape[0]} but the "
+                                            f"device filming it is {size[0]}x{size[1]}.")
 
 
 def _require_thermal_device(rig: Rig, calibration: CalibrationSet, device: str) -> None:
@@ -167,13 +197,13 @@ def list_calibration_sets(session: SessionDep, runtime: RuntimeDep, _: ReaderKey
     return [calibration_out(calibration) for calibration in rows]
 
 
-@router.get("/{calibration_set_id}", name="get_calibration_set")
+@router.get("/{calibration_set_id}", name="get_calibration_set", responses=problem_responses(404))
 def get_calibration_set(calibration: ExistingCalibration) -> CalibrationSetOut:
     return calibration_out(calibration)
 
 
 @router.get("/{calibration_set_id}/rig.json", name="download_calibration_set",
-            responses={200: {"content": {"application/json": {}}}})
+            responses={200: {"content": {"application/json": {}}}, **problem_responses(404)})
 def download_calibration_set(calibration: ExistingCalibration, runtime: RuntimeDep) -> Response:
     """The calibration set as a rig file."""
     if calibration.rig_sha256 is None:
@@ -182,7 +212,7 @@ def download_calibration_set(calibration: ExistingCalibration, runtime: RuntimeD
                     headers={"Content-Disposition": f'attachment; filename="{calibration.id}-rig.json"'})
 
 
-@router.post("/{calibration_set_id}/activate", name="activate_calibration_set")
+@router.post("/{calibration_set_id}/activate", name="activate_calibration_set", responses=problem_responses(404, 409))
 def activate_calibration_set(_: AdminKey, calibration: ExistingCalibration, session: SessionDep) -> CalibrationSetOut:
     """Make this the station's active calibration set (new scans use it)."""
     if calibration.rig_sha256 is None:

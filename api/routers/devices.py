@@ -8,13 +8,13 @@ from fastapi import APIRouter
 from fastapi.concurrency import run_in_threadpool
 
 from api.deps import ReaderKey, RuntimeDep
-from api.problems import Problem
+from api.problems import Problem, problem_responses
 from device_gateway.client import GatewayClient, GatewayError
 
 router = APIRouter(prefix="/devices", tags=["devices"])
 
 
-@router.get("", name="list_devices")
+@router.get("", name="list_devices", responses=problem_responses(502))
 async def list_devices(runtime: RuntimeDep, _: ReaderKey) -> list[dict[str, Any]]:
     """The gateway's devices with their driver, size and whether they are open."""
 

@@ -8,7 +8,7 @@ from prometheus_client import CONTENT_TYPE_LATEST, generate_latest
 from sqlalchemy import text
 
 from api.deps import RuntimeDep
-from api.problems import Problem
+from api.problems import RETRY_AFTER_S, Problem, problem_responses
 from api.schemas import Health, Readiness
 
 router = APIRouter(tags=["health"])
@@ -20,15 +20,23 @@ def get_health() -> Health:
     return Health(status="ok")
 
 
-@router.get("/readyz", name="get_readiness", responses={503: {"description": "A dependency is down."}})
+@router.get("/readyz", name="get_readiness", responses=problem_responses(503))
 def get_readiness(runtime: RuntimeDep) -> Readiness:
-    """The database answers and its schema is migrated."""
+    """The database answers and its schema is migrated; the artifact store is writable with room for scans."""
+    retry = {"Retry-After": str(RETRY_AFTER_S)}
     try:
         with runtime.engine.connect() as connection:
             revision = connection.execute(text("SELECT version_num FROM alembic_version")).scalar_one()
     except Exception as error:  # any driver error means not ready
-        raise Problem(503, "not-ready", f"The database is not ready: {type(error).__name__}.")
-    return Readiness(status="ready", checks={"database": f"ok (schema revision {revision})"})
+        raise Problem(503, "not-ready", f"The database is not ready: {type(error).__name__}.", retry)
+    free = runtime.store.free_bytes()
+    if free < runtime.settings.min_free_bytes:
+        raise Problem(503, "not-ready", f"The artifact store has {free / 1e6:.0f} MB free, less than the "
+                                        f"{runtime.settings.min_free_bytes / 1e6:.0f} MB scans need.", retry)
+    if not runtime.store.writable():
+        raise Problem(503, "not-ready", "The artifact store cannot be written to.", retry)
+    return Readiness(status="ready", checks={"database": f"ok (schema revision {revision})",
+                                             "artifact_store": f"ok ({free / 1e9:.1f} GB free)"})
 
 
 @router.get("/metrics", name="get_metrics", response_class=Response,

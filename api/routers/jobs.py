@@ -14,7 +14,7 @@ from fastapi.sse import EventSourceResponse, ServerSentEvent
 from sqlalchemy import select
 
 from api.deps import ReaderKey, RuntimeDep, SessionDep
-from api.problems import Problem
+from api.problems import Problem, problem_responses
 from api.schemas import JobOut
 from services.db.models import TERMINAL_STATUSES, Job
 from services.jobs.tracker import job_state
@@ -52,13 +52,14 @@ def list_jobs(session: SessionDep, _: ReaderKey, limit: Annotated[int, Query(ge=
     return [job_out(job) for job in session.scalars(select(Job).order_by(Job.created_at.desc()).limit(limit))]
 
 
-@router.get("/{job_id}", name="get_job")
+@router.get("/{job_id}", name="get_job", responses=problem_responses(404))
 async def get_job(job: ExistingJob) -> JobOut:
     """A job's status, progress (stage and fraction), attempts, error and result artifacts."""
     return job_out(job)
 
 
-@router.get("/{job_id}/events", name="stream_job_events", response_class=EventSourceResponse)
+@router.get("/{job_id}/events", name="stream_job_events", response_class=EventSourceResponse,
+            responses=problem_responses(404))
 async def stream_job_events(job: ExistingJob, runtime: RuntimeDep) -> AsyncIterator[ServerSentEvent]:
     """Server-sent events: a ``progress`` event at each change, then ``done`` when the job has finished."""
     last, idle = None, 0.0
@@ -79,7 +80,7 @@ async def stream_job_events(job: ExistingJob, runtime: RuntimeDep) -> AsyncItera
 
 
 @router.get("/{job_id}/artifacts/{name}", name="download_job_artifact",
-            responses={200: {"content": {"application/octet-stream": {}}}})
+            responses={200: {"content": {"application/octet-stream": {}}}, **problem_responses(404)})
 def download_job_artifact(job: ExistingJob, name: str, runtime: RuntimeDep) -> FileResponse:
     """A file the job produced, as listed in its ``result.artifacts`` (e.g. ``cloud.ply``, ``registration.json``)."""
     digest = job.result.get("artifacts", {}).get(name)

@@ -16,7 +16,7 @@ from sqlalchemy import select
 
 from api.deps import OperatorKey, ReaderKey, RuntimeDep, SessionDep
 from api.idempotency import IdempotencyKeyHeader, Outcome, request_digest, respond_once
-from api.problems import Problem
+from api.problems import Problem, problem_responses
 from api.schemas import Accepted, ScanJobRequest, ScanOut, ScanRequest
 from services.db.models import CalibrationSet, Job, Scan, new_id
 from workers.broker import send_job
@@ -59,7 +59,7 @@ def scan_out(scan: Scan, job: Job) -> ScanOut:
 
 
 @router.post("", name="create_scan", status_code=202, response_model=Accepted,
-             responses={202: {"headers": {"Location": {"description": "The scan's job."}}}})
+             responses={202: {"headers": {"Location": {"description": "The scan's job."}}}, **problem_responses(409)})
 async def create_scan(request: Request, session: SessionDep, runtime: RuntimeDep, key: OperatorKey,
                       idempotency_key: IdempotencyKeyHeader = None, body: ScanRequest | None = None):
     """Scan the part in the station: capture, reconstruct, fuse, store and stream, as a background job."""
@@ -105,7 +105,7 @@ def _calibration_for(session, station: str, calibration_set_id: str | None) -> C
 
 
 @router.post("/{scan_id}/jobs", name="create_scan_job", status_code=202, response_model=Accepted,
-             responses={202: {"headers": {"Location": {"description": "The job."}}}})
+             responses={202: {"headers": {"Location": {"description": "The job."}}}, **problem_responses(404, 409)})
 async def create_scan_job(request: Request, key: OperatorKey, scan: ExistingScan, body: ScanJobRequest,
                           session: SessionDep, runtime: RuntimeDep, idempotency_key: IdempotencyKeyHeader = None):
     """Run one step again on a stored scan: reconstruct or fuse (e.g. with another calibration set), or register
@@ -153,14 +153,14 @@ def list_scans(session: SessionDep, _: ReaderKey) -> list[ScanOut]:
     return [scan_out(scan, job) for scan, job in rows]
 
 
-@router.get("/{scan_id}", name="get_scan")
+@router.get("/{scan_id}", name="get_scan", responses=problem_responses(404))
 def get_scan(scan: ExistingScan, session: SessionDep) -> ScanOut:
     """Metadata, links to the artifacts and the field's summary (point count, bounding box, temperatures)."""
     return scan_out(scan, session.get(Job, scan.job_id))
 
 
 @router.get("/{scan_id}/{artifact}", name="download_scan_artifact",
-            responses={200: {"content": {"application/octet-stream": {}}}})
+            responses={200: {"content": {"application/octet-stream": {}}}, **problem_responses(404)})
 def download_scan_artifact(scan: ExistingScan, runtime: RuntimeDep,
                            artifact: Annotated[str, Path(pattern=ARTIFACT_NAME_PATTERN)]):
     """The point cloud (``cloud.ply``), the temperature field (``field.ply``), its Rerun recording
@@ -171,7 +171,7 @@ def download_scan_artifact(scan: ExistingScan, runtime: RuntimeDep,
 
 
 @router.get("/{scan_id}/{kind}/{index}.{suffix}", name="download_scan_frame",
-            responses={200: {"content": {"image/png": {}, "image/tiff": {}}}})
+            responses={200: {"content": {"image/png": {}, "image/tiff": {}}}, **problem_responses(404)})
 def download_scan_frame(scan: ExistingScan, runtime: RuntimeDep,
                         kind: Annotated[str, Path(pattern="^(frames|thermal)$")], index: int,
                         suffix: Annotated[str, Path(pattern="^(png|tiff)$")]) -> Response:

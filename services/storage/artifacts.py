@@ -11,6 +11,7 @@ from __future__ import annotations
 import hashlib
 import os
 import re
+import shutil
 import tempfile
 from collections.abc import Iterator
 from pathlib import Path
@@ -59,6 +60,19 @@ class ArtifactStore:
                 hasher.update(chunk)
                 handle.write(chunk)
         return self._commit(temporary, hasher.hexdigest())
+
+    def free_bytes(self) -> int:
+        """Space left for new blobs on the store's file system."""
+        return shutil.disk_usage(self.root).free
+
+    def writable(self) -> bool:
+        """Whether a blob could be written now (a temporary file can be created and removed)."""
+        try:
+            with self._temporary():
+                pass
+        except OSError:
+            return False
+        return True
 
     def blobs(self) -> Iterator[tuple[str, Path]]:
         """Every stored blob as (digest, path), and every temporary file a crash left in ``incoming/``

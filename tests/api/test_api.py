@@ -230,11 +230,25 @@ def test_stereo_calibration_checks_its_uploads_and_queues_a_calibrate_job(client
     url = f"/v1/calibration-sets/{calibration_id}/stereo"
     board = ("board.json", '{"type": "chessboard", "inner_corners": [9, 6], "square_mm": 25.0}')
 
-    def post(references=3, pairs=3, suffix=".png", board_file=board, **form):
+    rig = forging_rig()
+    camera_image = cv2.imencode(".png", np.zeros((rig.devices["camera"].height, rig.devices["camera"].width),
+                                                 np.uint8))[1].tobytes()
+    thermal_image = cv2.imencode(".png", np.zeros((rig.devices["thermal"].height, rig.devices["thermal"].width),
+                                                  np.uint16))[1].tobytes()
+
+    def post(references=3, pairs=3, suffix=".png", board_file=board, device_image=thermal_image, **form):
         files = [("board", board_file)]
-        files += [("reference_images", (f"c{i}{suffix}", b"img")) for i in range(references)]
-        files += [("device_images", (f"t{i}{suffix}", b"img")) for i in range(pairs)]
+        files += [("reference_images", (f"c{i}{suffix}", camera_image)) for i in range(references)]
+        files += [("device_images", (f"t{i}{suffix}", device_image)) for i in range(pairs)]
         return client.post(url, headers=auth["admin"], files=files, data={"name": "recalibrated", **form})
+
+    stored_before = sum(1 for _ in runtime.store.blobs())
+    for device_image, message in ((b"img", "not a readable PNG"), (camera_image, "but the device filming it is"),
+                                  (thermal_image[:200], "not a readable PNG")):
+        refused = post(device_image=device_image)
+        assert refused.status_code == 422 and message in refused.json()["detail"], refused.text
+        assert "t0.png" in refused.json()["detail"] and refused.headers["content-type"] == "application/problem+json"
+    assert sum(1 for _ in runtime.store.blobs()) == stored_before  # nothing stored from a refused upload
 
     assert "same number" in post(pairs=2).json()["detail"]
     assert "not one of" in post(suffix=".gif").json()["detail"]
