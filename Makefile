@@ -4,7 +4,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 DEMO_DIR ?= demo-output
 
-.PHONY: install install-test demo test clean docker-compose system-libraries
+.PHONY: install install-test demo test test-reliability clean docker-compose system-libraries
 
 install: $(VENV)/.installed
 
@@ -31,6 +31,13 @@ test: install-test docker-compose
 # Open3D (the inspection's meshes and distance queries) loads libusb, libGL and libEGL from the system.
 system-libraries:
 	ldconfig -p | grep -q 'libusb-1.0.so.0' && ldconfig -p | grep -q 'libEGL.so.1' || { apt-get update -qq && apt-get install -y -qq --no-install-recommends libusb-1.0-0 libegl1 libgl1 libx11-6; }
+
+# Load, soak and the long Schemathesis run (docs/reliability.md); figures go to reliability-output/.
+RELIABILITY_OUT ?= reliability-output
+test-reliability: install-test
+	THERMOFIELD_RELIABILITY_OUT=$(abspath $(RELIABILITY_OUT)) THERMOFIELD_SCHEMATHESIS_EXAMPLES=100 \
+		$(BIN)/python -m pytest -m 'reliability or schemathesis' -p no:cacheprovider -s \
+		tests/api/test_schemathesis.py tests/integration/test_load.py
 
 # tests/docker validates docker/compose.yaml with Debian's docker-compose (no Docker engine needed).
 docker-compose:

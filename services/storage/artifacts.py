@@ -68,8 +68,9 @@ class ArtifactStore:
     def writable(self) -> bool:
         """Whether a blob could be written now (a temporary file can be created and removed)."""
         try:
-            with self._temporary():
+            with self._temporary() as (_, temporary):
                 pass
+            temporary.unlink()
         except OSError:
             return False
         return True
@@ -112,10 +113,15 @@ class _TemporaryFile:
         return self.handle, self.path
 
     def __exit__(self, exc_type, exc, traceback) -> None:
-        if exc_type is None:
-            self.handle.flush()
-            os.fsync(self.handle.fileno())
-        self.handle.close()
+        try:
+            if exc_type is None:
+                self.handle.flush()
+                os.fsync(self.handle.fileno())
+            self.handle.close()  # closing flushes the buffer, which fails again on a full disk
+        except BaseException:
+            self.handle.close()
+            self.path.unlink(missing_ok=True)
+            raise
         if exc_type is not None:
             self.path.unlink(missing_ok=True)
 

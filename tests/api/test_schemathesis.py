@@ -72,6 +72,7 @@ def _report():
             {"cases": sum(CASES.values()), "per_operation": dict(CASES), "statuses": dict(STATUSES)}, indent=2))
 
 
+@pytest.mark.schemathesis
 def test_every_operation_keeps_to_its_document(api_schema):
     # Schemathesis's pytest plugin does not run under pytest 9, so each operation's strategy is driven by
     # Hypothesis here, which is what the plugin does.

@@ -11,13 +11,16 @@ import subprocess
 import sys
 import threading
 import time
+import uuid
 from pathlib import Path
 
 import httpx
 import numpy as np
 import paho.mqtt.client as mqtt
 import pytest
+from sqlalchemy import text
 
+from services.db.engine import make_engine
 from services.formats.ply import read_cloud
 from services.geometry.camera import pixel_rays, project_points
 from services.simulation.presets import forging_rig, forging_scene
@@ -25,6 +28,8 @@ from services.simulation.raycast import cast_rays
 from services.simulation.thermal import forging_temperatures, seen_by, surface_temperature
 
 THERMOFIELD = [sys.executable, "-m", "services.cli.main"]
+POSTGRES_URL = "postgresql+psycopg://postgres@127.0.0.1:5432/test"
+BROKER_URL = "amqp://guest:guest@127.0.0.1:5672"
 
 
 def free_port() -> int:
@@ -194,3 +199,37 @@ def e2e(tmp_path):
     harness = EndToEnd(tmp_path)
     yield harness
     harness.close()
+
+
+@pytest.fixture
+def deployment(e2e, tmp_path):
+    """Environment of one isolated deployment: its own PostgreSQL schema, job queue and MQTT site."""
+    tag = uuid.uuid4().hex[:10]
+    api_port, gateway_port = e2e.free_port(), e2e.free_port()
+    env = {
+        "THERMOFIELD_DATABASE_URL": POSTGRES_URL,
+        "THERMOFIELD_DATABASE_SCHEMA": f"tf_it_{tag}",
+        "THERMOFIELD_BROKER_URL": BROKER_URL,
+        "THERMOFIELD_JOB_QUEUE": f"tf-it-{tag}",
+        "THERMOFIELD_ARTIFACT_DIR": str(tmp_path / "artifacts"),
+        "THERMOFIELD_GATEWAY_URL": f"http://127.0.0.1:{gateway_port}",
+        "THERMOFIELD_GATEWAY_PORT": str(gateway_port),
+        "THERMOFIELD_API_PORT": str(api_port),
+        "THERMOFIELD_RERUN_PORT": str(e2e.free_port()),
+        "THERMOFIELD_SITE": f"it-{tag}",
+        "THERMOFIELD_WORKER_PROCESSES": "2",
+    }
+    yield env
+    with make_engine(POSTGRES_URL).begin() as connection:
+        connection.execute(text(f"DROP SCHEMA IF EXISTS tf_it_{tag} CASCADE"))
+    _delete_queues(env["THERMOFIELD_JOB_QUEUE"])
+
+
+def _delete_queues(queue: str) -> None:
+    import pika
+
+    connection = pika.BlockingConnection(pika.URLParameters(BROKER_URL))
+    channel = connection.channel()
+    for name in (queue, f"{queue}.DQ", f"{queue}.XQ"):
+        channel.queue_delete(name)
+    connection.close()
