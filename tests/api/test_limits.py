@@ -35,3 +35,30 @@ def test_an_idempotency_key_expires_after_its_time(client, auth, runtime, active
     assert later.json()["job_id"] != first.json()["job_id"]
     with runtime.sessions() as session:
         assert session.query(IdempotencyRecord).count() == 1 and session.query(Job).count() == 2
+
+
+def test_artifact_names_never_reach_outside_the_store(client, auth, runtime):
+    with runtime.sessions.begin() as session:
+        job = Job(kind="register", status="succeeded", params={},
+                  result={"artifacts": {"overlay.png": runtime.store.put_bytes(b"png")}})
+        session.add(job)
+    outside = runtime.store.root.parent / "secret.txt"
+    outside.write_text("not an artifact")
+    for name in ("../secret.txt", "..%2F..%2Fsecret.txt", "%2e%2e%2fsecret.txt", "overlay.png%00", "/etc/passwd"):
+        response = client.get(f"/v1/jobs/{job.id}/artifacts/{name}", headers=auth["read"])
+        assert response.status_code == 404, (name, response.status_code)
+        assert "not an artifact" not in response.text
+    assert client.get(f"/v1/jobs/{job.id}/artifacts/overlay.png", headers=auth["read"]).content == b"png"
+    for digest in ("../secret.txt", "../" * 3 + "etc/passwd", "A" * 64, "0" * 63):
+        with pytest.raises(KeyError):
+            runtime.store.path(digest)
+
+
+def test_oversized_uploads_are_refused_before_anything_is_stored(client, auth, runtime):
+    runtime.settings = runtime.settings.model_copy(update={"max_image_bytes": 1000})
+    stored = sum(1 for _ in runtime.store.blobs())
+    huge_rig = client.post("/v1/calibration-sets", headers=auth["admin"], data={"name": "x"},
+                           files={"rig": ("rig.json", b" " * (2 << 20))})
+    assert huge_rig.status_code == 413 and huge_rig.headers["content-type"] == PROBLEM
+    assert "rig" in huge_rig.json()["detail"]
+    assert sum(1 for _ in runtime.store.blobs()) == stored

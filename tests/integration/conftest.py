@@ -64,6 +64,13 @@ class Processes:
                 os.killpg(process.pid, signal.SIGKILL)
                 process.wait()
 
+    def assert_no_secrets_in_logs(self, secrets: list[str]) -> None:
+        """No log of any started process contains a secret (API keys, passwords in URLs)."""
+        for name, _ in self.running:
+            log = self.log(name)
+            for secret in secrets:
+                assert secret not in log, f"{name}'s log contains a secret"
+
     def stop_all(self) -> None:
         for _, process in reversed(self.running):
             self.stop(process)
@@ -172,6 +179,21 @@ def field_errors(path: Path) -> dict[str, float]:
     }
 
 
+def listening_addresses(process: subprocess.Popen) -> set[str]:
+    """The addresses the process and its children listen on (TCP)."""
+    import psutil
+
+    root = psutil.Process(process.pid)
+    addresses = set()
+    for member in [root, *root.children(recursive=True)]:
+        try:
+            connections = member.net_connections(kind="tcp")
+        except psutil.NoSuchProcess:
+            continue
+        addresses.update(c.laddr.ip for c in connections if c.status == psutil.CONN_LISTEN)
+    return addresses
+
+
 class EndToEnd:
     """What an end-to-end test uses: processes, ports, keys, MQTT, SSE and ground truth."""
 
@@ -179,6 +201,7 @@ class EndToEnd:
     create_key = staticmethod(create_key)
     follow_events = staticmethod(follow_events)
     field_errors = staticmethod(field_errors)
+    listening_addresses = staticmethod(listening_addresses)
 
     def __init__(self, directory: Path) -> None:
         self.processes = Processes(directory)
@@ -233,3 +256,4 @@ def _delete_queues(queue: str) -> None:
     for name in (queue, f"{queue}.DQ", f"{queue}.XQ"):
         channel.queue_delete(name)
     connection.close()
+
