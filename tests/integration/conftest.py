@@ -183,6 +183,8 @@ def listening_addresses(process: subprocess.Popen) -> set[str]:
     """The addresses the process and its children listen on (TCP)."""
     import psutil
 
+    if process.poll() is not None:
+        return set()  # stopped by the test
     root = psutil.Process(process.pid)
     addresses = set()
     for member in [root, *root.children(recursive=True)]:
