@@ -72,6 +72,7 @@ def _machine() -> dict:
     return {"load_average_1m": round(os.getloadavg()[0], 1), "cpus": os.cpu_count()}
 
 
+@pytest.mark.timeout(1800)
 def test_mixed_traffic_against_the_scaled_out_service(e2e, deployment):
     seconds = float(os.environ.get("THERMOFIELD_LOAD_SECONDS", "60"))
     api_url, key = _start(e2e, deployment)
@@ -115,6 +116,7 @@ def _footprint(pid: int) -> tuple[int, int]:
     return sum(p.memory_info().rss for p in processes), sum(p.num_fds() for p in processes)
 
 
+@pytest.mark.timeout(3600)
 def test_soak_of_repeated_scans(e2e, deployment):
     seconds = float(os.environ.get("THERMOFIELD_SOAK_SECONDS", "600"))
     api_url, key = _start(e2e, deployment)
