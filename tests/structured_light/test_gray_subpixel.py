@@ -17,13 +17,17 @@ from services.structured_light.reconstruct import reconstruct_points
 REFERENCES = [{"file": "white.png", "kind": "white"}, {"file": "black.png", "kind": "black"}]
 
 
-def _gray_only(axis, size, dropped_bits=1, inverses=False, references=True, other=200):
+def _gray_frames(axis, size, dropped_bits=1, inverses=False):
     top = (size - 1).bit_length() - 1
-    frames = [{"file": f"g{bit}{inv}.png", "kind": "gray", "axis": axis, "bit": bit, "inverted": inv}
-              for bit in range(top, dropped_bits - 1, -1) for inv in ((False, True) if inverses else (False,))]
+    return [{"file": f"g{axis}{bit}{inv}.png", "kind": "gray", "axis": axis, "bit": bit, "inverted": inv}
+            for bit in range(top, dropped_bits - 1, -1) for inv in ((False, True) if inverses else (False,))]
+
+
+def _gray_only(axis, size, dropped_bits=1, inverses=False, references=True, other=200):
     width, height = (size, other) if axis == "x" else (other, size)
     return parse_sequence(json.dumps({"projector": {"width": width, "height": height},
-                                      "frames": (REFERENCES if references else []) + frames}))
+                                      "frames": (REFERENCES if references else [])
+                                      + _gray_frames(axis, size, dropped_bits, inverses)}))
 
 
 def _magnified_camera(sequence, axis, magnification=1.3, blur=1.0, noise=1.5, lines=6, seed=0):
@@ -100,3 +104,43 @@ def test_simulated_gray_only_scan_is_three_times_more_accurate_than_stripe_centr
     assert len(errors) >= 0.98 * len(centres)
     assert np.sqrt(np.mean(centres**2)) >= 3 * np.sqrt(np.mean(errors**2))
     assert np.mean(errors > 4.0) <= 0.001  # 1 mm at full size: the projector pixels here are 4x larger
+
+
+def _magnified_2d(sequence, magnification=1.3, blur=0.8, noise=1.5, seed=0):
+    """A camera seeing the projector image magnified (cv2.resize), blurred and noisy; returns the frames and
+    the true projector column and row of every camera pixel centre."""
+    import cv2
+
+    patterns = render_patterns(sequence).astype(np.float32)
+    height, width = patterns.shape[1:]
+    size = (int(width * magnification), int(height * magnification))
+    frames = np.stack([cv2.GaussianBlur(cv2.resize(20.0 + 210.0 * p / 255.0, size, interpolation=cv2.INTER_LINEAR),
+                                        (0, 0), blur) for p in patterns])
+    frames = frames + np.random.default_rng(seed).normal(0.0, noise, frames.shape)
+    rows, cols = np.mgrid[0:size[1], 0:size[0]]
+    return (np.clip(np.rint(frames), 0, 255).astype(np.uint8), (cols + 0.5) * width / size[0] - 0.5,
+            (rows + 0.5) * height / size[1] - 0.5)
+
+
+_PHASE_Y = [{"file": f"py{period}_{k}.png", "kind": "phase", "axis": "y", "period": period, "step": k, "steps": 4}
+            for period in (256.0, 16.0) for k in range(4)]
+
+
+@pytest.mark.parametrize("frames", [
+    REFERENCES + _gray_frames("x", 256) + _gray_frames("y", 256),
+    _gray_frames("x", 256, inverses=True) + _PHASE_Y,
+    _gray_frames("x", 256) + _PHASE_Y,
+], ids=["both axes Gray-only", "x Gray-only with inverses beside a phase-coded y",
+        "x Gray-only thresholded on the phase offset of y"])
+def test_each_gray_only_axis_is_interpolated_along_the_image_axis_that_crosses_its_stripes(frames):
+    sequence = parse_sequence(json.dumps({"projector": {"width": 256, "height": 256}, "frames": frames}))
+    captured, true_x, true_y = _magnified_2d(sequence)
+    decoded = decode(captured, sequence)
+    inner = np.zeros(decoded.valid.shape, bool)
+    inner[8:-8, 8:-8] = True
+    assert decoded.valid[inner].mean() > 0.99
+    error_x = (decoded.projector_x - true_x)[decoded.valid & inner]
+    assert np.sqrt(np.mean(error_x**2)) < 0.06
+    if not sequence.phase_groups("y"):
+        error_y = (decoded.projector_y - true_y)[decoded.valid & inner]
+        assert np.sqrt(np.mean(error_y**2)) < 0.06
