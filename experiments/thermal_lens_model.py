@@ -122,7 +122,8 @@ def main() -> None:
     print("\n".join(summaries))
     print("| target | | <= 0.1 % | | <= 0.5 | | |")
     print()
-    print("| rich data: 40 sharp views, 640x480, strong distortion | chosen model | RMS (px) | f error | c error (px) |")
+    print("| rich data: 40 sharp views, 640x480, strong distortion | chosen model | RMS (px) | f error "
+          "| c error (px) |")
     print("|---|---|---|---|---|")
     for seed in range(3):
         points = rich_views(seed)

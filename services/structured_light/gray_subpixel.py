@@ -235,5 +235,6 @@ def gray_subpixel(frames: np.ndarray, sequence: Sequence, axis: Axis, stripe_cen
         frames, reference, stripe = frames.transpose(0, 2, 1), reference.T, stripe.T
     out = np.empty(stripe.shape, np.float32)
     _subpixel_kernel(np.ascontiguousarray(frames), plane_frame, plane_complement, plane_sign,
-                     np.ascontiguousarray(reference), np.ascontiguousarray(stripe), width, _FIT_BOUNDARIES_PER_SIDE, out)
+                     np.ascontiguousarray(reference), np.ascontiguousarray(stripe), width, _FIT_BOUNDARIES_PER_SIDE,
+                     out)
     return np.ascontiguousarray(out.T) if along_columns else out
