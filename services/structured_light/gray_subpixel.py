@@ -205,9 +205,10 @@ def gray_subpixel(frames: np.ndarray, sequence: Sequence, axis: Axis, stripe_cen
 
     References
     ----------
-    .. [1] D. Moreno, G. Taubin, "Simple, accurate, and robust projector-camera calibration", 3DIMPVT 2012
-       (Gray-code edges from a plane and its inverse); S. Zhang, "High-speed 3D shape measurement with
-       structured light methods: a review", Optics and Lasers in Engineering 106, 119-131 (2018).
+    .. [1] M. Trobina, "Error model of a coded-light range sensor", Technical report BIWI-TR-164, ETH Zurich
+       (1995): stripe edges where a Gray plane and its inverse cross, to sub-pixel precision; J. Salvi,
+       J. Pages, J. Batlle, "Pattern codification strategies in structured light systems", Pattern
+       Recognition 37(4), 827-849 (2004).
     """
     frames = np.asarray(frames)
     stripe_centres = np.asarray(stripe_centres)
