@@ -1,25 +1,27 @@
 # thermofield: the two set-up commands are `make demo` and `make test`.
+# Every install takes its versions from constraints.txt (refresh it with `make constraints`).
 PYTHON ?= $(shell command -v python3.11 || command -v python3)
+PYTHON312 ?= $(shell command -v python3.12)
 VENV := .venv
 BIN := $(VENV)/bin
 DEMO_DIR ?= demo-output
+PIP_INSTALL = python -m pip install --quiet --constraint constraints.txt
 
-.PHONY: install install-test demo test test-reliability clean docker-compose system-libraries
+.PHONY: install install-test demo test test-py312 test-containers test-reliability images podman constraints clean \
+	docker-compose system-libraries
 
 install: $(VENV)/.installed
 
-$(VENV)/.installed: pyproject.toml | system-libraries
+$(VENV)/.installed: pyproject.toml constraints.txt | system-libraries
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
-	$(BIN)/python -m pip install --quiet --upgrade pip
-	$(BIN)/python -m pip install --quiet -e .
+	$(BIN)/$(PIP_INSTALL) -e '.[gateway]'
 	touch $@
 
 install-test: $(VENV)/.installed-test
 
-$(VENV)/.installed-test: pyproject.toml | system-libraries
+$(VENV)/.installed-test: pyproject.toml constraints.txt | system-libraries
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
-	$(BIN)/python -m pip install --quiet --upgrade pip
-	$(BIN)/python -m pip install --quiet -e '.[test]'
+	$(BIN)/$(PIP_INSTALL) -e '.[test,gateway,containers]'
 	touch $(VENV)/.installed $@
 
 demo: install
@@ -39,9 +41,42 @@ test-reliability: install-test
 		$(BIN)/python -m pytest -m 'reliability or schemathesis' -p no:cacheprovider -s \
 		tests/api/test_schemathesis.py tests/integration/test_load.py
 
+# The same suite's fast part on Python 3.12, in a venv of its own (.venv-py312).
+test-py312: .venv-py312/.installed-test docker-compose
+	.venv-py312/bin/python -m pytest -q -p no:cacheprovider tests/db tests/api tests/formats tests/structured_light \
+		tests/fusion tests/test_packaging.py
+
+.venv-py312/.installed-test: pyproject.toml constraints.txt | system-libraries
+	test -n "$(PYTHON312)" || { echo "make test-py312: no python3.12 on PATH"; exit 2; }
+	test -x .venv-py312/bin/python || $(PYTHON312) -m venv .venv-py312
+	.venv-py312/bin/$(PIP_INSTALL) -e '.[test,gateway]'
+	touch $@
+
+# The whole compose stack in podman on this machine (docs/deployment.md): images built from a debootstrap
+# base (cached in podman's store), then tests/containers starts it, scans, kills a worker and tears it down.
+test-containers: install-test podman images
+	$(BIN)/python -m pytest -m containers -p no:cacheprovider tests/containers
+
+images: podman
+	docker/local/build-images.sh
+
+podman:
+	@command -v podman >/dev/null && command -v runc >/dev/null && command -v debootstrap >/dev/null \
+		&& command -v iptables >/dev/null || { apt-get update -qq && DEBIAN_FRONTEND=noninteractive \
+		apt-get install -y -qq --no-install-recommends podman runc debootstrap iptables netavark aardvark-dns; }
+
+# Re-resolve every dependency of every extra to the newest versions the bounds in pyproject.toml allow.
+constraints:
+	rm -rf .venv-constraints && $(PYTHON) -m venv .venv-constraints
+	.venv-constraints/bin/python -m pip install --quiet ".[$$($(PYTHON) docker/requirements.py --extras)]" 'setuptools>=69'
+	{ echo "# Pinned versions of every dependency of thermofield and its extras (pip constraints)."; \
+	  echo "# Refresh: make constraints (resolved with $$(.venv-constraints/bin/python --version))."; \
+	  .venv-constraints/bin/python -m pip freeze --all --exclude thermofield --exclude pip; } > constraints.txt
+	rm -rf .venv-constraints
+
 # tests/docker validates docker/compose.yaml with Debian's docker-compose (no Docker engine needed).
 docker-compose:
 	command -v docker-compose >/dev/null || { apt-get update -qq && apt-get install -y -qq --no-install-recommends docker-compose; }
 
 clean:
-	rm -rf $(VENV) $(DEMO_DIR)
+	rm -rf $(VENV) .venv-py312 $(DEMO_DIR)

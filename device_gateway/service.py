@@ -6,6 +6,7 @@ from fastapi import FastAPI
 
 from device_gateway.app import create_app
 from device_gateway.station import Station
+from services.errors import InputError
 from services.settings import Settings
 from services.structured_light.patterns import generate_sequence
 
@@ -20,13 +21,19 @@ def build_station(settings: Settings) -> Station:
         simulated = SimulatedStation()
         return Station(simulated.camera, simulated.thermal, simulated.projector, settle_s=settle_s,
                        board_holder=simulated)
-    from device_gateway.drivers.display import DisplayProjector
-    from device_gateway.drivers.oak import OakCamera, OakThermal
+    try:
+        from device_gateway.drivers.display import DisplayProjector
+        from device_gateway.drivers.oak import OakCamera, OakThermal
+    except ImportError as error:  # the gateway extra is left out of the API and worker installs
+        raise InputError(f"the oak driver needs {error.name}, which is not installed: install thermofield "
+                         "with its gateway extra, pip install 'thermofield[gateway]'") from None
 
     return Station(
-        OakCamera(device_id=settings.oak_camera_id, width=settings.camera_width, height=settings.camera_height,
-                  exposure_us=settings.camera_exposure_us, iso=settings.camera_iso),
-        OakThermal(device_id=settings.oak_thermal_id),
+        OakCamera(device_id=settings.oak_camera_id, socket=settings.camera_socket, width=settings.camera_width,
+                  height=settings.camera_height, exposure_us=settings.camera_exposure_us, iso=settings.camera_iso,
+                  lens_position=settings.camera_lens_position),
+        OakThermal(device_id=settings.oak_thermal_id, socket=settings.thermal_socket,
+                   gain_mode=settings.thermal_gain_mode),
         DisplayProjector(width=settings.projector_width, height=settings.projector_height,
                          display=settings.projector_display),
         settle_s=settle_s,

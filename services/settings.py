@@ -47,6 +47,14 @@ class Settings(BaseSettings):
     )
     oak_camera_id: str | None = Field(None, description="OAK filming the patterns (MxId, IP or name); default the only one.")
     oak_thermal_id: str | None = Field(None, description="OAK-T thermal camera (MxId, IP or name); default the only one.")
+    camera_socket: str = Field("CAM_A", pattern=r"^CAM_[A-J]$", description="Board socket of the OAK camera's sensor.")
+    camera_lens_position: int = Field(
+        130, ge=0, le=255, description="Manual focus (0..255) the OAK camera is locked at: the one it was calibrated at."
+    )
+    thermal_socket: str = Field("CAM_E", pattern=r"^CAM_[A-J]$", description="Board socket of the OAK-T's sensor.")
+    thermal_gain_mode: Literal["low", "high"] = Field(
+        "low", description="OAK-T gain: low measures up to 900 K, high up to 500 K with less noise."
+    )
     camera_width: int = Field(1280, gt=0, description="Width of the OAK camera frames.")
     camera_height: int = Field(800, gt=0, description="Height of the OAK camera frames.")
     camera_exposure_us: int = Field(8000, gt=0, description="Manual exposure time of the OAK camera, microseconds.")

@@ -10,7 +10,7 @@ from dramatiq.brokers.rabbitmq import RabbitmqBroker
 from dramatiq.brokers.stub import StubBroker
 
 from services.settings import Settings
-from workers.middleware import ComputeThreads, JobBookkeeping
+from workers.middleware import ComputeThreads, Heartbeat, JobBookkeeping
 
 
 class _ResultsGoToTheJobsTable(logging.Filter):
@@ -30,7 +30,9 @@ def setup_broker(settings: Settings) -> dramatiq.Broker:
         broker = StubBroker()
     broker.add_middleware(ComputeThreads(settings.compute_threads))
     broker.add_middleware(JobBookkeeping())
-    if not settings.broker_url:
+    if settings.broker_url:
+        broker.add_middleware(Heartbeat(settings.job_queue))  # read by `thermofield worker --check`
+    else:
         broker.emit_after("process_boot")  # the dramatiq CLI does this for its processes; it starts TimeLimit's timer
     dramatiq.set_broker(broker)
     logging.getLogger("dramatiq.worker.WorkerThread").addFilter(_ResultsGoToTheJobsTable())

@@ -1,16 +1,20 @@
-"""Luxonis OAK cameras through depthai's v3 API: a ``Camera`` node with manual exposure, the OAK-T ``Thermal`` node.
+"""Luxonis OAK cameras through depthai's v3 API: a ``Camera`` node with manual exposure and focus, the OAK-T
+``Thermal`` node with an explicit ``ThermalConfig``.
 
-Opening searches once for connected devices (``Device.getAllAvailableDevices``,
-about half a second) and connects only to the one asked for, so a missing device
-is reported at once by name instead of blocking in depthai's implicit search.
+A device configured by IP address is connected to directly (``dai.DeviceInfo(ip)``): the
+Ethernet-only OAK-T is otherwise found by a broadcast search, which a container network
+does not pass. Other devices are found by one search (``Device.getAllAvailableDevices``,
+about half a second) and only the one asked for is connected, so a missing device is
+reported at once by name instead of blocking in depthai's implicit search.
 """
 
 from __future__ import annotations
 
 import abc
 import datetime
+import ipaddress
 import time
-from typing import Any
+from typing import Any, Literal
 
 import depthai as dai
 import numpy as np
@@ -26,6 +30,8 @@ def find_device(device_id: str | None, role: str) -> dai.DeviceInfo:
     DeviceUnavailable
         When no device, not that device, or several devices (and no id) are found.
     """
+    if device_id and _is_ip_address(device_id):
+        return dai.DeviceInfo(device_id)
     found = dai.Device.getAllAvailableDevices()
     described = ", ".join(f"{info.getDeviceId()} ({info.name})" for info in found) or "none"
     if device_id:
@@ -39,6 +45,43 @@ def find_device(device_id: str | None, role: str) -> dai.DeviceInfo:
     return found[0]
 
 
+def _is_ip_address(text: str) -> bool:
+    try:
+        ipaddress.ip_address(text)
+    except ValueError:
+        return False
+    return True
+
+
+def configure_camera(control: dai.CameraControl, exposure_us: int, iso: int, lens_position: int) -> None:
+    """Fix exposure and focus on ``control`` (a ``Camera`` node's ``initialControl``).
+
+    Auto-exposure would fight the black and white patterns; autofocus would move the lens
+    and with it the calibrated focal length and distortion, so the lens stays at the
+    configured position, the one the camera was calibrated at (fixed-focus OAKs ignore it).
+    """
+    if not 0 <= lens_position <= 255:
+        raise ValueError(f"The OAK lens position must be 0..255 (depthai's manual focus); got {lens_position}.")
+    control.setManualExposure(exposure_us, iso)
+    control.setManualFocus(lens_position)
+
+
+def configure_thermal(config: dai.ThermalConfig, gain_mode: Literal["low", "high"]) -> None:
+    """Set the OAK-T's measurement parameters on ``config`` (a ``Thermal`` node's ``initialConfig``).
+
+    The gain mode is set explicitly: low gain measures up to 900 K, high gain up to 500 K
+    with less noise (depthai's ``ThermalAmbientParams``). The sensor's own emissivity
+    correction is neutralised (target emissivity 128/128 = 1): thermofield corrects
+    emissivity itself (services/fusion/radiometry.py), and applying it twice would
+    overstate every temperature.
+    """
+    modes = {"low": dai.ThermalGainMode.LOW, "high": dai.ThermalGainMode.HIGH}
+    if gain_mode not in modes:
+        raise ValueError(f"The OAK-T gain mode must be 'low' or 'high'; got {gain_mode!r}.")
+    config.ambientParams.gainMode = modes[gain_mode]
+    config.ambientParams.targetEmissivity = 128
+
+
 def host_time_of(message: dai.ImgFrame) -> float:
     """Wall-clock seconds since the epoch at which a frame was exposed.
 
@@ -50,11 +93,12 @@ def host_time_of(message: dai.ImgFrame) -> float:
 
 
 def frame_metadata(message: dai.ImgFrame) -> dict[str, Any]:
-    """Sequence number and exposure settings a frame reports."""
+    """Sequence number, exposure settings and lens position a frame reports."""
     return {
         "sequence": int(message.getSequenceNum()),
         "exposure_us": round(message.getExposureTime().total_seconds() * 1e6),
         "iso": int(message.getSensitivity()),
+        "lens_position": int(message.getLensPosition()),
     }
 
 
@@ -144,9 +188,11 @@ class OakCamera(_OakDevice, Camera):
     role = "camera"
 
     def __init__(self, name: str = "camera", device_id: str | None = None, socket: str = "CAM_A",
-                 width: int = 1280, height: int = 800, exposure_us: int = 8000, iso: int = 100) -> None:
+                 width: int = 1280, height: int = 800, exposure_us: int = 8000, iso: int = 100,
+                 lens_position: int = 130) -> None:
         super().__init__(name, device_id, socket, width, height)
-        self._exposure_us, self.iso = exposure_us, iso
+        configure_camera(dai.CameraControl(), exposure_us, iso, lens_position)  # refuse bad values before opening
+        self._exposure_us, self.iso, self.lens_position = exposure_us, iso, lens_position
         self._control: dai.InputQueue | None = None
 
     @property
@@ -172,7 +218,7 @@ class OakCamera(_OakDevice, Camera):
 
     def _build(self, pipeline: dai.Pipeline) -> dai.Node.Output:
         node = pipeline.create(dai.node.Camera).build(self.socket)
-        node.initialControl.setManualExposure(self._exposure_us, self.iso)
+        configure_camera(node.initialControl, self._exposure_us, self.iso, self.lens_position)
         self._control = node.inputControl.createInputQueue()
         return node.requestOutput((self.width, self.height), dai.ImgFrame.Type.GRAY8)
 
@@ -187,12 +233,16 @@ class OakThermal(_OakDevice, ThermalCamera):
     role = "thermal"
 
     def __init__(self, name: str = "thermal", device_id: str | None = None, socket: str = "CAM_E",
-                 width: int = 256, height: int = 192, fps: float = 25.0) -> None:
+                 width: int = 256, height: int = 192, fps: float = 25.0,
+                 gain_mode: Literal["low", "high"] = "low") -> None:
         super().__init__(name, device_id, socket, width, height)
-        self.fps = fps
+        configure_thermal(dai.ThermalConfig(), gain_mode)  # refuse a bad mode before opening
+        self.fps, self.gain_mode = fps, gain_mode
 
     def _build(self, pipeline: dai.Pipeline) -> dai.Node.Output:
-        return pipeline.create(dai.node.Thermal).build(self.socket, self.fps).temperature
+        node = pipeline.create(dai.node.Thermal).build(self.socket, self.fps)
+        configure_thermal(node.initialConfig, self.gain_mode)
+        return node.temperature
 
     def grab(self, timeout_s: float) -> Frame:
         message = self._next_message(timeout_s)

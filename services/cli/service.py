@@ -34,6 +34,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     worker = subparsers.add_parser("worker", help="Dramatiq worker processes (spawned) consuming RabbitMQ")
     worker.add_argument("--processes", type=int, help="worker processes (default THERMOFIELD_WORKER_PROCESSES)")
     worker.add_argument("--threads", type=int, help="jobs at once per process (default THERMOFIELD_WORKER_THREADS)")
+    worker.add_argument("--check", action="store_true",
+                        help="the healthcheck: exit 0 when every worker process of this host is alive (heartbeats)")
     worker.set_defaults(handler=_worker)
 
     maintenance = subparsers.add_parser(
@@ -196,9 +198,13 @@ def _maintenance(args: argparse.Namespace) -> int:
 
 
 def _worker(args: argparse.Namespace) -> int:
-    from workers.middleware import limit_thread_environment
+    from workers.middleware import limit_thread_environment, live_worker_processes
 
     settings = _settings(worker_processes=args.processes, worker_threads=args.threads)
+    if args.check:
+        live = live_worker_processes(settings.job_queue)
+        print(f"thermofield worker: {live} of {settings.worker_processes} processes alive", flush=True)
+        return 0 if live >= settings.worker_processes else 1
     _require_broker(settings, "worker")
     limit_thread_environment(settings.compute_threads)
     command = [sys.executable, "-m", "dramatiq", "workers.main", "--use-spawn", "--queues", settings.job_queue,

@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import re
+import zlib
+from importlib import resources
 from pathlib import Path
 
 from alembic import command
@@ -10,7 +12,11 @@ from alembic.config import Config
 from sqlalchemy import Engine, create_engine, event, text
 from sqlalchemy.orm import Session, sessionmaker
 
-MIGRATIONS_DIR = Path(__file__).resolve().parents[2] / "migrations"
+# Shipped inside the package (package data), so that an installed wheel migrates as a checkout does; an installed
+# package is a directory on disk, which is what Alembic reads its scripts from.
+MIGRATIONS_DIR = Path(str(resources.files("services.db") / "migrations"))
+# The key of the PostgreSQL advisory lock that lets one process at a time migrate (several start at once).
+_MIGRATION_LOCK = zlib.crc32(b"thermofield-migrations")
 _SCHEMA_NAME = re.compile(r"^[a-z_][a-z0-9_]{0,62}$")
 
 
@@ -66,7 +72,12 @@ def make_sessions(engine: Engine) -> sessionmaker[Session]:
 
 
 def migrate(engine: Engine) -> None:
-    """Bring the database to the newest Alembic revision (``migrations/``)."""
+    """Bring the database to the newest Alembic revision (``services/db/migrations/``).
+
+    On PostgreSQL the migration holds a transaction-level advisory lock: when the API and
+    the workers start at once, one process migrates and the others wait, then find the
+    database at head and do nothing.
+    """
     run_alembic(engine, "upgrade", "head")
 
 
@@ -86,6 +97,8 @@ def run_alembic(engine: Engine, action: str, revision: str) -> None:
             connection.commit()
         try:
             with connection.begin():
+                if engine.dialect.name == "postgresql":
+                    connection.execute(text("SELECT pg_advisory_xact_lock(:key)"), {"key": _MIGRATION_LOCK})
                 config.attributes["connection"] = connection
                 getattr(command, action)(config, revision)
                 if sqlite and connection.exec_driver_sql("PRAGMA foreign_key_check").first() is not None:

@@ -63,3 +63,24 @@ def test_upgrade_from_the_first_revision_keeps_the_jobs(tmp_path):
     with make_sessions(engine)() as session:
         job = session.get(Job, "old")
         assert (job.status, job.worker) == ("succeeded", None)
+
+
+def test_processes_starting_at_once_migrate_an_empty_database_once():
+    """The API and the workers of a deployment start together: the advisory lock lets one migrate at a time."""
+    import uuid
+    from concurrent.futures import ThreadPoolExecutor
+
+    from tests.conftest import POSTGRES_URL
+
+    schema = f"tf_race_{uuid.uuid4().hex[:10]}"
+    engines = [make_engine(POSTGRES_URL, schema) for _ in range(4)]
+    try:
+        with ThreadPoolExecutor(len(engines)) as pool:
+            list(pool.map(migrate, engines))  # re-raises the first failure
+        with engines[0].connect() as connection:
+            assert connection.execute(text("SELECT count(*) FROM alembic_version")).scalar_one() == 1
+    finally:
+        for engine in engines:
+            engine.dispose()
+        with make_engine(POSTGRES_URL).begin() as connection:
+            connection.execute(text(f"DROP SCHEMA IF EXISTS {schema} CASCADE"))

@@ -10,7 +10,16 @@ import numpy as np
 import pytest
 
 from device_gateway.devices import DeviceLost, DeviceUnavailable
-from device_gateway.drivers.oak import OakCamera, OakThermal, frame_metadata, host_time_of, thermal_image
+from device_gateway.drivers.oak import (
+    OakCamera,
+    OakThermal,
+    configure_camera,
+    configure_thermal,
+    find_device,
+    frame_metadata,
+    host_time_of,
+    thermal_image,
+)
 
 
 @pytest.mark.parametrize("driver", [OakCamera, OakThermal])
@@ -61,3 +70,30 @@ def test_frame_time_and_metadata():
     frame = _frame(np.zeros((4, 4), np.uint8), dai.ImgFrame.Type.GRAY8, age_s=1.5)
     assert host_time_of(frame) == pytest.approx(time.time() - 1.5, abs=0.05)
     assert frame_metadata(frame)["sequence"] == 17
+    assert frame_metadata(frame)["lens_position"] == frame.getLensPosition()
+
+
+def test_a_device_configured_by_ip_is_connected_to_directly_without_a_search():
+    started = time.monotonic()
+    info = find_device("192.168.1.44", "thermal")
+    assert time.monotonic() - started < 0.2  # no broadcast search, which a container network does not pass
+    assert (info.name, info.protocol) == ("192.168.1.44", dai.XLinkProtocol.X_LINK_TCP_IP)
+
+
+def test_the_camera_keeps_its_exposure_and_the_focus_it_was_calibrated_at():
+    control = dai.CameraControl()
+    configure_camera(control, exposure_us=4000, iso=200, lens_position=97)
+    assert (control.getLensPosition(), control.getSensitivity()) == (97, 200)
+    assert control.getExposureTime() == datetime.timedelta(microseconds=4000)
+    with pytest.raises(ValueError, match="0..255"):
+        OakCamera(lens_position=300)
+
+
+@pytest.mark.parametrize(("mode", "expected"), [("low", dai.ThermalGainMode.LOW), ("high", dai.ThermalGainMode.HIGH)])
+def test_the_thermal_gain_is_explicit_and_its_own_emissivity_correction_is_off(mode, expected):
+    config = dai.ThermalConfig()
+    configure_thermal(config, mode)
+    assert config.ambientParams.gainMode == expected
+    assert config.ambientParams.targetEmissivity == 128  # 128/128: emissivity 1, ours is applied in fusion
+    with pytest.raises(ValueError, match="'low' or 'high'"):
+        OakThermal(gain_mode="medium")

@@ -2,9 +2,15 @@
 
 from __future__ import annotations
 
+import sys
+
+import depthai as dai
+import pytest
+
 from device_gateway.drivers.display import DisplayProjector
 from device_gateway.drivers.oak import OakCamera, OakThermal
 from device_gateway.service import build_station, create_gateway
+from services.errors import InputError
 from services.settings import Settings
 
 
@@ -28,6 +34,8 @@ def test_oak_driver_takes_its_options_from_the_settings():
     assert (camera.device_id, camera.exposure_us, camera.iso) == ("14442C10D13EABCE00", 4000, 200)
     assert (station.camera.info.width, station.camera.info.height) == (1920, 1200)
     assert station.thermal.device_id == "10.0.0.7"
+    assert (camera.socket, camera.lens_position) == (dai.CameraBoardSocket.CAM_A, 130)
+    assert (station.thermal.socket, station.thermal.gain_mode) == (dai.CameraBoardSocket.CAM_E, "low")
     assert (station.projector.display, station.projector.info.width, station.projector.info.height) == (1, 1920, 1080)
     assert station.settle_s == 0.25
 
@@ -42,3 +50,18 @@ def test_gateway_projects_the_default_sequence_at_the_projector_size(station, sm
     sequence = sequence_route.endpoint()
     projector = small_rig.devices["projector"]
     assert (sequence.projector.width, sequence.projector.height) == (projector.width, projector.height)
+
+
+def test_sockets_focus_and_gain_are_settings():
+    station = build_station(Settings(gateway_driver="oak", camera_socket="CAM_B", camera_lens_position=90,
+                                     thermal_socket="CAM_C", thermal_gain_mode="high"))
+    assert (station.camera.socket, station.camera.lens_position) == (dai.CameraBoardSocket.CAM_B, 90)
+    assert (station.thermal.socket, station.thermal.gain_mode) == (dai.CameraBoardSocket.CAM_C, "high")
+
+
+def test_without_the_gateway_extra_the_oak_driver_says_what_to_install(monkeypatch):
+    for module in ("device_gateway.drivers.oak", "device_gateway.drivers.display"):
+        monkeypatch.delitem(sys.modules, module, raising=False)
+    monkeypatch.setitem(sys.modules, "depthai", None)  # as if depthai were not installed
+    with pytest.raises(InputError, match=r"needs depthai.*thermofield\[gateway\]"):
+        build_station(Settings(gateway_driver="oak"))

@@ -1,0 +1,212 @@
+"""The compose stack really running: docker/compose.yaml with docker/compose.local.yaml in podman.
+
+Run by `make test-containers` (marker ``containers``; the default run leaves it out), which builds the images
+first (docker/local/build-images.sh). The services start in the order their ``depends_on`` conditions ask
+for; podman before 4.6 cannot wait for a healthy container, so this test runs every healthcheck itself
+(``podman healthcheck run``) until it passes, then starts the next group. Then, over HTTP as a plant would:
+an API key, a calibration set, a scan whose field is checked against the simulator's ground truth, its
+``.rrd``, and a second scan during which the worker container running it is killed: the other worker
+finishes it, once.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import httpx
+import pytest
+
+from services.formats.rig import rig_to_json
+from services.simulation.presets import forging_rig
+
+pytestmark = pytest.mark.containers
+
+ROOT = Path(__file__).resolve().parents[2]
+DOCKER = ROOT / "docker"
+PROJECT = "thermofield-test"
+# Started group by group, as depends_on orders them.
+GROUPS = (("postgres", "rabbitmq", "mosquitto", "rerun"), ("gateway",), ("api", "worker"))
+HEALTHY_WITHIN_S = 420.0
+
+
+def _free_port() -> int:
+    import socket
+
+    with socket.socket() as probe:
+        probe.bind(("127.0.0.1", 0))
+        return probe.getsockname()[1]
+
+
+class Stack:
+    """The compose project: podman-compose for the services, podman for the containers."""
+
+    def __init__(self, log_dir: Path) -> None:
+        self.api_port, self.rerun_port, self.mqtt_port = _free_port(), _free_port(), _free_port()
+        self.log_dir = log_dir
+        self.env = os.environ | {
+            "CONTAINERS_CONF": str(DOCKER / "local" / "containers.conf"),
+            "THERMOFIELD_API_PUBLISH": f"127.0.0.1:{self.api_port}",
+            "THERMOFIELD_RERUN_PUBLISH": f"127.0.0.1:{self.rerun_port}",
+            "THERMOFIELD_MQTT_PUBLISH": f"127.0.0.1:{self.mqtt_port}",
+        }
+        self.compose_command = [_podman_compose(), "-p", PROJECT, "-f", str(DOCKER / "compose.yaml"),
+                                "-f", str(DOCKER / "compose.local.yaml")]
+
+    @property
+    def api_url(self) -> str:
+        return f"http://127.0.0.1:{self.api_port}"
+
+    def compose(self, *arguments: str, timeout: float = 300) -> subprocess.CompletedProcess:
+        return subprocess.run([*self.compose_command, *arguments], env=self.env, capture_output=True, text=True,
+                              timeout=timeout, cwd=DOCKER)
+
+    def podman(self, *arguments: str, timeout: float = 120, check: bool = True) -> subprocess.CompletedProcess:
+        result = subprocess.run(["podman", *arguments], env=self.env, capture_output=True, text=True,
+                                timeout=timeout)
+        if check and result.returncode != 0:
+            raise AssertionError(f"podman {' '.join(arguments)} failed: {result.stderr[-2000:]}")
+        return result
+
+    def containers(self, service: str | None = None) -> list[dict]:
+        """The project's containers (all states), optionally those of one service."""
+        filters = ["--filter", f"label=io.podman.compose.project={PROJECT}"]
+        if service:
+            filters += ["--filter", f"label=com.docker.compose.service={service}"]
+        listed = json.loads(self.podman("ps", "--all", "--format", "json", *filters).stdout or "[]")
+        return sorted(listed, key=lambda container: container["Names"][0])
+
+    def start(self, services: tuple[str, ...]) -> None:
+        result = self.compose("up", "-d", "--no-deps", *services)
+        assert result.returncode == 0, result.stdout[-3000:] + result.stderr[-3000:]
+
+    def wait_until_healthy(self, services: tuple[str, ...]) -> dict[str, float]:
+        """Run each container's healthcheck until it passes; the seconds each took from now."""
+        started, waiting, took = time.monotonic(), {}, {}
+        for service in services:
+            names = [container["Names"][0] for container in self.containers(service)]
+            assert names, f"compose started no {service} container"
+            waiting.update({name: service for name in names})
+        while waiting:
+            for name in list(waiting):
+                state = self.podman("inspect", "--format", "{{.State.Status}}", name).stdout.strip()
+                if state in ("exited", "stopped") and not self._restarting(name):
+                    raise AssertionError(f"{name} exited:\n{self.logs(name)}")
+                if self.podman("healthcheck", "run", name, check=False, timeout=60).returncode == 0:
+                    took[name] = time.monotonic() - started
+                    del waiting[name]
+            if waiting and time.monotonic() - started > HEALTHY_WITHIN_S:
+                logs = "\n".join(f"--- {name}\n{self.logs(name)}" for name in waiting)
+                raise AssertionError(f"not healthy within {HEALTHY_WITHIN_S:.0f} s: {sorted(waiting)}\n{logs}")
+            time.sleep(2)
+        return took
+
+    def _restarting(self, name: str) -> bool:
+        return self.podman("inspect", "--format", "{{.State.Restarting}}", name, check=False).stdout.strip() == "true"
+
+    def logs(self, name: str, lines: int = 60) -> str:
+        result = self.podman("logs", "--tail", str(lines), name, check=False)
+        return (result.stdout + result.stderr)[-6000:]
+
+    def down(self) -> None:
+        self.compose("down", "--volumes", "--timeout", "5", timeout=300)
+        # podman-compose leaves the project's network behind when a container refused to stop in time.
+        for container in self.containers():
+            self.podman("rm", "--force", "--time", "0", container["Id"], check=False)
+        self.podman("volume", "prune", "--force", "--filter", f"label=io.podman.compose.project={PROJECT}",
+                    check=False)
+
+
+def _podman_compose() -> str:
+    found = shutil.which("podman-compose", path=str(Path(sys.executable).parent)) or shutil.which("podman-compose")
+    assert found, "podman-compose is not installed: run `make test-containers`, which installs it"
+    return found
+
+
+@pytest.fixture(scope="module")
+def stack(tmp_path_factory):
+    assert shutil.which("podman"), "podman is not installed: run `make test-containers`, which installs it"
+    stack = Stack(tmp_path_factory.mktemp("stack"))
+    stack.down()  # what an interrupted run may have left
+    timings = {}
+    try:
+        for group in GROUPS:
+            stack.start(group)
+            timings.update(stack.wait_until_healthy(group))
+        print(f"\nhealthy after (s, from its group's start): "
+              f"{json.dumps({name: round(s, 1) for name, s in timings.items()})}", flush=True)
+        yield stack
+    finally:
+        stack.down()
+
+
+def _create_key(stack: Stack) -> str:
+    api = stack.containers("api")[0]["Names"][0]
+    result = stack.podman("exec", api, "thermofield", "apikey", "create", "--scopes", "admin", "--name", "test")
+    return result.stdout.strip()
+
+
+def _wait_for(client: httpx.Client, job_id: str, reached, timeout_s: float = 180.0) -> dict:
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        state = client.get(f"/v1/jobs/{job_id}").json()
+        if reached(state):
+            return state
+        time.sleep(0.1)
+    raise AssertionError(f"job {job_id} did not reach the state within {timeout_s} s: {state}")
+
+
+def test_the_stack_scans_over_http_and_survives_a_killed_worker(stack, tmp_path):
+    from tests.integration.conftest import field_errors, follow_events
+
+    services = {container["Labels"]["com.docker.compose.service"] for container in stack.containers()}
+    assert services == {"api", "worker", "gateway", "rerun", "postgres", "rabbitmq", "mosquitto"}
+    workers = stack.containers("worker")
+    assert len(workers) == 2
+    for container in stack.containers():
+        user = stack.podman("exec", container["Id"], "id", "-u").stdout.strip()
+        assert user != "0", f"{container['Names'][0]} runs as root"
+
+    key = _create_key(stack)
+    with httpx.Client(base_url=stack.api_url, headers={"Authorization": f"Bearer {key}"}, timeout=60) as client:
+        created = client.post("/v1/calibration-sets", files={"rig": ("rig.json", rig_to_json(forging_rig()))},
+                              data={"name": "true rig", "activate": "true"})
+        assert created.status_code == 201, created.text
+
+        first = client.post("/v1/scans", json={"part_id": "container-1"}).json()
+        final = follow_events(client, first["job_id"])[-1]
+        assert final[0] == "done" and final[1]["status"] == "succeeded", final
+        scan = client.get(f"/v1/scans/{first['scan_id']}").json()
+        (tmp_path / "field.ply").write_bytes(client.get(scan["links"]["field.ply"]).content)
+        recording = client.get(scan["links"]["field.rrd"])
+        assert recording.status_code == 200 and recording.content[:4] == b"RRF2"
+
+        # The second scan: its worker container is killed while it runs; RabbitMQ redelivers the message,
+        # unacknowledged, to the other worker, which runs the job as its second attempt.
+        second = client.post("/v1/scans", headers={"Idempotency-Key": "kill-a-worker"},
+                             json={"part_id": "container-2"}).json()
+        running = _wait_for(client, second["job_id"], lambda state: state["status"] == "running")
+        host = running["worker"].split(":")[0]
+        victim = next(container for container in workers if container["Id"].startswith(host))
+        stack.podman("kill", "--signal", "KILL", victim["Id"])
+        final = follow_events(client, second["job_id"])[-1][1]
+        assert final["status"] == "succeeded" and final["attempts"] == 2, final
+        assert not final["worker"].startswith(host), final
+        # Once: one job for the scan, one scan for the key, and a retry of the request creates nothing.
+        assert client.post("/v1/scans", headers={"Idempotency-Key": "kill-a-worker"},
+                           json={"part_id": "container-2"}).json() == second
+        jobs = [job for job in client.get("/v1/jobs").json() if job["scan_id"] == second["scan_id"]]
+        assert [(job["job_id"], job["status"]) for job in jobs] == [(second["job_id"], "succeeded")]
+        assert [s["scan_id"] for s in client.get("/v1/scans").json()].count(second["scan_id"]) == 1
+
+    errors = field_errors(tmp_path / "field.ply")
+    print(f"\nfield through the containers: {json.dumps({k: round(v, 4) for k, v in errors.items()})}")
+    assert errors["points"] > 100_000, errors
+    assert errors["median_distance_mm"] < 0.5, errors
+    assert errors["median_temperature_error_k"] < 1.0, errors
+    assert errors["temperature_coverage"] > 0.9, errors
