@@ -1,7 +1,9 @@
 # thermofield: the two set-up commands are `make demo` and `make test`.
 # Every install takes its versions from constraints.txt (refresh it with `make constraints`).
 PYTHON ?= $(shell command -v python3.11 || command -v python3)
-PYTHON312 ?= $(shell command -v python3.12)
+# The first Python 3.12 that runs (pyenv's shim only answers for the version it is set to).
+PYTHON312 ?= $(firstword $(foreach python,$(shell command -v python3.12) $(wildcard /root/.pyenv/versions/3.12*/bin/python3.12),\
+	$(shell $(python) -c 'import sys; print(sys.executable)' 2>/dev/null)))
 VENV := .venv
 BIN := $(VENV)/bin
 DEMO_DIR ?= demo-output

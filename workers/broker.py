@@ -10,7 +10,8 @@ from dramatiq.brokers.rabbitmq import RabbitmqBroker
 from dramatiq.brokers.stub import StubBroker
 
 from services.settings import Settings
-from workers.middleware import ComputeThreads, Heartbeat, JobBookkeeping
+from workers.heartbeat import Heartbeat
+from workers.middleware import ComputeThreads, JobBookkeeping
 
 
 class _ResultsGoToTheJobsTable(logging.Filter):

@@ -10,7 +10,7 @@ if [ ! -s "$PGDATA/PG_VERSION" ]; then
     rm -f "$password"
     echo "host all all all scram-sha-256" >> "$PGDATA/pg_hba.conf"
     pg_ctl --pgdata="$PGDATA" --options="-c listen_addresses=''" --wait --silent start
-    [ "$POSTGRES_DB" = "$POSTGRES_USER" ] || createdb --username="$POSTGRES_USER" "$POSTGRES_DB"
+    [ "$POSTGRES_DB" = postgres ] || createdb --username="$POSTGRES_USER" "$POSTGRES_DB"
     pg_ctl --pgdata="$PGDATA" --mode=fast --wait --silent stop
 fi
 exec postgres -D "$PGDATA" -c listen_addresses='*'

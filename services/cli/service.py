@@ -198,13 +198,15 @@ def _maintenance(args: argparse.Namespace) -> int:
 
 
 def _worker(args: argparse.Namespace) -> int:
-    from workers.middleware import limit_thread_environment, live_worker_processes
-
     settings = _settings(worker_processes=args.processes, worker_threads=args.threads)
     if args.check:
+        from workers.heartbeat import live_worker_processes
+
         live = live_worker_processes(settings.job_queue)
         print(f"thermofield worker: {live} of {settings.worker_processes} processes alive", flush=True)
         return 0 if live >= settings.worker_processes else 1
+    from workers.middleware import limit_thread_environment
+
     _require_broker(settings, "worker")
     limit_thread_environment(settings.compute_threads)
     command = [sys.executable, "-m", "dramatiq", "workers.main", "--use-spawn", "--queues", settings.job_queue,

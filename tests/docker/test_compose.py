@@ -1,7 +1,10 @@
-"""The compose files: valid for docker-compose, and running the same commands and settings as the plain processes."""
+"""The compose files: valid for docker-compose, and running the same commands and settings as the plain processes.
+
+tests/containers starts them for real (make test-containers)."""
 
 from __future__ import annotations
 
+import re
 import shutil
 import subprocess
 from pathlib import Path
@@ -15,6 +18,7 @@ from services.settings import Settings
 DOCKER = Path(__file__).resolve().parents[2] / "docker"
 COMPOSE = DOCKER / "compose.yaml"
 OAK_OVERRIDE = DOCKER / "compose.oak.yaml"
+LOCAL_OVERRIDE = DOCKER / "compose.local.yaml"
 THERMOFIELD_SERVICES = ("api", "worker", "gateway")
 
 
@@ -36,6 +40,27 @@ def test_services_run_real_thermofield_commands(compose, service):
     assert callable(args.handler)
 
 
+def test_every_service_has_a_healthcheck_and_thermofield_checks_are_real_commands(compose):
+    for name, service in compose["services"].items():
+        test = service.get("healthcheck", {}).get("test")
+        assert test and test[0] == "CMD", f"{name} has no healthcheck"
+        if test[1] == "thermofield":
+            assert callable(build_parser().parse_args(test[2:]).handler)
+
+
+def test_the_public_images_are_pinned_by_digest(compose):
+    pinned = re.compile(r"^\$\{THERMOFIELD_[A-Z_]+_IMAGE:-[a-z0-9./-]+:[\w.-]+@sha256:[0-9a-f]{64}\}$")
+    for name in ("postgres", "rabbitmq", "mosquitto"):
+        assert pinned.match(compose["services"][name]["image"]), compose["services"][name]["image"]
+    assert pinned.match(compose["services"]["api"]["build"]["args"]["BASE"])
+
+
+def test_the_local_variant_swaps_only_the_images(compose):
+    local = yaml.safe_load(LOCAL_OVERRIDE.read_text())["services"]
+    assert set(local) == set(compose["services"])
+    assert all(set(service) == {"image"} and service["image"].startswith("localhost/") for service in local.values())
+
+
 @pytest.mark.parametrize("path", [COMPOSE, OAK_OVERRIDE])
 def test_every_thermofield_variable_is_a_setting(path):
     services = yaml.safe_load(path.read_text())["services"]
@@ -50,23 +75,30 @@ def test_every_thermofield_variable_is_a_setting(path):
 
 def test_proxy_and_ports_are_published_on_loopback_by_default(compose):
     services = compose["services"]
-    assert services["rerun"]["entrypoint"] == ["rerun-proxy"]
-    assert "--serve-grpc" in services["rerun"]["command"]
+    assert services["rerun"]["build"]["target"] == "rerun" and "--serve-grpc" in services["rerun"]["command"]
     for service in ("api", "rerun", "mosquitto"):
         for port in services[service]["ports"]:
             assert ":-127.0.0.1:" in port, f"{service} publishes {port} beyond the host by default"
 
 
-def test_the_image_installs_the_rerun_proxy_and_runs_thermofield():
+def test_one_dockerfile_builds_each_role_non_root_from_a_base_argument(compose):
     dockerfile = (DOCKER / "Dockerfile").read_text()
-    assert 'ENTRYPOINT ["thermofield"]' in dockerfile
-    assert "/usr/local/bin/rerun-proxy" in dockerfile
+    assert "ARG BASE=python:3.11-slim-bookworm\n" in dockerfile
+    targets = re.findall(r"^FROM \S+ AS (\w[\w-]*)$", dockerfile, flags=re.MULTILINE)
+    assert {"service", "gateway", "rerun"} <= set(targets)
+    assert {service["build"]["target"] for service in compose["services"].values() if "build" in service} == {
+        "service", "gateway", "rerun"}
+    for target in ("service", "gateway", "rerun"):
+        stage = dockerfile.split(f" AS {target}\n", 1)[1].split("\nFROM ", 1)[0]
+        assert "USER thermofield" in stage, f"the {target} image runs as root"
+    assert dockerfile.count("-c constraints.txt") == 2  # the package's and the gateway extra's dependencies
     ignored = (DOCKER / "Dockerfile.dockerignore").read_text().splitlines()
-    for copied in ("services/", "api/", "workers/", "device_gateway/", "migrations/"):
+    for copied in ("pyproject.toml", "constraints.txt", "services/", "api/", "workers/", "device_gateway/"):
         assert f"!{copied}" in ignored
 
 
-@pytest.mark.parametrize("files", [[COMPOSE], [COMPOSE, OAK_OVERRIDE]], ids=["compose", "compose+oak"])
+@pytest.mark.parametrize("files", [[COMPOSE], [COMPOSE, OAK_OVERRIDE], [COMPOSE, LOCAL_OVERRIDE]],
+                         ids=["compose", "compose+oak", "compose+local"])
 def test_docker_compose_accepts_the_files(files):
     binary = shutil.which("docker-compose")
     assert binary is not None, "docker-compose is not installed: run the suite with `make test`, which installs it"
