@@ -123,9 +123,10 @@ class Stack:
         self.compose("down", "--volumes", "--timeout", "5", timeout=300)
         # podman-compose leaves the project's network behind when a container refused to stop in time.
         for container in self.containers():
-            self.podman("rm", "--force", "--time", "0", container["Id"], check=False)
-        self.podman("volume", "prune", "--force", "--filter", f"label=io.podman.compose.project={PROJECT}",
-                    check=False)
+            self.podman("rm", "--force", "--volumes", "--time", "0", container["Id"], check=False)
+        for volume in self.podman("volume", "ls", "--quiet", "--filter",
+                                  f"label=io.podman.compose.project={PROJECT}").stdout.split():
+            self.podman("volume", "rm", "--force", volume, check=False)
 
 
 def _podman_compose() -> str:
