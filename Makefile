@@ -43,10 +43,10 @@ test-reliability: install-test
 		$(BIN)/python -m pytest -m 'reliability or schemathesis' -p no:cacheprovider -s \
 		tests/api/test_schemathesis.py tests/integration/test_load.py
 
-# The same suite's fast part on Python 3.12, in a venv of its own (.venv-py312).
-test-py312: .venv-py312/.installed-test docker-compose
-	.venv-py312/bin/python -m pytest -q -p no:cacheprovider tests/db tests/api tests/formats tests/structured_light \
-		tests/fusion tests/test_packaging.py
+# The service's tests on Python 3.12, in a venv of its own (.venv-py312); PY312_TESTS=tests runs them all.
+PY312_TESTS ?= tests/db tests/api tests/formats tests/workers tests/device_gateway/test_oak.py tests/test_packaging.py
+test-py312: .venv-py312/.installed-test
+	.venv-py312/bin/python -m pytest -q -p no:cacheprovider $(PY312_TESTS)
 
 .venv-py312/.installed-test: pyproject.toml constraints.txt | system-libraries
 	test -n "$(PYTHON312)" || { echo "make test-py312: no python3.12 on PATH"; exit 2; }
