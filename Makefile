@@ -9,8 +9,8 @@ BIN := $(VENV)/bin
 DEMO_DIR ?= demo-output
 PIP_INSTALL = python -m pip install --quiet --constraint constraints.txt
 
-.PHONY: install install-test demo test test-py312 test-containers test-reliability images podman constraints clean \
-	docker-compose system-libraries
+.PHONY: install install-test demo test test-fast test-py312 test-containers test-reliability images podman constraints \
+	clean docker-compose system-libraries
 
 install: $(VENV)/.installed
 
@@ -75,6 +75,10 @@ constraints:
 	  echo "# Refresh: make constraints (resolved with $$(.venv-constraints/bin/python --version))."; \
 	  .venv-constraints/bin/python -m pip freeze --all --exclude thermofield --exclude pip; } > constraints.txt
 	rm -rf .venv-constraints
+
+# The unit tier alone: no servers, no PostgreSQL, under a minute.
+test-fast: install-test
+	$(BIN)/python -m pytest -m "unit and not postgres"
 
 # tests/docker validates docker/compose.yaml with Debian's docker-compose (no Docker engine needed).
 docker-compose:

@@ -10,7 +10,8 @@ from api.metrics import ApiMetrics, MetricsMiddleware
 from api.problems import install_problem_handlers, problem_responses
 from api.ratelimit import RateLimiter
 from api.routers import apikeys, calibrations, devices, health, jobs, scans
-from workers.runtime import Runtime
+from services.jobs.queue import JobQueue
+from services.runtime import Runtime
 
 
 def _operation_id(route: APIRoute) -> str:
@@ -18,8 +19,8 @@ def _operation_id(route: APIRoute) -> str:
     return route.name
 
 
-def create_app(runtime: Runtime) -> FastAPI:
-    """The API serving ``runtime``'s database and artifact store; jobs go to the global Dramatiq broker."""
+def create_app(runtime: Runtime, job_queue: JobQueue) -> FastAPI:
+    """The API serving ``runtime``'s database and artifact store; jobs go to ``job_queue`` (by actor name)."""
     app = FastAPI(
         title="thermofield",
         version="1",
@@ -27,6 +28,7 @@ def create_app(runtime: Runtime) -> FastAPI:
         generate_unique_id_function=_operation_id,
     )
     app.state.runtime = runtime
+    app.state.jobs = job_queue
     app.state.key_cache = KeyCache()
     app.state.rate_limiter = RateLimiter(runtime.settings.rate_limit_per_s, runtime.settings.rate_limit_burst)
     app.state.metrics = ApiMetrics(runtime)

@@ -1,4 +1,5 @@
-"""Typed dependencies shared by the routers: the runtime, a database session and the caller's API key.
+"""Typed dependencies shared by the routers: the runtime, the job queue, a database session and the caller's
+API key.
 
 Dependencies that do no I/O are ``async`` so that FastAPI does not hand each of them to
 a worker thread; database queries run in the thread pool. Authenticated keys are
@@ -19,7 +20,8 @@ from sqlalchemy.orm import Session
 from api.problems import Problem
 from services.db.apikeys import find_api_key, grants, secret_digest
 from services.db.models import ApiKey
-from workers.runtime import Runtime
+from services.jobs.queue import JobQueue
+from services.runtime import Runtime
 
 KEY_CACHE_SECONDS = 5.0
 _bearer = HTTPBearer(auto_error=False, description="An API key made by `thermofield apikey create`.")
@@ -30,6 +32,13 @@ async def get_runtime(request: Request) -> Runtime:
 
 
 RuntimeDep = Annotated[Runtime, Depends(get_runtime)]
+
+
+async def get_job_queue(request: Request) -> JobQueue:
+    return request.app.state.jobs
+
+
+JobQueueDep = Annotated[JobQueue, Depends(get_job_queue)]
 
 
 async def get_session(runtime: RuntimeDep) -> AsyncIterator[Session]:

@@ -12,7 +12,7 @@ from sqlalchemy import func, select
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from services.db.models import JOB_STATUSES, Job
-from workers.runtime import Runtime
+from services.runtime import Runtime
 
 
 class _JobsByStatus(Collector):

@@ -14,9 +14,8 @@ from sqlalchemy.exc import DBAPIError, OperationalError
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from services.errors import InputError
+from services.problems import PROBLEM_MEDIA_TYPE, problem_response
 
-PROBLEM_MEDIA_TYPE = "application/problem+json"
-PROBLEM_TYPE_BASE = "https://thermofield.example/problems/"
 RETRY_AFTER_S = 5  # seconds a client waits after a 503 (database or storage down, queue full)
 
 
@@ -61,19 +60,6 @@ class Problem(Exception):
         self.status, self.kind, self.detail = status, kind, detail
         self.headers = headers
         self.extensions = extensions
-
-
-def problem_response(status: int, kind: str, detail: str, instance: str,
-                     headers: dict[str, str] | None = None, **extensions: Any) -> JSONResponse:
-    body = {
-        "type": PROBLEM_TYPE_BASE + kind,
-        "title": HTTPStatus(status).phrase,
-        "status": status,
-        "detail": detail,
-        "instance": instance,
-        **extensions,
-    }
-    return JSONResponse(body, status_code=status, media_type=PROBLEM_MEDIA_TYPE, headers=headers)
 
 
 def install_problem_handlers(app: FastAPI) -> None:

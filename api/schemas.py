@@ -7,8 +7,7 @@ from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field
 
-from services.calibration.camera import MIN_VIEWS
-from services.formats.board import BoardSpec
+from services.formats.board import MIN_VIEWS, BoardSpec
 
 JobStatus = Literal["queued", "running", "succeeded", "failed"]
 

@@ -59,18 +59,19 @@ def _science_alone_seconds(gateway_url: str) -> float:
     from device_gateway.client import GatewayClient
     from services.fusion.field import temperature_field
     from services.fusion.fuse import ThermalView
-    from services.geometry.camera import camera_center
+
     from services.simulation.presets import forging_rig
-    from services.structured_light.reconstruct import reconstruct_points, rig_triangulation_table
+    from services.structured_light.reconstruct import reconstruct_points
+    from services.structured_light.triangulate import triangulation_table
 
     rig = forging_rig()
     camera, projector, thermal = rig.devices["camera"], rig.devices["projector"], rig.devices["thermal"]
-    table = rig_triangulation_table(camera, projector, "x")
+    table = triangulation_table(camera, projector, "x")
     start = time.perf_counter()
     with GatewayClient(gateway_url) as gateway:
         capture = gateway.capture()
     cloud = reconstruct_points(capture.frames, capture.sequence, camera, projector, table=table)
-    temperature_field(cloud, [ThermalView(thermal, capture.thermal)], camera_center(camera.R_array, camera.t_array))
+    temperature_field(cloud, [ThermalView(thermal, capture.thermal)], camera.centre)
     return time.perf_counter() - start
 
 

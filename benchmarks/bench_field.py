@@ -29,7 +29,7 @@ import numpy as np
 
 from services.fusion.field import temperature_field
 from services.fusion.fuse import ThermalView
-from services.geometry.camera import camera_center
+
 from services.simulation.presets import forging_rig, forging_scene
 from services.simulation.render import CameraEffects, render_frames, render_view
 from services.simulation.thermal import ThermalEffects, forging_temperatures, render_thermal
@@ -41,8 +41,8 @@ _REMAP_WIDTH = 1024
 
 def _naive_fusion(cloud: dict, thermal, image: np.ndarray) -> np.ndarray:
     points = np.column_stack([cloud["x"], cloud["y"], cloud["z"]]).astype(np.float64)
-    rvec, _ = cv2.Rodrigues(thermal.R_array)
-    pixels, _ = cv2.projectPoints(points, rvec, thermal.t_array, thermal.K_array, thermal.dist_array)
+    rvec, _ = cv2.Rodrigues(thermal.R)
+    pixels, _ = cv2.projectPoints(points, rvec, thermal.t, thermal.K, thermal.dist)
     pixels = pixels.reshape(-1, 2).astype(np.float32)
     padding = -len(pixels) % _REMAP_WIDTH  # cv2.remap maps must be under 32767 rows and columns
     maps = np.concatenate([pixels, np.full((padding, 2), -1.0, np.float32)]).reshape(-1, _REMAP_WIDTH, 2)
@@ -73,7 +73,7 @@ def main() -> None:
     frames = render_frames(render_view(scene, camera, projector, supersample=1), patterns, rng,
                            CameraEffects(noise_sigma=1.0))
     image = render_thermal(scene, forging_temperatures(), thermal, ThermalEffects(), rng)
-    viewpoint = camera_center(camera.R_array, camera.t_array)
+    viewpoint = camera.centre
     views = [ThermalView(thermal, image)]
 
     cloud = reconstruct_points(frames, sequence, camera, projector)  # warm-up (numba compilation)

@@ -24,6 +24,7 @@ from device_gateway.client import GatewayClient
 from device_gateway.drivers.simulated import SimulatedStation
 from device_gateway.station import Station
 from services.simulation.render import render_frames
+from services.streaming.field import field_scene
 from services.streaming.recording import scan_recording
 from services.structured_light.patterns import generate_sequence
 
@@ -74,7 +75,7 @@ def main() -> None:
     field = {axis: rng.uniform(-100, 100, count).astype(np.float32) for axis in "xyz"}
     field["temperature"] = rng.uniform(900, 1100, count).astype(np.float32)
     thermal = simulated.clean_thermal()
-    recording = statistics.median(_seconds(lambda: scan_recording("bench", field, simulated.rig, thermal))
+    recording = statistics.median(_seconds(lambda: scan_recording("bench", field_scene(field, simulated.rig, thermal)))
                                   for _ in range(args.repeats))
 
     size = f"{len(patterns)} patterns, camera {simulated.camera.info.width}x{simulated.camera.info.height}"

@@ -25,7 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
-from services.formats.rig import Device
+from services.geometry.camera_model import CameraModel
 from services.simulation.presets import forging_rig, forging_scene
 from services.simulation.render import CameraEffects, ProjectorEffects, render_frames, render_view
 from services.structured_light.decode import decode
@@ -38,17 +38,16 @@ from services.structured_light.reconstruct import (
     _refined_coordinates,
     reconstruct_points,
     remove_speckles,
-    rig_triangulation_table,
 )
-from services.structured_light.triangulate import TriangulationTable, triangulate_map
+from services.structured_light.triangulate import TriangulationTable, triangulate_map, triangulation_table
 
 
-def _scaled(device: Device, width: int, height: int) -> Device:
+def _scaled(device: CameraModel, width: int, height: int) -> CameraModel:
     scale = width / device.width
-    K = device.K_array.copy()
+    K = device.K.copy()
     K[:2] *= scale
     K[0, 2], K[1, 2] = (width - 1) / 2, (height - 1) / 2
-    return device.model_copy(update={"width": width, "height": height, "K": K.tolist()})
+    return device.replace(**{"width": width, "height": height, "K": K.tolist()})
 
 
 def _capture(width: int, height: int):
@@ -195,7 +194,7 @@ def run(repeats: int) -> list[dict]:
     for width, height in ((1280, 800), (1920, 1080)):
         camera, projector, sequence, frames = _capture(width, height)
         start = time.perf_counter()
-        table = rig_triangulation_table(camera, projector, "x")
+        table = triangulation_table(camera, projector, "x")
         table_s = time.perf_counter() - start
         table_mb = sum(getattr(table, name).nbytes for name in ("pixel_geometry", "line_offsets", "exact_cells")) / 2**20
         scan = lambda: reconstruct_points(frames, sequence, camera, projector, table=table)  # noqa: E731

@@ -31,9 +31,9 @@ from device_gateway.station import ExposureControl, Station
 from device_gateway.transfer import BOARD_VIEWS_MEDIA_TYPE, MEDIA_TYPE, encode_board_views, encode_capture
 from services.formats.board import BoardSpec
 from services.formats.sequence import Sequence
+from services.problems import problem_response
 
 logger = logging.getLogger(__name__)
-PROBLEM_MEDIA_TYPE = "application/problem+json"
 
 
 class CaptureRequest(BaseModel):
@@ -64,12 +64,6 @@ class Health(BaseModel):
     devices: dict[str, bool]
 
 
-def problem(status: int, title: str, detail: str) -> JSONResponse:
-    """An RFC 9457 problem document."""
-    return JSONResponse({"type": "about:blank", "title": title, "status": status, "detail": detail},
-                        status_code=status, media_type=PROBLEM_MEDIA_TYPE)
-
-
 def _station(request: Request) -> Station:
     return request.app.state.station
 
@@ -94,12 +88,12 @@ def create_app(station: Station, sequence: Sequence, patterns: np.ndarray) -> Fa
 
     @app.exception_handler(DeviceError)
     async def device_error(request: Request, error: DeviceError) -> JSONResponse:
-        return problem(503, "Device unavailable", str(error))
+        return problem_response(503, "device-unavailable", str(error), request.url.path)
 
     @app.exception_handler(RequestValidationError)
     async def invalid_request(request: Request, error: RequestValidationError) -> JSONResponse:
         details = "; ".join(f"{'.'.join(map(str, item['loc']))}: {item['msg']}" for item in error.errors())
-        return problem(422, "Invalid request", details)
+        return problem_response(422, "validation-error", details, request.url.path)
 
     @app.get("/healthz", operation_id="health", response_model=Health,
              responses={503: {"model": Health, "description": "A device is not open."}})

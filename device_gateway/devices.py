@@ -1,5 +1,8 @@
 """The small interfaces every driver implements: camera, thermal camera, projector.
 
+A driver is the gateway's handle on one physical (or simulated) device; the device's calibration is
+a :class:`services.geometry.camera.CameraModel` in the rig, a separate concept with its own name.
+
 A driver is opened once and then used for many captures. ``open`` fails fast with
 :class:`DeviceUnavailable` when the hardware (or display) is not there; a device
 that stops answering during a capture raises :class:`DeviceLost`, after which the
@@ -10,11 +13,11 @@ from __future__ import annotations
 
 import abc
 from dataclasses import dataclass, field
-from typing import Any, Literal
+from typing import Any
 
 import numpy as np
 
-DeviceKind = Literal["camera", "thermal", "projector"]
+from services.geometry.camera_model import DeviceKind
 
 
 class DeviceError(RuntimeError):
@@ -56,7 +59,7 @@ class Frame:
     metadata: dict[str, Any] = field(default_factory=dict)
 
 
-class Device(abc.ABC):
+class DeviceDriver(abc.ABC):
     """A device the gateway owns: opened once, closed on shutdown, re-opened after a loss."""
 
     @property
@@ -78,7 +81,7 @@ class Device(abc.ABC):
         """Whether ``open`` succeeded and the device has not been closed or lost since."""
 
 
-class Camera(Device):
+class CameraDriver(DeviceDriver):
     """A visible camera filming the projected patterns.
 
     Cameras that can change their exposure between frames (for automatic exposure and HDR of glowing
@@ -105,7 +108,7 @@ class Camera(Device):
         return 255
 
 
-class ThermalCamera(Device):
+class ThermalDriver(DeviceDriver):
     """An infrared camera giving temperatures in degrees Celsius."""
 
     @abc.abstractmethod
@@ -113,7 +116,7 @@ class ThermalCamera(Device):
         """A float32 temperature frame; :class:`DeviceLost` when none comes in time."""
 
 
-class Projector(Device):
+class ProjectorDriver(DeviceDriver):
     """A projector showing full-screen patterns."""
 
     @property

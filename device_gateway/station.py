@@ -27,7 +27,9 @@ from typing import Any, Literal, Protocol
 
 import numpy as np
 
-from device_gateway.devices import Camera, Device, DeviceInfo, DeviceLost, DeviceUnavailable, Projector, ThermalCamera
+from device_gateway.devices import (
+    CameraDriver, DeviceDriver, DeviceInfo, DeviceLost, DeviceUnavailable, ProjectorDriver, ThermalDriver,
+)
 from services.formats.board import BoardSpec
 from services.formats.sequence import Sequence
 from services.structured_light.hdr import merge_exposures
@@ -113,7 +115,7 @@ class Station:
     ``interval_s`` seconds per view.
     """
 
-    def __init__(self, camera: Camera, thermal: ThermalCamera, projector: Projector,
+    def __init__(self, camera: CameraDriver, thermal: ThermalDriver, projector: ProjectorDriver,
                  settle_s: float | None = None, grab_timeout_s: float = 2.0,
                  board_holder: BoardHolder | None = None) -> None:
         self.camera = camera
@@ -125,7 +127,7 @@ class Station:
         self._lock = threading.Lock()
 
     @property
-    def devices(self) -> list[Device]:
+    def devices(self) -> list[DeviceDriver]:
         return [self.camera, self.thermal, self.projector]
 
     def open(self) -> None:

@@ -75,13 +75,13 @@ def camera_board_poses(camera_R: np.ndarray, camera_centre: np.ndarray) -> list[
 def main() -> None:
     rig = paper_rig()
     camera, projector = rig.devices["camera"], rig.devices["projector"]
-    R_c, t_c = camera.R_array, camera.t_array
-    projector_from_camera = projector.model_copy(update={"R": (projector.R_array @ R_c.T).tolist(),
-                                                         "t": (projector.t_array - projector.R_array @ R_c.T @ t_c).tolist()})
+    R_c, t_c = camera.R, camera.t
+    projector_from_camera = projector.replace(**{"R": (projector.R @ R_c.T).tolist(),
+                                                         "t": (projector.t - projector.R @ R_c.T @ t_c).tolist()})
     rng = np.random.default_rng(12)
     camera_views = []
     for R_wb, t_wb in camera_board_poses(R_c, camera_center(R_c, t_c)):
-        image = render_board(CAMERA_BOARD, camera.K_array, camera.dist_array, R_c @ R_wb, R_c @ t_wb + t_c,
+        image = render_board(CAMERA_BOARD, camera.K, camera.dist, R_c @ R_wb, R_c @ t_wb + t_c,
                              camera.size, blur_sigma=0.7, noise_sigma=1.5, rng=rng)
         camera_views.append(detect_board(image, CAMERA_BOARD).image_points)
     camera_cal = calibrate_camera([CAMERA_BOARD.object_points()] * len(camera_views), camera_views, camera.size,
@@ -90,7 +90,7 @@ def main() -> None:
     detections, corner_errors = [], []
     for R_wb, t_wb in projector_board_poses():
         R, t = R_c @ R_wb, R_c @ t_wb + t_c
-        frames = render_board_capture(BOARD, camera.K_array, camera.dist_array, R, t, camera.size,
+        frames = render_board_capture(BOARD, camera.K, camera.dist, R, t, camera.size,
                                       projector_from_camera, patterns, blur_sigma=0.7, noise_sigma=1.5, rng=rng)
         decoded = decode(frames, sequence)
         lit = np.clip(np.round(decoded.intensity), 0, 255).astype(np.uint8)
@@ -102,16 +102,16 @@ def main() -> None:
                                            int(spacing / 2), decoded.modulation)
         if found.sum() < 6:
             continue
-        truth = project_points(BOARD.object_points() @ R_wb.T + t_wb, projector.K_array, projector.dist_array,
-                               projector.R_array, projector.t_array)
+        truth = project_points(BOARD.object_points() @ R_wb.T + t_wb, projector.K, projector.dist,
+                               projector.R, projector.t)
         corner_errors.append(np.linalg.norm(corners[found] - truth[found], axis=1))
         detections.append((detection.image_points[found], corners[found], BOARD.object_points()[found]))
     objects = [d[2] for d in detections]
     result = calibrate_projector(objects, [d[0] for d in detections], [d[1] for d in detections],
                                  (camera_cal.K, camera_cal.dist), camera.size, projector.size)
     R_pc, t_pc = result.stereo.R, result.stereo.t
-    calibrated_camera = camera.model_copy(update={"K": camera_cal.K.tolist(), "dist": camera_cal.dist.tolist()})
-    calibrated_projector = projector.model_copy(update={
+    calibrated_camera = camera.replace(**{"K": camera_cal.K.tolist(), "dist": camera_cal.dist.tolist()})
+    calibrated_projector = projector.replace(**{
         "K": result.projector.K.tolist(), "dist": result.projector.dist.tolist(),
         "R": (R_pc @ R_c).tolist(), "t": (R_pc @ t_c + t_pc).tolist()})
     true_R_pc = np.asarray(projector_from_camera.R)
@@ -124,15 +124,15 @@ def main() -> None:
         "",
         "| quantity | true | calibrated | error |",
         "|---|---|---|---|",
-        f"| camera f_x (px) | {camera.K_array[0, 0]:.3f} | {camera_cal.K[0, 0]:.3f} | "
-        f"{100 * abs(camera_cal.K[0, 0] / camera.K_array[0, 0] - 1):.4f}% |",
-        f"| projector f_x (px) | {projector.K_array[0, 0]:.3f} | {result.projector.K[0, 0]:.3f} | "
-        f"{100 * abs(result.projector.K[0, 0] / projector.K_array[0, 0] - 1):.4f}% |",
-        f"| projector f_y (px) | {projector.K_array[1, 1]:.3f} | {result.projector.K[1, 1]:.3f} | "
-        f"{100 * abs(result.projector.K[1, 1] / projector.K_array[1, 1] - 1):.4f}% |",
-        f"| projector c_x, c_y (px) | {projector.K_array[0, 2]:.2f}, {projector.K_array[1, 2]:.2f} | "
+        f"| camera f_x (px) | {camera.K[0, 0]:.3f} | {camera_cal.K[0, 0]:.3f} | "
+        f"{100 * abs(camera_cal.K[0, 0] / camera.K[0, 0] - 1):.4f}% |",
+        f"| projector f_x (px) | {projector.K[0, 0]:.3f} | {result.projector.K[0, 0]:.3f} | "
+        f"{100 * abs(result.projector.K[0, 0] / projector.K[0, 0] - 1):.4f}% |",
+        f"| projector f_y (px) | {projector.K[1, 1]:.3f} | {result.projector.K[1, 1]:.3f} | "
+        f"{100 * abs(result.projector.K[1, 1] / projector.K[1, 1] - 1):.4f}% |",
+        f"| projector c_x, c_y (px) | {projector.K[0, 2]:.2f}, {projector.K[1, 2]:.2f} | "
         f"{result.projector.K[0, 2]:.2f}, {result.projector.K[1, 2]:.2f} | "
-        f"{np.abs(result.projector.K[:2, 2] - projector.K_array[:2, 2]).max():.3f} px |",
+        f"{np.abs(result.projector.K[:2, 2] - projector.K[:2, 2]).max():.3f} px |",
         f"| camera-projector rotation | | | "
         f"{np.degrees(np.linalg.norm(cv2.Rodrigues(R_pc @ true_R_pc.T)[0])):.4f} deg |",
         f"| camera-projector translation (mm) | {np.array2string(true_t_pc, precision=2)} | "

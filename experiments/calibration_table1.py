@@ -63,12 +63,12 @@ def plate_poses_in_world(camera_R: np.ndarray) -> tuple[list, list]:
 def simulate(rng: np.random.Generator) -> dict[str, dict[str, float]]:
     """One noisy calibration: intrinsics from all plate views, extrinsics from the stage positions."""
     camera = paper_rig().devices["camera"]
-    K, R_cam, t_cam = camera.K_array, camera.R_array, camera.t_array
+    K, R_cam, t_cam = camera.K, camera.R, camera.t
     stage, tilted = plate_poses_in_world(R_cam)
     world, images = [], []
     for R_wb, t_wb in stage + tilted:
         points = BOARD.object_points() @ R_wb.T + t_wb
-        pixels = project_points(points, K, camera.dist_array, R_cam, t_cam)
+        pixels = project_points(points, K, camera.dist, R_cam, t_cam)
         assert np.all((pixels >= 0) & (pixels <= [camera.width - 1, camera.height - 1])), "the plate leaves the view"
         world.append(points)
         images.append(pixels + rng.normal(0.0, NOISE_PX, pixels.shape))

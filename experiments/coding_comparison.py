@@ -85,8 +85,8 @@ def _measure(sequence, captured, view, camera, projector, rays) -> dict[str, flo
     error_px = np.abs(decoded.projector_x - truth.projector_pixels[..., 0])[decoded_lit]
     decoded_pixels = np.flatnonzero(decoded.valid)
     points = triangulate(rays.reshape(-1, 2)[decoded_pixels], decoded.projector_x.ravel()[decoded_pixels], "x",
-                         camera.R_array, camera.t_array, projector.K_array, projector.dist_array,
-                         projector.R_array, projector.t_array)
+                         camera.R, camera.t, projector.K, projector.dist,
+                         projector.R, projector.t)
     v, u = np.divmod(decoded_pixels, camera.width)
     on_surface = truth.surface[v, u] >= 0
     points = points[on_surface]
@@ -106,7 +106,7 @@ def _measure(sequence, captured, view, camera, projector, rays) -> dict[str, flo
 def main() -> None:
     rig = paper_rig()
     camera, projector = rig.devices["camera"], rig.devices["projector"]
-    rays = camera_ray_table(camera.K_array, camera.dist_array, camera.width, camera.height)
+    rays = camera_ray_table(camera.K, camera.dist, camera.width, camera.height)
     patterns = _unique_frames()
     names = list(patterns)
     stack = np.stack([patterns[name] for name in names])

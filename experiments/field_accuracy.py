@@ -20,11 +20,11 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
-from services.formats.rig import Device  # noqa: E402
+from services.geometry.camera_model import CameraModel  # noqa: E402
 from services.fusion.field import temperature_field  # noqa: E402
 from services.fusion.fuse import ThermalView  # noqa: E402
 from services.fusion.visibility import depth_buffer, seen_mask  # noqa: E402
-from services.geometry.camera import camera_center, project_points  # noqa: E402
+from services.geometry.camera import project_points  # noqa: E402
 from services.simulation.presets import forging_rig, forging_scene, look_at_rotation  # noqa: E402
 from services.simulation.render import CameraEffects, render_frames, render_view  # noqa: E402
 from services.simulation.thermal import (  # noqa: E402
@@ -51,12 +51,12 @@ def evaluate(cloud, rig, scene, temperatures, truth, image) -> tuple[dict, dict]
     """Fuse ``cloud`` (which has camera pixels u, v) and score it against the truth at those pixels."""
     camera, thermal = rig.devices["camera"], rig.devices["thermal"]
     field = temperature_field(cloud, [ThermalView(thermal, image)],
-                              camera_center(camera.R_array, camera.t_array))
+                              camera.centre)
     row, column = cloud["v"].astype(int), cloud["u"].astype(int)
     true_points = truth.points[row, column]
     on_surface = truth.surface[row, column] >= 0
     true_temperature = surface_temperature(temperatures, true_points, truth.surface[row, column])
-    pixels = project_points(true_points, thermal.K_array, thermal.dist_array, thermal.R_array, thermal.t_array)
+    pixels = project_points(true_points, thermal.K, thermal.dist, thermal.R, thermal.t)
     in_image = on_surface & np.all((pixels > -0.5) & (pixels < [thermal.width - 0.5, thermal.height - 0.5]), axis=1)
     visible = np.zeros(len(row), dtype=bool)
     visible[in_image] = seen_by(scene, thermal, true_points[in_image])
@@ -85,11 +85,11 @@ def exact_cloud(truth) -> dict[str, np.ndarray]:
             "u": u.astype(np.float32), "v": v.astype(np.float32)}
 
 
-def _virtual_camera(centre, target, focal: float, width: int, height: int) -> Device:
+def _virtual_camera(centre, target, focal: float, width: int, height: int) -> CameraModel:
     """A distortion-free camera at ``centre`` looking at ``target`` (image y roughly along world y)."""
     centre = np.asarray(centre, dtype=float)
     R = look_at_rotation(centre, target)
-    return Device(kind="camera", width=width, height=height,
+    return CameraModel(kind="camera", width=width, height=height,
                   K=[[focal, 0, width / 2], [0, focal, height / 2], [0, 0, 1]], R=R.tolist(), t=(-R @ centre).tolist())
 
 
@@ -97,8 +97,8 @@ def render_field_picture(field: dict, path: Path, title: str) -> None:
     """The coloured points seen from a virtual camera off the rig's axis, z-buffered and shaded by normal."""
     view = _virtual_camera((-260.0, -240.0, 100.0), (-10.0, 30.0, 660.0), 430.0, 520, 360)
     points = np.column_stack([field["x"], field["y"], field["z"]]).astype(np.float64)
-    pixels = project_points(points, view.K_array, view.dist_array, view.R_array, view.t_array)
-    depth = np.einsum("j,nj->n", view.R_array[2], points) + view.t_array[2]
+    pixels = project_points(points, view.K, view.dist, view.R, view.t)
+    depth = np.einsum("j,nj->n", view.R[2], points) + view.t[2]
     buffer = depth_buffer(pixels, depth, view.width, view.height)
     front = seen_mask(pixels, depth, buffer, np.full(len(depth), 3.0))
     normals = np.column_stack([field["nx"], field["ny"], field["nz"]])

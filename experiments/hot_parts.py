@@ -26,7 +26,8 @@ import numpy as np
 
 from device_gateway.drivers.simulated import SimulatedStation, SimulationOptions
 from device_gateway.station import ExposureControl, Station
-from services.formats.rig import Device, Rig
+from services.formats.rig import Rig
+from services.geometry.camera_model import CameraModel
 from services.simulation.presets import HOT_STEEL_EMISSIVITY, forging_rig, hot_optics, hot_part_scene
 from services.simulation.render import CameraEffects, ProjectorEffects
 from services.simulation.thermal import ThermalEffects
@@ -95,7 +96,7 @@ def scaled_rig(scale: float) -> Rig:
     K = np.asarray(camera.K, dtype=np.float64)
     K_scaled = [[K[0, 0] * scale, 0.0, (width - 1) / 2], [0.0, K[1, 1] * scale, (height - 1) / 2], [0.0, 0.0, 1.0]]
     devices = dict(rig.devices)
-    devices["camera"] = Device(kind="camera", width=width, height=height, K=K_scaled, dist=camera.dist,
+    devices["camera"] = CameraModel(kind="camera", width=width, height=height, K=K_scaled, dist=camera.dist,
                                R=camera.R, t=camera.t)
     return Rig(devices=devices)
 
@@ -139,7 +140,7 @@ def run_case(case: Case, scale: float = 1.0, seed: int = 0) -> Result:
     part_points = on_part[v, u]
     interior_part_points = part_pixels[v, u]
     depth = np.full(truth.surface.shape, np.nan, dtype=np.float32)
-    depth[v, u] = points @ camera.R_array[2] + camera.t_array[2]
+    depth[v, u] = points @ camera.R[2] + camera.t[2]
     return Result(
         case=case,
         exposures_us=capture.exposure["exposures_us"],

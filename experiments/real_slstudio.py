@@ -24,7 +24,8 @@ from services.cli.main import main as thermofield
 from services.calibration.corners import detect_board
 from services.calibration.projector import projector_corners
 from services.formats.board import ChessboardSpec
-from services.formats.rig import Device, load_rig
+from services.formats.rig import load_rig
+from services.geometry.camera_model import CameraModel
 from services.formats.sequence import read_capture
 from services.geometry.camera import normalized_coordinates, project_points
 from services.structured_light.decode import Rejection, decode
@@ -67,22 +68,22 @@ def import_slstudio(work: Path) -> Path:
     return out
 
 
-def displacement_at_depth(reference: tuple[Device, Device], other: tuple[Device, Device], depth: float = DEPTH_MM,
+def displacement_at_depth(reference: tuple[CameraModel, CameraModel], other: tuple[CameraModel, CameraModel], depth: float = DEPTH_MM,
                           step: int = 8) -> np.ndarray:
     """|X_other - X_reference| (mm) of the points the reference rig puts at ``depth`` on a grid of camera
     pixels, when the same camera pixel and decoded projector column are triangulated with the other rig."""
     (camera, projector), (camera_2, projector_2) = reference, other
     u, v = np.meshgrid(np.arange(0, camera.width, step), np.arange(0, camera.height, step))
     pixels = np.column_stack([u.ravel(), v.ravel()]).astype(np.float64)
-    rays = normalized_coordinates(pixels, camera.K_array, camera.dist_array)
+    rays = normalized_coordinates(pixels, camera.K, camera.dist)
     points_camera = np.column_stack([rays * depth, np.full(len(rays), depth)])
-    points = (points_camera - camera.t_array) @ camera.R_array  # camera frame to world
-    columns = project_points(points, projector.K_array, projector.dist_array, projector.R_array, projector.t_array)
+    points = (points_camera - camera.t) @ camera.R  # camera frame to world
+    columns = project_points(points, projector.K, projector.dist, projector.R, projector.t)
     inside = (columns[:, 0] >= 0) & (columns[:, 0] <= projector.width - 1) & (columns[:, 1] >= 0) & \
         (columns[:, 1] <= projector.height - 1)
-    rays_2 = normalized_coordinates(pixels[inside], camera_2.K_array, camera_2.dist_array)
-    moved = triangulate(rays_2, columns[inside, 0], "x", camera_2.R_array, camera_2.t_array, projector_2.K_array,
-                        projector_2.dist_array, projector_2.R_array, projector_2.t_array)
+    rays_2 = normalized_coordinates(pixels[inside], camera_2.K, camera_2.dist)
+    moved = triangulate(rays_2, columns[inside, 0], "x", camera_2.R, camera_2.t, projector_2.K,
+                        projector_2.dist, projector_2.R, projector_2.t)
     return np.linalg.norm(moved - points[inside], axis=1)
 
 
@@ -102,15 +103,15 @@ def board_corners(sequences: list[int]) -> dict[int, tuple[np.ndarray, np.ndarra
     return corners
 
 
-def board_geometry_errors(rig: tuple[Device, Device], corners: tuple[np.ndarray, np.ndarray, np.ndarray]
+def board_geometry_errors(rig: tuple[CameraModel, CameraModel], corners: tuple[np.ndarray, np.ndarray, np.ndarray]
                           ) -> tuple[float, float]:
     """Triangulate the board corners with a rig and fit the true board by a similarity: the RMS distance (mm)
     of the corners from the fitted board, and the fitted scale minus one (the rig's length error)."""
     camera, projector = rig
     pixels, columns, grid = corners
-    rays = normalized_coordinates(pixels, camera.K_array, camera.dist_array)
-    points = triangulate(rays, columns, "x", camera.R_array, camera.t_array, projector.K_array, projector.dist_array,
-                         projector.R_array, projector.t_array).astype(np.float64)
+    rays = normalized_coordinates(pixels, camera.K, camera.dist)
+    points = triangulate(rays, columns, "x", camera.R, camera.t, projector.K, projector.dist,
+                         projector.R, projector.t).astype(np.float64)
     measured, truth = points - points.mean(axis=0), grid - grid.mean(axis=0)
     u, singular, vt = np.linalg.svd(truth.T @ measured)
     flip = np.diag([1.0, 1.0, np.sign(np.linalg.det(u @ vt))])
@@ -145,7 +146,7 @@ def window_sensitivity(sequences: list[int], fractions=(0.15, 0.2, 0.25, 0.3)) -
     return results
 
 
-def devices(rig) -> tuple[Device, Device]:
+def devices(rig) -> tuple[CameraModel, CameraModel]:
     return rig.device(None, "camera")[1], rig.device(None, "projector")[1]
 
 
@@ -216,8 +217,8 @@ def parameter_table(ours: dict, slstudio) -> str:
             digits = 2 if name in ("fx", "fy", "cx", "cy") else 4
             rows.append([label, name, _value(value, std.get(name), digits), f"{sl_values[name]:.{digits}f}"])
     projector_device = ours["rig"].devices["projector"]
-    rvec = cv2.Rodrigues(projector_device.R_array)[0].ravel()
-    sl_rvec = cv2.Rodrigues(sl_projector.R_array)[0].ravel()
+    rvec = cv2.Rodrigues(projector_device.R)[0].ravel()
+    sl_rvec = cv2.Rodrigues(sl_projector.R)[0].ravel()
     stereo_std = projector["stereo_std"]
     for i, axis in enumerate("xyz"):
         rows.append(["camera to projector", f"r{axis} (rad)", _value(rvec[i], stereo_std[f"r{axis}"], 5),

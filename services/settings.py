@@ -100,6 +100,8 @@ class Settings(BaseSettings):
     worker_processes: int = Field(2, ge=1, description="Worker processes started by `thermofield worker`.")
     worker_threads: int = Field(1, ge=1, description="Jobs run at once per worker process.")
     compute_threads: int = Field(2, ge=1, description="Numeric threads (numba, OpenCV, BLAS) per worker process.")
+    warm_up: bool = Field(True, description="Compile the kernels and build the active calibration's tables when a "
+                                            "worker starts (/readyz answers 503 meanwhile), so the first scan is fast.")
 
     @property
     def resolved_database_url(self) -> str:
@@ -126,3 +128,10 @@ class Settings(BaseSettings):
 def get_settings() -> Settings:
     """The process's settings, read once from the environment."""
     return Settings()
+
+
+def thread_environment(threads: int) -> dict[str, str]:
+    """The numeric libraries' thread variables for ``threads`` threads, for the environment of processes
+    about to import them (the spawned worker processes)."""
+    return {name: str(threads) for name in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS",
+                                            "NUMBA_NUM_THREADS")}

@@ -47,3 +47,39 @@ def small_disk(tmp_path):
     yield make
     for mount_point in mounts:
         subprocess.run(["umount", "-l", str(mount_point)], check=False)
+
+
+@pytest.fixture(autouse=True, scope="session")
+def _private_table_cache(tmp_path_factory):
+    """Commands keep triangulation tables under $XDG_CACHE_HOME: the suite's go to a temporary directory
+    (inherited by the commands it runs as subprocesses)."""
+    import os
+
+    previous = os.environ.get("XDG_CACHE_HOME")
+    os.environ["XDG_CACHE_HOME"] = str(tmp_path_factory.mktemp("cache"))
+    yield
+    if previous is None:
+        os.environ.pop("XDG_CACHE_HOME")
+    else:
+        os.environ["XDG_CACHE_HOME"] = previous
+
+
+# Test files that start processes or servers: the integration tier (with the modules marked by hand
+# ``pytestmark = pytest.mark.integration`` because they render full-size simulated scans).
+_INTEGRATION_FILES = ("integration/", "cli/", "docker/", "device_gateway/test_app.py", "workers/test_calibrate.py",
+                      "streaming/test_recording.py", "test_cli.py", "_cli.py", "test_cli_simulate.py")
+
+
+def pytest_collection_modifyitems(config, items):
+    """Every test gets one tier, unit or integration, and ``postgres`` too when it uses the PostgreSQL server
+    (the ``engine`` fixture's postgresql case, and the scaled-out mode)."""
+    for item in items:
+        path = item.path.as_posix().split("/tests/", 1)[-1]
+        callspec = getattr(item, "callspec", None)
+        if (callspec is not None and callspec.params.get("engine") == "postgresql") or "test_scaled_out" in path:
+            item.add_marker(pytest.mark.postgres)
+        if not item.get_closest_marker("integration"):
+            if any(part in path for part in _INTEGRATION_FILES):
+                item.add_marker(pytest.mark.integration)
+            else:
+                item.add_marker(pytest.mark.unit)

@@ -5,24 +5,16 @@ from __future__ import annotations
 import logging
 import os
 import socket
+import threading
 
 import cv2
 import dramatiq
 import numba
 from dramatiq.middleware import Middleware, SkipMessage
 
-from workers.runtime import current_runtime
+from services.runtime import current_runtime
 
 logger = logging.getLogger(__name__)
-_THREAD_VARIABLES = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "NUMBA_NUM_THREADS")
-
-
-def limit_thread_environment(threads: int) -> None:
-    """Set the numeric libraries' thread variables; call before they are imported (spawned children inherit it)."""
-    for name in _THREAD_VARIABLES:
-        os.environ[name] = str(threads)
-
-
 class ComputeThreads(Middleware):
     """Caps OpenCV's and numba's thread pools in each worker process so that replicas share the cores."""
 
@@ -35,6 +27,17 @@ class ComputeThreads(Middleware):
     def after_worker_thread_boot(self, broker, thread) -> None:
         # numba's thread count is per calling thread, so each worker thread sets its own.
         numba.set_num_threads(min(self.threads, numba.config.NUMBA_NUM_THREADS))
+
+
+class WarmUp(Middleware):
+    """Warms each worker process up when it boots, so that its first job is as fast as the next."""
+
+    def after_worker_boot(self, broker, worker) -> None:
+        from workers.actors import warm_up_runtime
+
+        runtime = current_runtime()
+        runtime.ready.clear()
+        threading.Thread(target=warm_up_runtime, args=(runtime,), name="warm-up", daemon=True).start()
 
 
 class JobBookkeeping(Middleware):

@@ -14,20 +14,17 @@ from fastapi import APIRouter, Depends, File, Form, Request, UploadFile
 from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import Response
 from sqlalchemy import select
-from sqlalchemy.orm import Session
 
-from api.deps import AdminKey, ReaderKey, RuntimeDep, SessionDep
+from api.deps import AdminKey, JobQueueDep, ReaderKey, RuntimeDep, SessionDep
+from api.dispatch import start_job
 from api.idempotency import IdempotencyKeyHeader, Outcome, request_digest, respond_once
 from api.problems import Problem, problem_responses
 from api.schemas import Accepted, CalibrationSetOut, StereoCaptureRequest
 from services.db.calibrations import activate_calibration
 from services.db.models import CalibrationSet
-from services.calibration.camera import MIN_VIEWS
-from services.formats.board import parse_board
+from services.formats.board import MIN_VIEWS, parse_board
 from services.formats.images import FRAME_SUFFIXES
 from services.formats.rig import Rig, parse_rig, rig_to_json
-from workers.broker import send_job
-from workers.runtime import Runtime
 
 router = APIRouter(prefix="/calibration-sets", tags=["calibration"])
 _MAX_RIG_BYTES = 1 << 20
@@ -84,6 +81,7 @@ async def create_calibration_set(request: Request, session: SessionDep, runtime:
                                                  **problem_responses(404, 413)})
 async def start_stereo_calibration(
     request: Request, key: AdminKey, calibration: ExistingCalibration, session: SessionDep, runtime: RuntimeDep,
+    queue: JobQueueDep,
     board: Annotated[UploadFile, File(description="Board specification JSON (docs/calibration.md).")],
     reference_images: Annotated[list[UploadFile], File(description="Board images of the rig's camera.")],
     device_images: Annotated[list[UploadFile], File(description="The same board poses seen by the device, "
@@ -126,7 +124,7 @@ async def start_stereo_calibration(
     form = json.dumps({"name": name, "device": device, "activate": activate}).encode() + hasher.digest()
     request_sha256 = request_digest(request, form)
     return await run_in_threadpool(respond_once, session, key, idempotency_key, request_sha256,
-                                   lambda: _start_calibrate_job(runtime, session, params),
+                                   lambda: start_job(runtime, queue, session, "calibrate", params),
                                    runtime.settings.idempotency_ttl_s)
 
 
@@ -134,7 +132,7 @@ async def start_stereo_calibration(
              response_model=Accepted, responses={202: {"headers": {"Location": {"description": "The job."}}},
                                                  **problem_responses(404)})
 async def start_stereo_capture(request: Request, key: AdminKey, calibration: ExistingCalibration,
-                               body: StereoCaptureRequest, session: SessionDep, runtime: RuntimeDep,
+                               body: StereoCaptureRequest, session: SessionDep, runtime: RuntimeDep, queue: JobQueueDep,
                                idempotency_key: IdempotencyKeyHeader = None):
     """A calibration capture job: the gateway films the board in ``views`` poses with the camera and the device
     (default the thermal camera), which is then placed relative to the camera: a ``calibrate`` job that creates a
@@ -147,7 +145,7 @@ async def start_stereo_capture(request: Request, key: AdminKey, calibration: Exi
               "capture": {"views": body.views, "interval_s": body.interval_s}}
     digest = request_digest(request, await request.body())
     return await run_in_threadpool(respond_once, session, key, idempotency_key, digest,
-                                   lambda: _start_calibrate_job(runtime, session, params),
+                                   lambda: start_job(runtime, queue, session, "calibrate", params),
                                    runtime.settings.idempotency_ttl_s)
 
 
@@ -175,18 +173,6 @@ def _require_thermal_device(rig: Rig, calibration: CalibrationSet, device: str) 
     if device not in rig.devices or rig.devices[device].kind != "thermal":
         raise Problem(422, "invalid-input", f"device: calibration set {calibration.id} has no thermal device "
                                             f"{device!r} to place (it has {sorted(rig.devices)}).")
-
-
-def _start_calibrate_job(runtime: Runtime, session: Session, params: dict) -> Outcome:
-    job = runtime.tracker.create(session, "calibrate", params)
-
-    def dispatch() -> None:
-        runtime.tracker.announce(job)
-        send_job("calibrate", job.id)
-
-    accepted = Accepted(job_id=job.id, status="queued",
-                        links={"job": f"/v1/jobs/{job.id}", "events": f"/v1/jobs/{job.id}/events"})
-    return Outcome(202, accepted.model_dump(mode="json"), f"/v1/jobs/{job.id}", dispatch)
 
 
 @router.get("", name="list_calibration_sets")

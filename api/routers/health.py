@@ -22,8 +22,12 @@ def get_health() -> Health:
 
 @router.get("/readyz", name="get_readiness", responses=problem_responses(503))
 def get_readiness(runtime: RuntimeDep) -> Readiness:
-    """The database answers and its schema is migrated; the artifact store is writable with room for scans."""
+    """The database answers and its schema is migrated; the artifact store is writable with room for scans; the
+    embedded worker has warmed up."""
     retry = {"Retry-After": str(RETRY_AFTER_S)}
+    if not runtime.ready.is_set():
+        raise Problem(503, "not-ready", "The service is warming up (compiling kernels, building the active "
+                                        "calibration's tables); try again in a few seconds.", retry)
     try:
         with runtime.engine.connect() as connection:
             revision = connection.execute(text("SELECT version_num FROM alembic_version")).scalar_one()

@@ -2,24 +2,22 @@
 
 from __future__ import annotations
 
-import io
 import re
 from typing import Annotated
 
-import cv2
 import numpy as np
-import tifffile
 from fastapi import APIRouter, Depends, Path, Request
 from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import FileResponse, Response
 from sqlalchemy import select
 
-from api.deps import OperatorKey, ReaderKey, RuntimeDep, SessionDep
+from api.deps import JobQueueDep, OperatorKey, ReaderKey, RuntimeDep, SessionDep
+from api.dispatch import start_job
 from api.idempotency import IdempotencyKeyHeader, Outcome, request_digest, respond_once
 from api.problems import Problem, problem_responses
 from api.schemas import Accepted, ScanJobRequest, ScanOut, ScanRequest
 from services.db.models import CalibrationSet, Job, Scan, new_id
-from workers.broker import send_job
+from services.formats.images import encode_frame
 
 router = APIRouter(prefix="/scans", tags=["scans"])
 
@@ -60,28 +58,17 @@ def scan_out(scan: Scan, job: Job) -> ScanOut:
 
 @router.post("", name="create_scan", status_code=202, response_model=Accepted,
              responses={202: {"headers": {"Location": {"description": "The scan's job."}}}, **problem_responses(409)})
-async def create_scan(request: Request, session: SessionDep, runtime: RuntimeDep, key: OperatorKey,
-                      idempotency_key: IdempotencyKeyHeader = None, body: ScanRequest | None = None):
+async def create_scan(request: Request, session: SessionDep, runtime: RuntimeDep, queue: JobQueueDep,
+                      key: OperatorKey, idempotency_key: IdempotencyKeyHeader = None, body: ScanRequest | None = None):
     """Scan the part in the station: capture, reconstruct, fuse, store and stream, as a background job."""
     body = body or ScanRequest()
     station = runtime.settings.station
 
     def start() -> Outcome:
         calibration = _calibration_for(session, station, body.calibration_set_id)
-        scan_id = new_id()
-        job = runtime.tracker.create(session, "scan", {"scan_id": scan_id, "calibration_set_id": calibration.id})
-        scan = Scan(id=scan_id, station=station, calibration_set_id=calibration.id, part_id=body.part_id,
-                    job_id=job.id)
-        session.add(scan)
-        accepted = Accepted(job_id=job.id, scan_id=scan.id, status="queued",
-                            links={"job": f"/v1/jobs/{job.id}", "scan": f"/v1/scans/{scan.id}",
-                                   "events": f"/v1/jobs/{job.id}/events"})
-
-        def dispatch() -> None:
-            runtime.tracker.announce(job)
-            send_job("scan", job.id)
-
-        return Outcome(202, accepted.model_dump(mode="json"), f"/v1/jobs/{job.id}", dispatch)
+        scan = Scan(id=new_id(), station=station, calibration_set_id=calibration.id, part_id=body.part_id)
+        return start_job(runtime, queue, session, "scan", {"scan_id": scan.id, "calibration_set_id": calibration.id},
+                         scan)
 
     digest = request_digest(request, await request.body())
     return await run_in_threadpool(respond_once, session, key, idempotency_key, digest, start,
@@ -107,7 +94,8 @@ def _calibration_for(session, station: str, calibration_set_id: str | None) -> C
 @router.post("/{scan_id}/jobs", name="create_scan_job", status_code=202, response_model=Accepted,
              responses={202: {"headers": {"Location": {"description": "The job."}}}, **problem_responses(404, 409)})
 async def create_scan_job(request: Request, key: OperatorKey, scan: ExistingScan, body: ScanJobRequest,
-                          session: SessionDep, runtime: RuntimeDep, idempotency_key: IdempotencyKeyHeader = None):
+                          session: SessionDep, runtime: RuntimeDep, queue: JobQueueDep,
+                          idempotency_key: IdempotencyKeyHeader = None):
     """Run one step again on a stored scan: reconstruct or fuse (e.g. with another calibration set), or register
     its thermal frame onto its camera frame by mutual information. Results: ``/v1/jobs/{id}/artifacts/{name}``."""
     digest = request_digest(request, await request.body())
@@ -122,15 +110,7 @@ async def create_scan_job(request: Request, key: OperatorKey, scan: ExistingScan
             params["model"] = body.model
         if body.cloud_job_id is not None:
             params["cloud_sha256"] = _reconstructed_cloud(session, scan, body)
-        job = runtime.tracker.create(session, body.kind, params)
-
-        def dispatch() -> None:
-            runtime.tracker.announce(job)
-            send_job(body.kind, job.id)
-
-        accepted = Accepted(job_id=job.id, scan_id=scan.id, status="queued",
-                            links={"job": f"/v1/jobs/{job.id}", "events": f"/v1/jobs/{job.id}/events"})
-        return Outcome(202, accepted.model_dump(mode="json"), f"/v1/jobs/{job.id}", dispatch)
+        return start_job(runtime, queue, session, body.kind, params)
 
     return await run_in_threadpool(respond_once, session, key, idempotency_key, digest, start,
                                    runtime.settings.idempotency_ttl_s)
@@ -184,18 +164,7 @@ def download_scan_frame(scan: ExistingScan, runtime: RuntimeDep,
     if suffix != expected_suffix or not 0 <= index < len(frames):
         raise Problem(404, "not-found", f"Scan {scan.id} has no {kind}/{index}.{suffix} "
                                         f"({len(frames)} {kind}, numbered from 0, as .{expected_suffix}).")
-    return Response(_encode(np.asarray(frames[index]), expected_suffix), media_type=media_type)
-
-
-def _encode(frame: np.ndarray, suffix: str) -> bytes:
-    if suffix == "png":
-        ok, encoded = cv2.imencode(".png", frame)
-        if not ok:
-            raise RuntimeError("OpenCV could not encode the frame as PNG.")
-        return encoded.tobytes()
-    buffer = io.BytesIO()
-    tifffile.imwrite(buffer, frame.astype(np.float32))
-    return buffer.getvalue()
+    return Response(encode_frame(np.asarray(frames[index]), expected_suffix), media_type=media_type)
 
 
 def _artifact_file(runtime, scan: Scan, digest: str | None, filename: str, media_type: str) -> FileResponse:

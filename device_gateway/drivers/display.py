@@ -18,7 +18,7 @@ from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 
-from device_gateway.devices import DeviceInfo, DeviceUnavailable, Projector
+from device_gateway.devices import DeviceInfo, DeviceUnavailable, ProjectorDriver
 
 os.environ.setdefault("PYGAME_HIDE_SUPPORT_PROMPT", "1")
 import pygame  # noqa: E402  (after the variable that silences its banner)
@@ -26,7 +26,7 @@ import pygame  # noqa: E402  (after the variable that silences its banner)
 _HEADLESS_DRIVERS = ("offscreen", "dummy")
 
 
-class DisplayProjector(Projector):
+class DisplayProjector(ProjectorDriver):
     """A projector connected as display number ``display`` and driven full screen at its native size."""
 
     def __init__(self, name: str = "projector", width: int = 1280, height: int = 800, display: int = 0,

@@ -19,7 +19,7 @@ from typing import Any, Literal
 import depthai as dai
 import numpy as np
 
-from device_gateway.devices import Camera, DeviceInfo, DeviceLost, DeviceUnavailable, Frame, ThermalCamera
+from device_gateway.devices import CameraDriver, DeviceInfo, DeviceLost, DeviceUnavailable, Frame, ThermalDriver
 
 
 def find_device(device_id: str | None, role: str) -> dai.DeviceInfo:
@@ -177,7 +177,7 @@ class _OakDevice(abc.ABC):
         raise DeviceLost(f"{self.role} {self.name!r}: no frame within {timeout_s:g} s")
 
 
-class OakCamera(_OakDevice, Camera):
+class OakCamera(_OakDevice, CameraDriver):
     """An OAK colour/mono sensor as a grey 8-bit camera with manual exposure, settable between frames.
 
     ``set_exposure`` sends a ``CameraControl`` with ``setManualExposure`` through the Camera node's
@@ -227,7 +227,7 @@ class OakCamera(_OakDevice, Camera):
         return Frame(np.array(message.getFrame(), dtype=np.uint8), host_time_of(message), frame_metadata(message))
 
 
-class OakThermal(_OakDevice, ThermalCamera):
+class OakThermal(_OakDevice, ThermalDriver):
     """The OAK-T radiometric sensor: its ``temperature`` output (FP16 degrees Celsius) as float32."""
 
     role = "thermal"

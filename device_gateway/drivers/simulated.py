@@ -28,9 +28,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from device_gateway.devices import Camera, DeviceInfo, DeviceUnavailable, Frame, Projector, ThermalCamera
+from device_gateway.devices import CameraDriver, DeviceInfo, DeviceUnavailable, Frame, ProjectorDriver, ThermalDriver
 from services.formats.board import BoardSpec
-from services.formats.rig import Device, Rig
+from services.formats.rig import Rig
+from services.geometry.camera_model import CameraModel
 from services.simulation import presets
 from services.simulation.boards import render_board
 from services.simulation.glow import GlowView, render_glow_view, render_hot_frames
@@ -79,9 +80,9 @@ def board_pose(board: BoardSpec, view: int, centre: np.ndarray) -> tuple[np.ndar
     return R, centre + offset - R @ middle
 
 
-def _board_in_device(pose: tuple[np.ndarray, np.ndarray], device: Device) -> tuple[np.ndarray, np.ndarray]:
+def _board_in_device(pose: tuple[np.ndarray, np.ndarray], device: CameraModel) -> tuple[np.ndarray, np.ndarray]:
     R_wb, t_wb = pose
-    return device.R_array @ R_wb, device.R_array @ t_wb + device.t_array
+    return device.R @ R_wb, device.R @ t_wb + device.t
 
 
 class SimulatedStation:
@@ -174,7 +175,7 @@ class SimulatedStation:
         device = self.rig.devices[device_name]
         R, t = _board_in_device(pose, device)
         effects = self.options.camera_effects
-        return render_board(board, device.K_array, device.dist_array, R, t, device.size, modality=modality,
+        return render_board(board, device.K, device.dist, R, t, device.size, modality=modality,
                             blur_sigma=max(effects.blur_sigma, 0.3), noise_sigma=effects.noise_sigma,
                             bit_depth=8 if modality == "visible" else 16, rng=self._rng)
 
@@ -207,7 +208,7 @@ class _SimulatedDevice:
             raise DeviceUnavailable(f"{self.kind} {self.name!r} is not open")
 
 
-class SimulatedCamera(_SimulatedDevice, Camera):
+class SimulatedCamera(_SimulatedDevice, CameraDriver):
     kind = "camera"
 
     def __init__(self, station: SimulatedStation, name: str) -> None:
@@ -241,7 +242,7 @@ class SimulatedCamera(_SimulatedDevice, Camera):
                      {"driver": "simulated", "exposure_us": self._exposure_us})
 
 
-class SimulatedThermal(_SimulatedDevice, ThermalCamera):
+class SimulatedThermal(_SimulatedDevice, ThermalDriver):
     kind = "thermal"
 
     def open(self) -> None:
@@ -259,7 +260,7 @@ class SimulatedThermal(_SimulatedDevice, ThermalCamera):
         return Frame(image, time.time(), {"driver": "simulated", "units": "degC"})
 
 
-class SimulatedProjector(_SimulatedDevice, Projector):
+class SimulatedProjector(_SimulatedDevice, ProjectorDriver):
     kind = "projector"
 
     @property

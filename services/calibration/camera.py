@@ -9,11 +9,11 @@ import cv2
 import numpy as np
 
 from services.calibration.model_selection import ModelFit, ModelSelection, bayesian_information_criterion, select_model
+from services.formats.board import MIN_VIEWS
 
 DistortionModel = Literal["none", "radial", "standard", "rational", "auto"]
 #: The lens models ``distortion="auto"`` chooses from, simplest first; each contains the previous one.
 AUTO_CANDIDATES = ("none", "radial", "standard", "rational")
-MIN_VIEWS = 3
 INTRINSIC_NAMES = ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6",
                    "s1", "s2", "s3", "s4", "tau_x", "tau_y")
 _ESTIMATED = {

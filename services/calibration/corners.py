@@ -9,6 +9,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from services.formats.board import BoardSpec, CharucoSpec, ChessboardSpec, CirclesSpec
+from services.intensity import percentile_stretch
 
 # Half-window of the saddle-point refinement as a fraction of the local corner spacing: the
 # window then covers the four squares around a corner but never reaches a neighbouring corner.
@@ -109,9 +110,7 @@ def _grey_levels(image: np.ndarray) -> np.ndarray:
     """The frame as float32 on a 0..255 scale; 16-bit frames stretched, keeping their fine levels."""
     if image.dtype == np.uint8:
         return image.astype(np.float32)
-    low, high = np.percentile(image, [0.5, 99.5])
-    scaled = (image.astype(np.float32) - np.float32(low)) * np.float32(255.0 / max(high - low, 1.0))
-    return np.clip(scaled, 0, 255)
+    return percentile_stretch(image, 255.0)
 
 
 def _detect_chessboard(grey: np.ndarray, levels: np.ndarray, board: ChessboardSpec,

@@ -84,8 +84,9 @@ def calibrate_stereo(
     first = [np.asarray(p, np.float32).reshape(-1, 2) for p in reference_points]
     second = [np.asarray(p, np.float32).reshape(-1, 2) for p in device_points]
     (K1, d1), (K2, d2) = reference_intrinsics, device_intrinsics
-    K1, K2 = np.asarray(K1, np.float64), np.asarray(K2, np.float64)
-    d1, d2 = np.asarray(d1, np.float64).ravel(), np.asarray(d2, np.float64).ravel()
+    # copies: OpenCV writes to the intrinsics it is given (input-output arrays), even when they are fixed
+    K1, K2 = np.array(K1, np.float64), np.array(K2, np.float64)
+    d1, d2 = np.array(d1, np.float64).ravel(), np.array(d2, np.float64).ravel()
     rms, _, _, _, _, R, t, _, _, rvecs, tvecs, per_view = cv2.stereoCalibrateExtended(
         objects, first, second, K1, d1, K2, d2, tuple(int(s) for s in image_size), None, None,
         flags=cv2.CALIB_FIX_INTRINSIC, criteria=_CRITERIA,

@@ -5,24 +5,9 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-import numpy as np
-
-from services.calibration.camera import MIN_VIEWS, calibrate_camera
-from services.calibration.corners import BoardDetection, detect_board
-from services.calibration.model_selection import ModelSelection
-from services.calibration.projector import calibrate_projector, projector_corners
-from services.calibration.report import coverage_map, residual_bars, residual_vectors
-from services.calibration.stereo import calibrate_stereo
 from services.errors import InputError
-from services.formats.board import BoardSpec, load_board
+from services.formats.board import load_board
 from services.formats.calibration import (
-    CalibratedView,
-    CameraCalibrationFile,
-    ModelCandidate,
-    ModelSelectionRecord,
-    ProjectorCalibrationFile,
-    RejectedView,
-    StereoCalibrationFile,
     load_camera_calibration,
     save_camera_calibration,
     save_figure,
@@ -30,15 +15,17 @@ from services.formats.calibration import (
     save_stereo_calibration,
 )
 from services.formats.images import FRAME_SUFFIXES, read_frame
-from services.formats.rig import Device, Rig, load_rig, save_rig
+from services.formats.rig import load_rig, save_rig
 from services.formats.sequence import read_capture
-from services.structured_light.decode import decode
+from services.pipeline.calibrate import (
+    LabelledImage, calibrate_camera_views, calibrate_projector_captures, capture_board_image, place_device,
+)
 
 REPORT_FIGURES = ("residual_bars", "residual_vectors", "coverage")
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
-    parser = subparsers.add_parser("calibrate", help="calibrate cameras, the projector and the infrared camera")
+    parser = subparsers.add_parser("calibrate")
     topics = parser.add_subparsers(dest="calibrate_command", required=True, metavar="TARGET")
 
     camera = topics.add_parser("camera", help="intrinsics of one camera from board images (Zhang's method)")
@@ -96,38 +83,22 @@ def list_frames(directory: Path) -> list[Path]:
     return frames
 
 
-def detect_in_frames(paths: list[Path], board: BoardSpec, read=read_frame) -> tuple[list[BoardDetection], tuple[int, int]]:
-    """Detect the board in every frame (``read(path)`` gives its image); one error lists every frame that
-    failed and why."""
-    detections, problems, size = [], [], None
+def read_images(paths: list[Path], read=read_frame, label=lambda path: path.name) -> tuple[list[LabelledImage], list[str]]:
+    """The images that can be read (``read(path)``), labelled (``label(path)``), and why the others cannot."""
+    images, unreadable = [], []
     for path in paths:
         try:
-            image = read(path)
+            images.append((label(path), read(path)))
         except InputError as error:
-            problems.append(str(error))
-            continue
-        frame_size = (image.shape[1], image.shape[0])
-        if size is None:
-            size = frame_size
-        elif frame_size != size:
-            problems.append(f"{path}: image is {frame_size[0]}x{frame_size[1]} but {paths[0].name} is "
-                            f"{size[0]}x{size[1]}; all images must have one size")
-            continue
-        detection = detect_board(image, board)
-        if detection is None:
-            problems.append(f"{path}: no {_describe(board)} found (polarity {board.polarity}); "
-                            "check the board file or remove the image")
-            continue
-        detections.append(detection)
-    if problems:
-        raise InputError(f"{len(problems)} of {len(paths)} images cannot be used:\n  " + "\n  ".join(problems))
-    return detections, size
+            unreadable.append(str(error))
+    return images, unreadable
 
 
-def _describe(board: BoardSpec) -> str:
-    cols, rows = board.pattern_size
-    feature = "circle" if board.type == "circles" else "inner-corner"
-    return f"{board.type} of {cols}x{rows} {feature}s"
+def _read_all(paths: list[Path]) -> list[LabelledImage]:
+    images, unreadable = read_images(paths)
+    if unreadable:
+        raise InputError(f"{len(unreadable)} of {len(paths)} images cannot be used:\n  " + "\n  ".join(unreadable))
+    return images
 
 
 def capture_board_image(directory: Path, manifest: Path | None = None) -> np.ndarray:
@@ -141,45 +112,24 @@ def capture_board_image(directory: Path, manifest: Path | None = None) -> np.nda
 def run_camera(args: argparse.Namespace) -> int:
     board = load_board(args.board)
     if args.captures is not None:
-        paths, names = list(args.captures), [str(directory) for directory in args.captures]
-        read = lambda directory: capture_board_image(directory, args.manifest)  # noqa: E731
-        source = f"{len(paths)} captures"
+        images, unreadable = read_images(
+            list(args.captures), lambda directory: capture_board_image(*read_capture(directory, args.manifest)), str)
+        source = f"{len(args.captures)} captures"
     else:
-        paths = list_frames(args.images)
-        names, read, source = [p.name for p in paths], read_frame, f"{args.images}: {len(paths)} images"
-    if len(paths) < MIN_VIEWS:
-        raise InputError(f"{source}; calibration needs at least {MIN_VIEWS} views")
-    detections, size = detect_in_frames(paths, board, read)
-    object_points = [board.object_points()[d.ids] for d in detections]
-    result = calibrate_camera(object_points, [d.image_points for d in detections], size, args.distortion)
-    views = [
-        CalibratedView(image=names[i], rms_px=float(rms), polarity=detections[i].polarity, R=R.tolist(),
-                       t=t.tolist(), pose_std=std.tolist())
-        for i, rms, R, t, std in zip(result.views, result.per_view_rms, result.rotations, result.translations,
-                                     result.pose_std)
-    ]
-    output = CameraCalibrationFile(
-        name=args.name or args.kind, kind=args.kind, width=size[0], height=size[1], K=result.K.tolist(),
-        dist=result.dist.tolist(), distortion_model=result.distortion_model, rms_px=result.rms, std=result.std,
-        board=board, views=views,
-        rejected=[RejectedView(image=names[i], reason=reason) for i, reason in result.rejected],
-        model_selection=_model_selection_record(result.model_selection),
-    )
-    kept_points = [detections[i].image_points for i in result.views]
-    figures = {
-        "residual_bars": residual_bars(result.per_view_rms, [names[i] for i in result.views], result.rms),
-        "residual_vectors": residual_vectors(kept_points, result.residuals, size),
-        "coverage": coverage_map(kept_points, size),
-    }
+        images, unreadable = read_images(list_frames(args.images))
+        source = str(args.images)
+    outcome = calibrate_camera_views(images=images, board=board, name=args.name or args.kind, kind=args.kind,
+                                     distortion=args.distortion, unreadable=unreadable, source=source)
+    output = outcome.calibration
     args.out.parent.mkdir(parents=True, exist_ok=True)
-    for name, figure in figures.items():
+    for name, figure in outcome.figures.items():
         save_figure(figure, report_path(args.out, name))
     save_camera_calibration(output, args.out)
-    print(f"{output.name}: RMS {result.rms:.3f} px over {len(result.views)} views "
-          f"({len(result.rejected)} rejected); fx {result.K[0, 0]:.2f} +- {result.std['fx']:.2f}, "
-          f"fy {result.K[1, 1]:.2f} +- {result.std['fy']:.2f}, cx {result.K[0, 2]:.2f}, cy {result.K[1, 2]:.2f}")
-    if result.model_selection is not None:
-        print(f"{output.name}: lens model {result.distortion_model}: {result.model_selection.reason}")
+    print(f"{output.name}: RMS {output.rms_px:.3f} px over {len(output.views)} views "
+          f"({len(output.rejected)} rejected); fx {output.K[0][0]:.2f} +- {output.std['fx']:.2f}, "
+          f"fy {output.K[1][1]:.2f} +- {output.std['fy']:.2f}, cx {output.K[0][2]:.2f}, cy {output.K[1][2]:.2f}")
+    if output.model_selection is not None:
+        print(f"{output.name}: lens model {output.distortion_model}: {output.model_selection.reason}")
     return 0
 
 
@@ -199,64 +149,14 @@ def report_path(calibration_path: Path, figure: str) -> Path:
 def run_projector(args: argparse.Namespace) -> int:
     board = load_board(args.board)
     camera = load_camera_calibration(args.camera)
-    if len(args.captures) < MIN_VIEWS:
-        raise InputError(f"{len(args.captures)} captures given; projector calibration needs at least {MIN_VIEWS} "
-                         "board poses")
-    objects, camera_points, projector_points, problems, projector_size = [], [], [], [], None
-    for directory in args.captures:
-        sequence, frames = read_capture(directory, args.manifest)
-        size = (sequence.projector.width, sequence.projector.height)
-        if projector_size is not None and size != projector_size:
-            problems.append(f"{directory}: projector is {size[0]}x{size[1]} but {args.captures[0]} has "
-                            f"{projector_size[0]}x{projector_size[1]}")
-            continue
-        projector_size = size
-        if (frames.shape[2], frames.shape[1]) != (camera.width, camera.height):
-            problems.append(f"{directory}: frames are {frames.shape[2]}x{frames.shape[1]} but {args.camera} is "
-                            f"for {camera.width}x{camera.height}")
-            continue
-        # No EDGE margin: it is for depth outlines, and around each pixel rejected inside the board (a noisy
-        # dark square) it would drop 49 good ones; the corners' homographies need the whole window.
-        decoded = decode(frames, sequence, edge_margin=0)
-        if set(decoded.coded_axes) != {"x", "y"}:
-            problems.append(f"{directory}: the sequence codes only {'/'.join(decoded.coded_axes)}; both axes are "
-                            "needed (thermofield patterns --axes xy)")
-            continue
-        lit = np.clip(np.round(decoded.intensity), 0, np.iinfo(frames.dtype).max).astype(frames.dtype)
-        detection = detect_board(lit, board)
-        if detection is None:
-            problems.append(f"{directory}: no {_describe(board)} found in the lit frame")
-            continue
-        half_window = max(2, int(0.5 * _corner_spacing(detection.image_points)))
-        corners, found = projector_corners(detection.image_points, decoded.projector_x, decoded.projector_y,
-                                           half_window, decoded.modulation)
-        if found.sum() < 6:
-            problems.append(f"{directory}: only {found.sum()} board corners were decoded (is the board lit?)")
-            continue
-        objects.append(board.object_points()[detection.ids[found]])
-        camera_points.append(detection.image_points[found])
-        projector_points.append(corners[found])
-    if problems:
-        raise InputError(f"{len(problems)} of {len(args.captures)} captures cannot be used:\n  " + "\n  ".join(problems))
-    result = calibrate_projector(objects, camera_points, projector_points, (np.asarray(camera.K), np.asarray(camera.dist)),
-                                 (camera.width, camera.height), projector_size, args.distortion)
-    projector = Device(kind="projector", width=projector_size[0], height=projector_size[1],
-                       K=result.projector.K.tolist(), dist=result.projector.dist.tolist(),
-                       R=result.stereo.R.tolist(), t=result.stereo.t.tolist())
-    names = [str(directory) for directory in args.captures]
-    report = ProjectorCalibrationFile(
-        projector_rms_px=result.projector.rms, stereo_rms_px=result.stereo.rms, baseline_mm=result.stereo.baseline_mm,
-        std=result.projector.std, views=[names[i] for i in result.projector.views],
-        per_view_rms_px=result.projector.per_view_rms.tolist(),
-        stereo_std=dict(zip(("rx", "ry", "rz", "tx", "ty", "tz"), result.stereo.pose_std.tolist())),
-        stereo_per_view_rms_px=result.stereo.per_view_rms.tolist(),
-        rejected=[RejectedView(image=names[i], reason=reason) for i, reason in result.projector.rejected],
-    )
+    captures = [(str(directory), *read_capture(directory, args.manifest)) for directory in args.captures]
+    rig, report = calibrate_projector_captures(captures=captures, board=board, camera=camera, name=args.name,
+                                               distortion=args.distortion)
     args.out.parent.mkdir(parents=True, exist_ok=True)
     save_projector_calibration(report, projector_report_path(args.out))
-    save_rig(Rig(devices={camera.name: camera.device(), args.name: projector}), args.out)
-    print(f"{args.name}: projector RMS {result.projector.rms:.3f} px, stereo RMS {result.stereo.rms:.3f} px over "
-          f"{len(result.projector.views)} poses; baseline {result.stereo.baseline_mm:.2f} mm")
+    save_rig(rig, args.out)
+    print(f"{args.name}: projector RMS {report.projector_rms_px:.3f} px, stereo RMS {report.stereo_rms_px:.3f} px "
+          f"over {len(report.views)} poses; baseline {report.baseline_mm:.2f} mm")
     return 0
 
 
@@ -265,73 +165,34 @@ def projector_report_path(rig_path: Path) -> Path:
     return rig_path.with_name(f"{rig_path.stem}_projector.json")
 
 
-def _corner_spacing(points: np.ndarray) -> float:
-    distances = np.linalg.norm(points[:, None] - points[None], axis=-1)
-    np.fill_diagonal(distances, np.inf)
-    return float(np.median(distances.min(axis=1)))
-
-
 def run_stereo(args: argparse.Namespace) -> int:
-    report = place_device(args.board, args.rig, args.pairs, args.device, args.out, camera_name=args.camera,
-                          intrinsics=args.intrinsics)
+    board = load_board(args.board)
+    rig = load_rig(args.rig)
+    camera_name, _ = rig.device(args.camera, "camera")
+    intrinsics = None
+    if args.intrinsics is not None:
+        intrinsics = load_camera_calibration(args.intrinsics).device()
+    elif args.device not in rig.devices:
+        raise InputError(f"{args.rig}: has no device {args.device!r}; pass its calibration with --intrinsics")
+    reference_dir, device_dir = args.pairs / camera_name, args.pairs / args.device
+    reference_paths = list_frames(reference_dir)
+    device_names = {p.name for p in list_frames(device_dir)}
+    paired = [p for p in reference_paths if p.name in device_names]
+    if not paired:
+        raise InputError(f"{args.pairs}: no file name appears in both {camera_name}/ and {args.device}/")
+    reference = _read_all(paired)
+    device = _read_all([device_dir / p.name for p in paired])
+    placed, report = place_device(board=board, rig=rig, device=args.device, reference_images=reference,
+                                  device_images=device, camera=camera_name, intrinsics=intrinsics,
+                                  source=str(args.pairs))
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    save_stereo_calibration(report, stereo_report_path(args.out, args.device))
+    save_rig(placed, args.out)
     print(f"{report.device}: stereo RMS {report.stereo_rms_px:.3f} px over {len(report.pairs)} pairs; "
           f"baseline {report.baseline_mm:.2f} mm from {report.reference}")
     return 0
 
 
-def place_device(board_path: Path, rig_path: Path, pairs: Path, device_name: str, out: Path, *,
-                 camera_name: str | None = None, intrinsics: Path | None = None) -> StereoCalibrationFile:
-    """Place ``device_name`` relative to the rig's camera from paired board images (``pairs/<camera>/``,
-    ``pairs/<device>/``, paired by file name); write the new rig to ``out`` and the stereo report beside it.
-
-    Every error is an ``InputError`` naming the image or file at fault.
-    """
-    board = load_board(board_path)
-    rig = load_rig(rig_path)
-    camera_name, camera = rig.device(camera_name, "camera")
-    device = _device_to_place(rig, rig_path, device_name, intrinsics)
-    reference_dir, device_dir = pairs / camera_name, pairs / device_name
-    reference_paths = list_frames(reference_dir)
-    device_names = {p.name for p in list_frames(device_dir)}
-    paired = [p for p in reference_paths if p.name in device_names]
-    if not paired:
-        raise InputError(f"{pairs}: no file name appears in both {camera_name}/ and {device_name}/")
-    reference, reference_size = detect_in_frames(paired, board)
-    seen, device_size = detect_in_frames([device_dir / p.name for p in paired], board)
-    for label, size, expected in ((camera_name, reference_size, camera), (device_name, device_size, device)):
-        if size != expected.size:
-            raise InputError(f"{pairs / label}: images are {size[0]}x{size[1]} but the calibration of "
-                             f"{label} is for {expected.width}x{expected.height}")
-    object_points, first, second, pair_names = [], [], [], []
-    for path, a, b in zip(paired, reference, seen):
-        shared, index_a, index_b = np.intersect1d(a.ids, b.ids, return_indices=True)
-        if len(shared) >= 4:
-            object_points.append(board.object_points()[shared])
-            first.append(a.image_points[index_a])
-            second.append(b.image_points[index_b])
-            pair_names.append(path.name)
-    result = calibrate_stereo(object_points, first, second, (camera.K_array, camera.dist_array),
-                              (device.K_array, device.dist_array), reference_size)
-    R = result.R @ camera.R_array
-    t = result.R @ camera.t_array + result.t
-    placed = device.model_copy(update={"R": R.tolist(), "t": t.tolist()})
-    report = StereoCalibrationFile(device=device_name, reference=camera_name, stereo_rms_px=result.rms,
-                                   baseline_mm=result.baseline_mm, pairs=pair_names,
-                                   per_view_rms_px=result.per_view_rms.tolist())
-    out.parent.mkdir(parents=True, exist_ok=True)
-    save_stereo_calibration(report, stereo_report_path(out, device_name))
-    save_rig(Rig(units=rig.units, devices={**rig.devices, device_name: placed}), out)
-    return report
-
-
 def stereo_report_path(rig_out: Path, device_name: str) -> Path:
-    """Where ``place_device`` writes its stereo report: ``RIG_stereo_DEVICE.json`` beside the rig."""
+    """Where ``calibrate stereo`` writes its stereo report: ``RIG_stereo_DEVICE.json`` beside the rig."""
     return rig_out.with_name(f"{rig_out.stem}_stereo_{device_name}.json")
-
-
-def _device_to_place(rig: Rig, rig_path: Path, device_name: str, intrinsics: Path | None) -> Device:
-    if intrinsics is not None:
-        return load_camera_calibration(intrinsics).device()
-    if device_name not in rig.devices:
-        raise InputError(f"{rig_path}: has no device {device_name!r}; pass its calibration with --intrinsics")
-    return rig.devices[device_name]

@@ -27,7 +27,7 @@ _SCAN_TIMEOUT_S = 600.0
 
 def register(subparsers: argparse._SubParsersAction) -> None:
     parser = subparsers.add_parser(
-        "demo", help="start the embedded service, scan the simulated hot part over HTTP, print the field",
+        "demo",
         description=__doc__.splitlines()[0],
     )
     parser.add_argument("--data-dir", type=Path, default=Path("demo-output"),
@@ -35,8 +35,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--port", type=int, default=8000, help="API port (default 8000)")
     parser.add_argument("--gateway-port", type=int, default=8001, help="simulated gateway port (default 8001)")
     parser.add_argument("--rerun-port", type=int, default=9876, help="Rerun gRPC proxy port (default 9876)")
-    parser.add_argument("--keep-running", action="store_true",
-                        help="leave the service running after the scan (stop it with Ctrl-C)")
+    parser.add_argument("--exit-after-scan", action="store_true",
+                        help="stop the service once the scan is saved (default: keep serving until Ctrl-C)")
     parser.set_defaults(handler=_run)
 
 
@@ -44,18 +44,19 @@ def _thermofield(*args: str) -> list[str]:
     return [sys.executable, "-m", "services.cli.main", *args]
 
 
-def _wait_until_healthy(client: httpx.Client, server: subprocess.Popen) -> None:
+def _wait_until_ready(client: httpx.Client, server: subprocess.Popen) -> None:
+    """Wait until the service answers /readyz (it is up and has warmed up its worker)."""
     deadline = time.monotonic() + _STARTUP_TIMEOUT_S
     while time.monotonic() < deadline:
         if server.poll() is not None:
             raise InputError(f"the service exited with code {server.returncode} while starting; see its output above")
         try:
-            if client.get("/healthz").status_code == 200:
+            if client.get("/readyz").status_code == 200:
                 return
         except httpx.TransportError:
             pass
         time.sleep(0.5)
-    raise InputError(f"the service did not answer /healthz within {_STARTUP_TIMEOUT_S:.0f} s")
+    raise InputError(f"the service was not ready (/readyz) within {_STARTUP_TIMEOUT_S:.0f} s")
 
 
 def _follow_job(client: httpx.Client, job_url: str) -> dict:
@@ -88,6 +89,21 @@ def _print_summary(scan: dict) -> None:
               f"max {temperature['max']:.1f}; {percentiles}")
 
 
+def _serve_until_interrupted(server: subprocess.Popen, data_dir: Path) -> None:
+    """Wait for Ctrl-C (which the service, in the same process group, receives too) or for the service to end."""
+    try:
+        server.wait()
+    except KeyboardInterrupt:
+        try:
+            server.wait(timeout=30)  # the service shuts down cleanly on the same Ctrl-C
+        except subprocess.TimeoutExpired:
+            pass
+        print(f"\nthermofield: the service has stopped. Start it again with: thermofield serve --data-dir "
+              f"{data_dir}", flush=True)
+        return
+    print(f"\nthermofield: the service exited with code {server.returncode}.", flush=True)
+
+
 def _run(args: argparse.Namespace) -> int:
     args.data_dir.mkdir(parents=True, exist_ok=True)
     key = subprocess.run(_thermofield("apikey", "create", "--scopes", "read", "operate", "--name", "demo",
@@ -103,7 +119,7 @@ def _run(args: argparse.Namespace) -> int:
     base_url = f"http://127.0.0.1:{args.port}"
     try:
         with httpx.Client(base_url=base_url, headers={"Authorization": f"Bearer {secret}"}, timeout=60) as client:
-            _wait_until_healthy(client, server)
+            _wait_until_ready(client, server)
             print(f"\nPOST {base_url}/v1/scans (empty body: the simulated hot part, active calibration)")
             started = time.monotonic()
             accepted = client.post("/v1/scans", json={})
@@ -114,20 +130,23 @@ def _run(args: argparse.Namespace) -> int:
                 raise InputError(f"the scan job failed: {job.get('error')}")
             scan_id = accepted.json()["scan_id"]
             scan = client.get(f"/v1/scans/{scan_id}").json()
-            print(f"  done in {time.monotonic() - started:.1f} s (a first scan after a start also compiles the "
-                  "numba kernels and the camera's ray table)")
+            print(f"  done in {time.monotonic() - started:.1f} s")
             _print_summary(scan)
             for artifact in ("field.ply", "field.rrd"):
                 target = args.data_dir / f"{scan_id}-{artifact}"
                 target.write_bytes(client.get(f"/v1/scans/{scan_id}/{artifact}").content)
                 print(f"  saved {target}")
             print("\nWatch it in Rerun:")
-            print(f"  live, while the service runs:  rerun --connect rerun+http://127.0.0.1:{args.rerun_port}/proxy")
+            if not args.exit_after_scan:
+                print(f"  live, while the service runs:  rerun --connect rerun+http://127.0.0.1:{args.rerun_port}/proxy")
             print(f"  this scan, any time:           rerun {args.data_dir / f'{scan_id}-field.rrd'}")
             print(f"  the field as a PLY (any viewer): {args.data_dir / f'{scan_id}-field.ply'}")
-            if args.keep_running:
-                print(f"\nThe service keeps running on {base_url} (Ctrl-C stops it).")
-                server.wait()
+            if args.exit_after_scan:
+                print(f"\nThe service has stopped. Start it again with: thermofield serve --data-dir {args.data_dir}")
+            else:
+                print(f"\nThe service keeps running on {base_url} (API docs at {base_url}/docs; scan again with "
+                      f"POST /v1/scans). Ctrl-C stops it.", flush=True)
+                _serve_until_interrupted(server, args.data_dir)
     finally:
         if server.poll() is None:
             server.send_signal(signal.SIGTERM)

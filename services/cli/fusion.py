@@ -5,16 +5,8 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-import numpy as np
-
-from services.cli.reconstruct import reconstruct_from_files
 from services.errors import InputError
-from services.formats.ply import read_cloud, write_cloud
-from services.formats.rig import Rig, load_rig
-from services.formats.thermal import read_thermal_frame
-from services.fusion.field import temperature_field
-from services.fusion.fuse import DEFAULT_MAX_VIEW_ANGLE_DEG, ThermalView
-from services.geometry.camera import camera_center
+from services.fusion.fuse import DEFAULT_MAX_VIEW_ANGLE_DEG
 
 
 def _add_thermal_arguments(parser: argparse.ArgumentParser) -> None:
@@ -34,7 +26,6 @@ def _add_thermal_arguments(parser: argparse.ArgumentParser) -> None:
 def register(subparsers: argparse._SubParsersAction) -> None:
     fuse = subparsers.add_parser(
         "fuse",
-        help="give each point of a cloud its temperature from calibrated thermal frames",
         description="Project every point of a PLY cloud into the rig's thermal camera(s), keep the points "
                     "it sees (z-buffer), sample the frames and write the cloud with temperature, "
                     "view_angle and colour-mapped RGB.",
@@ -46,7 +37,6 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
     field = subparsers.add_parser(
         "field",
-        help="reconstruct a structured-light capture and fuse thermal frames into a temperature field",
         description="Reconstruct a capture directory (as `thermofield reconstruct`) and fuse the thermal "
                     "frames onto the cloud (as `thermofield fuse`), in one step.",
     )
@@ -59,57 +49,54 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     field.set_defaults(handler=_run_field)
 
 
-def thermal_views(rig: Rig, frames: list[Path], device_names: list[str] | None,
-                  emissivity: float | None) -> list[ThermalView]:
-    """Read thermal frames for the named (or the only) thermal devices, one view per device."""
+def _read_thermal(rig, frames: list[Path], device_names: list[str] | None, emissivity: float | None):
+    """The thermal frames, each with the name of the rig's thermal device that took it."""
+    from services.formats.thermal import read_thermal_frame
+
     names = device_names or [None]
     if len(names) not in (1, len(frames)):
         raise InputError(
             f"--thermal-device takes one name or one per frame; got {len(names)} names for {len(frames)} frames"
         )
-    if len(names) == 1:
-        names = names * len(frames)
-    grouped: dict[str, list[np.ndarray]] = {}
-    for path, name in zip(frames, names):
+    if emissivity is not None and not 0.0 < emissivity <= 1.0:
+        raise InputError(f"--emissivity must be in (0, 1]; got {emissivity}")
+    named = []
+    for path, name in zip(frames, names * len(frames) if len(names) == 1 else names):
         device_name, device = rig.device(name, "thermal")
-        grouped.setdefault(device_name, []).append(read_thermal_frame(path, device.size, emissivity))
-    return [ThermalView(rig.devices[name], np.stack(images)) for name, images in grouped.items()]
+        named.append((device_name, read_thermal_frame(path, device.size, emissivity)))
+    return named
 
 
-def _measuring_viewpoint(rig: Rig, views: list[ThermalView]) -> np.ndarray:
-    """The centre of the rig's only camera (which measured the cloud), else of the first thermal camera."""
-    cameras = [device for device in rig.devices.values() if device.kind == "camera"]
-    device = cameras[0] if len(cameras) == 1 else views[0].device
-    return camera_center(device.R_array, device.t_array)
+def _fuse_and_write(rig, cloud, args: argparse.Namespace, source: str) -> int:
+    import numpy as np
 
+    from services.formats.ply import write_cloud
+    from services.pipeline.field import fuse_field
 
-def _fuse_and_write(rig: Rig, cloud: dict[str, np.ndarray], args: argparse.Namespace, source: str) -> int:
-    if args.emissivity is not None and not 0.0 < args.emissivity <= 1.0:
-        raise InputError(f"--emissivity must be in (0, 1]; got {args.emissivity}")
     if not 0.0 < args.max_view_angle < 90.0:
         raise InputError(f"--max-view-angle must be in (0, 90) degrees; got {args.max_view_angle}")
-    views = thermal_views(rig, args.thermal, args.thermal_device, args.emissivity)
-    field = temperature_field(cloud, views, _measuring_viewpoint(rig, views), args.max_view_angle)
+    thermal = _read_thermal(rig, args.thermal, args.thermal_device, args.emissivity)
+    field = fuse_field(cloud=cloud, rig=rig, thermal=thermal, max_view_angle_deg=args.max_view_angle, source=source)
     write_cloud(args.out, field, comments=[f"thermofield temperature field of {source}",
                                            "temperature in degrees C (nan: unseen), view_angle in degrees"])
-    seen = np.isfinite(field["temperature"])
-    summary = (f"{seen.sum()} of {len(seen)} points have a temperature"
-               + (f", {np.min(field['temperature'][seen]):.1f} to {np.max(field['temperature'][seen]):.1f} C"
-                  if seen.any() else ""))
+    temperature = field["temperature"]
+    seen = temperature[np.isfinite(temperature)]
+    summary = (f"{len(seen)} of {len(temperature)} points have a temperature"
+               + (f", {seen.min():.1f} to {seen.max():.1f} C" if len(seen) else ""))
     print(f"{args.out}: {summary}")
     return 0
 
 
 def _run_fuse(args: argparse.Namespace) -> int:
+    from services.formats.ply import read_cloud
+    from services.formats.rig import load_rig
+
     rig = load_rig(args.rig)
-    cloud = read_cloud(args.cloud)
-    missing = [name for name in ("x", "y", "z") if name not in cloud]
-    if missing:
-        raise InputError(f"{args.cloud}: the cloud has no {', '.join(missing)} vertex properties")
-    return _fuse_and_write(rig, cloud, args, args.cloud.name)
+    return _fuse_and_write(rig, read_cloud(args.cloud), args, str(args.cloud))
 
 
 def _run_field(args: argparse.Namespace) -> int:
-    rig = load_rig(args.rig)
-    cloud = reconstruct_from_files(args.rig, args.captures, args.camera, args.projector)
+    from services.cli.reconstruct import reconstruct_from_files
+
+    rig, cloud = reconstruct_from_files(args.rig, args.captures, args.camera, args.projector)
     return _fuse_and_write(rig, cloud, args, args.captures.name)

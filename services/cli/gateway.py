@@ -10,7 +10,6 @@ from services.settings import Settings
 def register(subparsers: argparse._SubParsersAction) -> None:
     parser = subparsers.add_parser(
         "gateway",
-        help="run the device gateway: the station's camera, thermal camera and projector behind HTTP",
         description="Own the station's devices and serve GET /healthz, GET /v1/devices, GET /v1/sequence and "
                     "POST /v1/captures. Configured by THERMOFIELD_* environment variables (see docs/devices.md); "
                     "the options below override them.",

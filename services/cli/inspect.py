@@ -11,7 +11,6 @@ from services.errors import InputError
 def register(subparsers: argparse._SubParsersAction) -> None:
     parser = subparsers.add_parser(
         "inspect",
-        help="cold-equivalent dimensions, deviation from the nominal part and a verdict from a temperature field",
         description="Move every point of a temperature field to where it will be when cold, align the part "
                     "file's nominal mesh, fit its features, map the surface deviation and decide OK, NotOK "
                     "or NotDecidable (docs/inspection.md).",

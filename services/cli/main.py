@@ -1,4 +1,8 @@
-"""The ``thermofield`` command line: one sub-command module per job, sharing error handling."""
+"""The ``thermofield`` command line: one sub-command module per job, sharing error handling.
+
+Sub-command modules are imported only when their command runs, so ``thermofield --help`` imports no
+science and each command pays only for what it uses.
+"""
 
 from __future__ import annotations
 
@@ -18,33 +22,66 @@ os.environ.setdefault("OPENCV_LOG_LEVEL", "SILENT")
 from services.errors import InputError  # noqa: E402
 from services.formats.files import describe_os_error  # noqa: E402
 
-# Each module defines ``register(subparsers)``, which adds its sub-command(s) and sets ``handler``.
-COMMAND_MODULES = [
-    "services.cli.reconstruct",
-    "services.cli.fusion",
-    "services.cli.patterns",
-    "services.cli.service",
-    "services.cli.calibrate",
-    "services.cli.simulate",
-    "services.cli.gateway",
-    "services.cli.demo",
-    "services.cli.register",
-    "services.cli.inspect",
-    "services.cli.rig",
-]
+# command: (module defining ``register(subparsers)``, which adds its command(s) and sets ``handler``; help)
+COMMANDS = {
+    "reconstruct": ("services.cli.reconstruct", "decode a structured-light capture and triangulate a point cloud"),
+    "fuse": ("services.cli.fusion", "give each point of a cloud its temperature from calibrated thermal frames"),
+    "field": ("services.cli.fusion",
+              "reconstruct a structured-light capture and fuse thermal frames into a temperature field"),
+    "patterns": ("services.cli.patterns", "write the projector patterns and their sequence.json"),
+    "serve": ("services.cli.service", "the embedded service: API, in-process worker, simulated gateway, SQLite, "
+                                      "artifact directory, Rerun proxy"),
+    "api": ("services.cli.service", "the HTTP API alone (scaled out: jobs go to RabbitMQ)"),
+    "worker": ("services.cli.service", "Dramatiq worker processes (spawned) consuming RabbitMQ"),
+    "maintenance": ("services.cli.service", "apply the artifact retention policy and expire idempotency keys once "
+                                            "(the service does it every THERMOFIELD_MAINTENANCE_INTERVAL_S)"),
+    "apikey": ("services.cli.service", "manage API keys"),
+    "calibrate": ("services.cli.calibrate", "calibrate cameras, the projector and the infrared camera"),
+    "simulate": ("services.cli.simulate", "render simulated camera frames of a scene lit by the projector's sequence"),
+    "gateway": ("services.cli.gateway",
+                "run the device gateway: the station's camera, thermal camera and projector behind HTTP"),
+    "demo": ("services.cli.demo", "start the embedded service, scan the simulated hot part over HTTP, print the field"),
+    "register": ("services.cli.register", "register an infrared image to a visible image by mutual information"),
+    "inspect": ("services.cli.inspect",
+                "cold-equivalent dimensions, deviation from the nominal part and a verdict from a temperature field"),
+    "rig": ("services.cli.rig", "rig files: import another program's calibration"),
+}
 # Commands that run services: their logs (and their children's) are for the operator and stay on stderr.
 SERVICE_COMMANDS = frozenset({"serve", "api", "worker", "gateway", "demo"})
 
 
-def build_parser() -> argparse.ArgumentParser:
+class _Commands:
+    """The sub-parsers action, giving every command its help from :data:`COMMANDS`."""
+
+    def __init__(self, subparsers: argparse._SubParsersAction) -> None:
+        self._subparsers = subparsers
+
+    def add_parser(self, name: str, **kwargs) -> argparse.ArgumentParser:
+        return self._subparsers.add_parser(name, help=COMMANDS[name][1], **kwargs)
+
+
+def _chosen_command(argv: list[str]) -> str | None:
+    """The command named in ``argv`` (its first word that is one), if any."""
+    return next((word for word in argv if word in COMMANDS), None)
+
+
+def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
+    """The parser, with the full options of the command in ``argv`` (all commands when None)."""
     parser = argparse.ArgumentParser(
         prog="thermofield",
         description="3D temperature fields by structured light and infrared fusion.",
     )
     parser.add_argument("--debug", action="store_true", help="show a traceback on internal errors")
-    subparsers = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
-    for module_name in COMMAND_MODULES:
-        importlib.import_module(module_name).register(subparsers)
+    subparsers = _Commands(parser.add_subparsers(dest="command", required=True, metavar="COMMAND"))
+    chosen = list(COMMANDS) if argv is None else [_chosen_command(argv)]
+    loaded = {COMMANDS[name][0] for name in chosen if name is not None}
+    for module_name in dict.fromkeys(module for module, _ in COMMANDS.values()):
+        if module_name in loaded:
+            importlib.import_module(module_name).register(subparsers)
+        else:
+            for name, (module, _) in COMMANDS.items():
+                if module == module_name:
+                    subparsers.add_parser(name)
     return parser
 
 
@@ -82,8 +119,8 @@ def _writes_to_fd2(stream) -> bool:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = build_parser()
-    args = parser.parse_args(argv)
+    argv = sys.argv[1:] if argv is None else argv
+    args = build_parser(argv).parse_args(argv)
     quiet = not args.debug and args.command not in SERVICE_COMMANDS
     with _quiet_libraries() if quiet else contextlib.nullcontext():
         return _run(args)

@@ -15,7 +15,6 @@ from services.structured_light.patterns import DEFAULT_PERIOD, DEFAULT_STEPS, ge
 def register(subparsers: argparse._SubParsersAction) -> None:
     parser = subparsers.add_parser(
         "patterns",
-        help="write the projector patterns and their sequence.json",
         description="Write the default structured-light sequence (white, black, complementary Gray code and "
                     "N-step phase shifting) as one 8-bit PNG per frame plus DIR/sequence.json.",
     )

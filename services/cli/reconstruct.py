@@ -5,20 +5,10 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-import numpy as np
-
-from services.errors import InputError
-from services.formats.ply import write_cloud
-from services.formats.rig import load_rig
-from services.formats.sequence import read_capture
-from services.structured_light.decode import decode
-from services.structured_light.reconstruct import reconstruct_points
-
 
 def register(subparsers: argparse._SubParsersAction) -> None:
     parser = subparsers.add_parser(
         "reconstruct",
-        help="decode a structured-light capture and triangulate a point cloud",
         description="Decode the frames of a capture directory (sequence.json + camera frames) and "
                     "triangulate them with the rig's camera and projector into a binary PLY.",
     )
@@ -42,47 +32,34 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.set_defaults(handler=_run)
 
 
-def reconstruct_from_files(rig_path: Path, captures: Path, camera_name: str | None = None,
-                           projector_name: str | None = None, manifest: Path | None = None,
+def reconstruct_from_files(rig_path: Path, captures: Path, camera: str | None = None,
+                           projector: str | None = None, manifest: Path | None = None,
                            saturation_level: float | None = None, max_indirect: float = float("inf"),
-                           consistency: float = 0.25) -> dict[str, np.ndarray]:
-    """Read a rig and a capture directory and reconstruct; every error names the file at fault."""
+                           consistency: float = 0.25):
+    """Read a rig and a capture directory (or another program's, described by ``manifest``) and reconstruct;
+    every error names the file at fault.
+
+    The triangulation table is kept in the user's cache directory, so a second run with the same rig
+    loads it instead of building it.
+    """
+    from services.formats.rig import load_rig
+    from services.formats.sequence import read_capture
+    from services.pipeline.reconstruct import reconstruct_capture
+    from services.pipeline.tables import TriangulationTables, default_table_directory
+
     rig = load_rig(rig_path)
-    _, camera = rig.device(camera_name, "camera")
-    _, projector = rig.device(projector_name, "projector")
     sequence, frames = read_capture(captures, manifest)
-    if (sequence.projector.width, sequence.projector.height) != projector.size:
-        raise InputError(
-            f"{captures / 'sequence.json'}: the manifest is for a {sequence.projector.width}x"
-            f"{sequence.projector.height} projector but the rig's projector is {projector.width}x{projector.height}"
-        )
-    if (frames.shape[2], frames.shape[1]) != camera.size:
-        raise InputError(
-            f"{captures}: frames are {frames.shape[2]}x{frames.shape[1]} but the rig's camera is "
-            f"{camera.width}x{camera.height}"
-        )
-    if saturation_level is not None and not 0 < saturation_level <= np.iinfo(frames.dtype).max:
-        raise InputError(f"--saturation-level must be in (0, {np.iinfo(frames.dtype).max}] for "
-                         f"{frames.dtype} frames; got {saturation_level:g}")
-    if not max_indirect > 0:
-        raise InputError(f"--max-indirect must be a positive ratio; got {max_indirect}")
-    if not 0 <= consistency <= 1:
-        raise InputError(f"--consistency must be between 0 and 1; got {consistency}")
-    cloud = reconstruct_points(frames, sequence, camera, projector, saturation_level=saturation_level,
-                               max_indirect=max_indirect, consistency=consistency)
-    if len(cloud["x"]) == 0:
-        counts = np.bincount(decode(frames, sequence).rejection.ravel())
-        reasons = ", ".join(f"code {code}: {count} px" for code, count in enumerate(counts) if count)
-        raise InputError(
-            f"{captures}: no point could be reconstructed (rejected pixels by reason {reasons}; see "
-            "docs/sequence-manifest.md for the codes); check exposure, the manifest and the rig"
-        )
-    return cloud
+    return rig, reconstruct_capture(frames=frames, sequence=sequence, rig=rig, camera=camera, projector=projector,
+                                    saturation_level=saturation_level, max_indirect=max_indirect,
+                                    consistency=consistency, tables=TriangulationTables(default_table_directory()),
+                                    source=str(manifest or captures / "sequence.json")).cloud
 
 
 def _run(args: argparse.Namespace) -> int:
-    cloud = reconstruct_from_files(args.rig, args.captures, args.camera, args.projector, args.manifest,
-                                   args.saturation_level, args.max_indirect, args.consistency)
+    from services.formats.ply import write_cloud
+
+    _, cloud = reconstruct_from_files(args.rig, args.captures, args.camera, args.projector, args.manifest,
+                                      args.saturation_level, args.max_indirect, args.consistency)
     write_cloud(args.out, cloud, comments=[f"thermofield reconstruct of {args.captures.name}"])
-    print(f"{args.out}: {len(cloud['x'])} points")
+    print(f"{args.out}: {len(cloud)} points")
     return 0

@@ -22,7 +22,6 @@ from services.registration.register import register as register_images
 def register(subparsers: argparse._SubParsersAction) -> None:
     parser = subparsers.add_parser(
         "register",
-        help="register an infrared image to a visible image by mutual information",
         description="Find the matrix that maps infrared pixels to visible pixels by maximising (normalised) "
                     "mutual information: preprocessing, coarse global search, multi-resolution refinement. "
                     "Writes REG.json and optionally a fused overlay and a checkerboard blend.",

@@ -14,7 +14,7 @@ _KINDS = ("camera", "projector", "thermal")
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
-    parser = subparsers.add_parser("rig", help="rig files: import another program's calibration")
+    parser = subparsers.add_parser("rig")
     topics = parser.add_subparsers(dest="rig_command", required=True, metavar="ACTION")
     importer = topics.add_parser(
         "import",
@@ -51,7 +51,7 @@ def _run_import(args: argparse.Namespace) -> int:
     args.out.parent.mkdir(parents=True, exist_ok=True)
     save_rig(rig, args.out)
     first, second = args.names
-    baseline = float(((rig.devices[second].R_array.T @ rig.devices[second].t_array) ** 2).sum() ** 0.5)
+    baseline = float(((rig.devices[second].R.T @ rig.devices[second].t) ** 2).sum() ** 0.5)
     print(f"{args.out}: {first} ({args.kinds[0]}, world frame) and {second} ({args.kinds[1]}), "
           f"baseline {baseline:.2f} mm")
     return 0

@@ -17,8 +17,7 @@ _GATEWAY_START_TIMEOUT_S = 180.0
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
-    serve = subparsers.add_parser("serve", help="the embedded service: API, in-process worker, simulated "
-                                                "gateway, SQLite, artifact directory, Rerun proxy")
+    serve = subparsers.add_parser("serve")
     serve.add_argument("--host", help="address to bind the API to (default 127.0.0.1)")
     serve.add_argument("--port", type=int, help="API port (default 8000)")
     serve.add_argument("--data-dir", type=Path, help="database and artifacts (default ./thermofield-data)")
@@ -26,25 +25,23 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     serve.add_argument("--rerun-port", type=int, help="port of the Rerun gRPC proxy (default 9876)")
     serve.set_defaults(handler=_serve)
 
-    api = subparsers.add_parser("api", help="the HTTP API alone (scaled out: jobs go to RabbitMQ)")
+    api = subparsers.add_parser("api")
     api.add_argument("--host", help="bind address (default THERMOFIELD_API_HOST)")
     api.add_argument("--port", type=int, help="port (default THERMOFIELD_API_PORT)")
     api.set_defaults(handler=_api)
 
-    worker = subparsers.add_parser("worker", help="Dramatiq worker processes (spawned) consuming RabbitMQ")
+    worker = subparsers.add_parser("worker")
     worker.add_argument("--processes", type=int, help="worker processes (default THERMOFIELD_WORKER_PROCESSES)")
     worker.add_argument("--threads", type=int, help="jobs at once per process (default THERMOFIELD_WORKER_THREADS)")
     worker.add_argument("--check", action="store_true",
                         help="the healthcheck: exit 0 when every worker process of this host is alive (heartbeats)")
     worker.set_defaults(handler=_worker)
 
-    maintenance = subparsers.add_parser(
-        "maintenance", help="apply the artifact retention policy and expire idempotency keys once (the service "
-                            "does it every THERMOFIELD_MAINTENANCE_INTERVAL_S)")
+    maintenance = subparsers.add_parser("maintenance")
     maintenance.add_argument("--data-dir", type=Path, help="the service's data directory (embedded database)")
     maintenance.set_defaults(handler=_maintenance)
 
-    apikey = subparsers.add_parser("apikey", help="manage API keys")
+    apikey = subparsers.add_parser("apikey")
     apikey_commands = apikey.add_subparsers(dest="apikey_command", required=True, metavar="ACTION")
     create = apikey_commands.add_parser("create", help="create a key and print its secret (shown once)")
     create.add_argument("--scopes", nargs="+", required=True, metavar="SCOPE",
@@ -69,10 +66,10 @@ def _serve(args: argparse.Namespace) -> int:
     import dramatiq
 
     from api.app import create_app
+    from services.jobs.queue import JobQueue
+    from services.runtime import build_runtime, use_runtime
     from services.streaming.proxy import RerunProxy
-    from workers.actors import close_station_views
-    from workers.broker import send_job, setup_broker
-    from workers.runtime import build_runtime, use_runtime
+    from workers.broker import setup_broker
 
     settings = _settings(api_host=args.host, api_port=args.port, data_dir=args.data_dir, rerun_port=args.rerun_port,
                          gateway_port=args.gateway_port, broker_url="")
@@ -81,21 +78,22 @@ def _serve(args: argparse.Namespace) -> int:
     use_runtime(runtime)
     _ensure_simulator_calibration(runtime)
     broker = setup_broker(settings)
+    jobs = JobQueue(broker, settings.job_queue)
     worker = dramatiq.Worker(broker, worker_threads=settings.worker_threads)
     with (_GatewayProcess(settings.gateway_port) as gateway,
           RerunProxy(settings.rerun_host, settings.rerun_port) as proxy, _maintenance_thread(runtime)):
         gateway.wait_until_healthy()
         worker.start()
         for job in runtime.tracker.recover():
-            send_job(job.kind, job.id)
+            jobs.send(job.kind, job.id)
         print(f"thermofield: API on http://{settings.api_host}:{settings.api_port} "
               f"(docs at /docs), data in {settings.data_dir.resolve()}", flush=True)
         print(f"thermofield: Rerun: rerun --connect {proxy.url}", flush=True)
         try:
-            _run_uvicorn(create_app(runtime), settings)
+            _run_uvicorn(create_app(runtime, jobs), settings)
         finally:
             worker.stop()
-            close_station_views()
+            runtime.close_station_view()
     return 0
 
 
@@ -163,17 +161,16 @@ class _GatewayProcess:
 
 def _api(args: argparse.Namespace) -> int:
     from api.app import create_app
-    from workers.broker import setup_broker
-    from workers.runtime import build_runtime, use_runtime
+    from services.jobs.queue import JobQueue, job_broker
+    from services.runtime import build_runtime
 
     settings = _settings(api_host=args.host, api_port=args.port)
     _require_broker(settings, "api")
     runtime = build_runtime(settings)
-    use_runtime(runtime)
-    setup_broker(settings)
+    jobs = JobQueue(job_broker(settings), settings.job_queue)
     print(f"thermofield: API on http://{settings.api_host}:{settings.api_port}", flush=True)
     with _maintenance_thread(runtime):
-        _run_uvicorn(create_app(runtime), settings)
+        _run_uvicorn(create_app(runtime, jobs), settings)
     return 0
 
 
@@ -205,15 +202,15 @@ def _worker(args: argparse.Namespace) -> int:
         live = live_worker_processes(settings.job_queue)
         print(f"thermofield worker: {live} of {settings.worker_processes} processes alive", flush=True)
         return 0 if live >= settings.worker_processes else 1
-    from workers.middleware import limit_thread_environment
+    from services.settings import thread_environment
 
     _require_broker(settings, "worker")
-    limit_thread_environment(settings.compute_threads)
     command = [sys.executable, "-m", "dramatiq", "workers.main", "--use-spawn", "--queues", settings.job_queue,
                "--processes", str(settings.worker_processes), "--threads", str(settings.worker_threads)]
     # A scan takes seconds: each process takes only as many messages as it has threads, so that jobs queued
     # together spread over the processes instead of waiting in one process's prefetch.
-    env = os.environ | {"dramatiq_queue_prefetch": str(settings.worker_threads)}
+    env = os.environ | thread_environment(settings.compute_threads) | {
+        "dramatiq_queue_prefetch": str(settings.worker_threads)}
     return subprocess.run(command, env=env).returncode
 
 

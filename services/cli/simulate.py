@@ -26,7 +26,6 @@ _SCENE_PRESET = re.compile(r"(paper-plane|paper-sphere):(\d+(?:\.\d+)?)|forging"
 def register(subparsers: argparse._SubParsersAction) -> None:
     parser = subparsers.add_parser(
         "simulate",
-        help="render simulated camera frames of a scene lit by the projector's sequence",
         description="Render the camera frames of a virtual rig while the projector shows the patterns of "
                     "DIR/sequence.json, and write them under the manifest's names with sequence.json, rig.json, "
                     "scene.json and the ground truth (depth.npy, points.npy, projector_pixels.npy, "

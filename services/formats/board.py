@@ -116,6 +116,7 @@ class CirclesSpec(_BoardBase):
 
 
 BoardSpec = Annotated[Union[ChessboardSpec, CharucoSpec, CirclesSpec], Field(discriminator="type")]
+MIN_VIEWS = 3  # board views a calibration needs at least (Zhang's method needs three poses)
 _BOARD_ADAPTER = TypeAdapter(BoardSpec)
 _BOARD_TYPES = frozenset({"chessboard", "charuco", "circles"})
 

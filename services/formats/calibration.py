@@ -30,7 +30,8 @@ from pydantic import BaseModel, ConfigDict
 from services.formats.board import BoardSpec
 from services.formats.files import atomic_output
 from services.formats.json_files import read_text, validate_json, write_model
-from services.formats.rig import Device, DeviceKind, Matrix3
+from services.formats.rig import Matrix3
+from services.geometry.camera_model import CameraModel, DeviceKind
 
 
 class CalibratedView(BaseModel):
@@ -86,9 +87,9 @@ class CameraCalibrationFile(BaseModel):
     rejected: list[RejectedView]
     model_selection: ModelSelectionRecord | None = None
 
-    def device(self) -> Device:
+    def device(self) -> CameraModel:
         """The calibrated device at the world origin, as a rig entry."""
-        return Device(kind=self.kind, width=self.width, height=self.height, K=self.K, dist=self.dist)
+        return CameraModel(kind=self.kind, width=self.width, height=self.height, K=self.K, dist=self.dist)
 
 
 class ProjectorCalibrationFile(BaseModel):

@@ -23,8 +23,8 @@ import cv2
 import numpy as np
 
 from services.errors import InputError
-from services.formats.rig import Device, DeviceKind, Rig
-from services.geometry.camera import VALID_DISTORTION_LENGTHS
+from services.formats.rig import Rig
+from services.geometry.camera_model import VALID_DISTORTION_LENGTHS, CameraModel, DeviceKind
 
 FOREIGN_FORMATS = ("slstudio", "opencv-stereo")
 # Files store float32 matrices (SLStudio's have 9 significant digits): a rotation is accepted
@@ -194,12 +194,12 @@ class _Reader:
 
 
 def _device(path: Path, key: str, kind: DeviceKind, size: tuple[int, int], K: np.ndarray, dist: np.ndarray,
-            R: np.ndarray, t: np.ndarray) -> Device:
+            R: np.ndarray, t: np.ndarray) -> CameraModel:
     if K[0, 0] <= 0 or K[1, 1] <= 0:
         raise InputError(f"{path}: {key}: focal lengths must be positive; got fx={K[0, 0]:g}, fy={K[1, 1]:g}")
     if not np.allclose(K[2], [0, 0, 1]) or K[1, 0] != 0:
         raise InputError(f"{path}: {key}: must be upper triangular with last row [0, 0, 1]")
     if K[0, 1] != 0:
         raise InputError(f"{path}: {key}: has skew K[0][1] = {K[0, 1]:g}; OpenCV's camera model has none")
-    return Device(kind=kind, width=size[0], height=size[1], K=K.tolist(), dist=dist.tolist(), R=R.tolist(),
+    return CameraModel(kind=kind, width=size[0], height=size[1], K=K.tolist(), dist=dist.tolist(), R=R.tolist(),
                   t=t.tolist())

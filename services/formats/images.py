@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import io
 from pathlib import Path
 
 import cv2
@@ -21,15 +22,45 @@ def read_frame(path: str | Path) -> np.ndarray:
     path = Path(path)
     if not path.is_file():
         raise InputError(f"{path}: frame file is missing")
-    image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    return _grey_frame(cv2.imread(str(path), cv2.IMREAD_UNCHANGED), str(path))
+
+
+def decode_image(content: bytes, source: str) -> np.ndarray:
+    """:func:`read_frame` of an image file's bytes (an upload); errors name ``source``."""
+    return _grey_frame(cv2.imdecode(np.frombuffer(content, np.uint8), cv2.IMREAD_UNCHANGED), source)
+
+
+def _grey_frame(image: np.ndarray | None, source: str) -> np.ndarray:
     if image is None:
-        raise InputError(f"{path}: cannot read the frame (not a PNG, BMP or TIFF image, or corrupt)")
+        raise InputError(f"{source}: cannot read the frame (not a PNG, BMP or TIFF image, or corrupt)")
     if image.ndim == 3:
         code = cv2.COLOR_BGRA2GRAY if image.shape[2] == 4 else cv2.COLOR_BGR2GRAY
         image = cv2.cvtColor(image, code)
     if image.dtype not in (np.uint8, np.uint16):
-        raise InputError(f"{path}: frames must be 8- or 16-bit integers; this one is {image.dtype}")
+        raise InputError(f"{source}: frames must be 8- or 16-bit integers; this one is {image.dtype}")
     return image
+
+
+def encode_frame(frame: np.ndarray, suffix: str) -> bytes:
+    """One raw frame as an image file: ``png`` (a camera frame, its bit depth kept) or ``tiff`` (float32, for
+    thermal frames in degrees Celsius)."""
+    if suffix == "png":
+        return png_bytes(frame)
+    if suffix != "tiff":
+        raise ValueError(f"Frames are encoded as png or tiff, not {suffix!r}.")
+    import tifffile
+
+    buffer = io.BytesIO()
+    tifffile.imwrite(buffer, frame.astype(np.float32))
+    return buffer.getvalue()
+
+
+def png_bytes(image: np.ndarray) -> bytes:
+    """An 8- or 16-bit grey or BGR image encoded as PNG."""
+    ok, encoded = cv2.imencode(".png", image)
+    if not ok:
+        raise ValueError(f"OpenCV could not encode a {image.dtype} image of shape {image.shape} as PNG.")
+    return encoded.tobytes()
 
 
 def read_frame_stack(paths: list[Path]) -> np.ndarray:

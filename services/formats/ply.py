@@ -1,7 +1,13 @@
-"""Point clouds and temperature fields as binary little-endian PLY (via plyfile)."""
+"""Point clouds and temperature fields as binary little-endian PLY (via plyfile), as bytes or files.
+
+Each property's unit is a header comment ``unit <property> <unit>`` (``unit x mm``,
+``unit temperature degC``); other comments are the cloud's own.
+"""
 
 from __future__ import annotations
 
+import io
+from collections.abc import Mapping
 from pathlib import Path
 
 import numpy as np
@@ -9,36 +15,69 @@ from plyfile import PlyData, PlyElement
 
 from services.errors import InputError
 from services.formats.files import atomic_output
+from services.geometry.cloud import PointCloud
+
+_UNIT_COMMENT = "unit "
 
 
-def write_cloud(path: str | Path, properties: dict[str, np.ndarray], comments: list[str] | None = None) -> None:
-    """Write per-vertex properties (1-D arrays of equal length) as a binary little-endian PLY.
+def as_cloud(cloud: PointCloud | Mapping[str, np.ndarray]) -> PointCloud:
+    """``cloud`` itself, or a mapping of per-point arrays as a :class:`PointCloud`."""
+    return cloud if isinstance(cloud, PointCloud) else PointCloud(dict(cloud))
 
-    The file appears atomically: it is written beside the target and renamed.
-    """
-    path = Path(path)
-    lengths = {name: len(values) for name, values in properties.items()}
-    if len(set(lengths.values())) > 1:
-        raise ValueError(f"All PLY properties must have the same length; got {lengths}.")
-    count = next(iter(lengths.values()), 0)
-    vertices = np.empty(count, dtype=[(name, np.asarray(values).dtype.str) for name, values in properties.items()])
-    for name, values in properties.items():
+
+def cloud_to_ply(cloud: PointCloud | Mapping[str, np.ndarray]) -> bytes:
+    """The binary little-endian PLY of a cloud's per-vertex properties, units and comments."""
+    cloud = as_cloud(cloud)
+    vertices = np.empty(len(cloud), dtype=[(name, values.dtype.newbyteorder("<").str)
+                                           for name, values in cloud.items()])
+    for name, values in cloud.items():
         vertices[name] = values
-    data = PlyData([PlyElement.describe(vertices, "vertex")], text=False, byte_order="<", comments=comments or [])
+    comments = [*cloud.comments, *(f"{_UNIT_COMMENT}{name} {unit}" for name, unit in cloud.units.items())]
+    buffer = io.BytesIO()
+    PlyData([PlyElement.describe(vertices, "vertex")], text=False, byte_order="<", comments=comments).write(buffer)
+    return buffer.getvalue()
+
+
+def cloud_from_ply(data: bytes, source: str = "PLY") -> PointCloud:
+    """Parse PLY bytes (binary or ASCII) into a cloud; an ``InputError`` names ``source``."""
+    try:
+        ply = PlyData.read(io.BytesIO(data))
+    except Exception as error:  # plyfile raises several types for malformed headers and bodies
+        raise InputError(f"{source}: not a readable PLY file ({error})") from None
+    if "vertex" not in ply:
+        raise InputError(f"{source}: PLY file has no 'vertex' element")
+    vertex = ply["vertex"].data
+    units, comments = {}, []
+    for comment in ply.comments:
+        parts = comment.split()
+        if comment.startswith(_UNIT_COMMENT) and len(parts) == 3:
+            units[parts[1]] = parts[2]
+        else:
+            comments.append(comment)
+    return PointCloud({name: np.asarray(vertex[name]) for name in vertex.dtype.names}, units, tuple(comments))
+
+
+def write_cloud(path: str | Path, cloud: PointCloud | Mapping[str, np.ndarray],
+                comments: list[str] | None = None) -> None:
+    """Write a cloud as a binary PLY; the file appears atomically (written beside the target and renamed).
+
+    ``comments`` replace the cloud's own when given.
+    """
+    cloud = as_cloud(cloud)
+    if comments is not None:
+        cloud = cloud.with_properties(comments=tuple(comments))
+    data = cloud_to_ply(cloud)
     with atomic_output(path) as temporary:
-        data.write(str(temporary))
+        temporary.write_bytes(data)
 
 
-def read_cloud(path: str | Path) -> dict[str, np.ndarray]:
-    """Read the vertex properties of a PLY file into a dict of 1-D arrays."""
+def read_cloud(path: str | Path) -> PointCloud:
+    """Read a PLY file's vertex properties; errors name the file."""
     path = Path(path)
     try:
-        data = PlyData.read(str(path))
+        data = path.read_bytes()
     except FileNotFoundError:
         raise InputError(f"{path}: point cloud file is missing") from None
-    except Exception as error:  # plyfile raises several types for malformed headers and bodies
-        raise InputError(f"{path}: not a readable PLY file ({error})") from None
-    if "vertex" not in data:
-        raise InputError(f"{path}: PLY file has no 'vertex' element")
-    vertex = data["vertex"].data
-    return {name: np.asarray(vertex[name]) for name in vertex.dtype.names}
+    except OSError as error:
+        raise InputError(f"{path}: cannot read the point cloud ({error.strerror or error})") from None
+    return cloud_from_ply(data, str(path))

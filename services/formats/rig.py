@@ -12,13 +12,19 @@
 (R, t) maps world to device coordinates, x_dev = R x_world + t, in millimetres
 with OpenCV axes (x right, y down, z forward). ``dist`` has 0, 4, 5, 8, 12 or 14
 coefficients in OpenCV order. Unknown fields are refused so that a typo is not
-silently ignored. See docs/formats.md.
+silently ignored. See docs/rig-file.md.
+
+A parsed rig holds :class:`~services.geometry.camera.CameraModel` objects (read-only arrays); the
+pydantic models here are only the file's schema.
 """
 
 from __future__ import annotations
 
 import json
+from collections.abc import Mapping
+from dataclasses import dataclass
 from pathlib import Path
+from types import MappingProxyType
 from typing import Annotated, Literal
 
 import numpy as np
@@ -26,15 +32,14 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 from services.errors import InputError
 from services.formats.json_files import read_text, validate_json, write_text_atomically
-from services.geometry.camera import VALID_DISTORTION_LENGTHS
+from services.geometry.camera_model import VALID_DISTORTION_LENGTHS, CameraModel, DeviceKind
 
-DeviceKind = Literal["camera", "projector", "thermal"]
 _ROTATION_TOLERANCE = 1e-6
 Matrix3 = Annotated[list[Annotated[list[float], Field(min_length=3, max_length=3)]], Field(min_length=3, max_length=3)]
 
 
-class Device(BaseModel):
-    """One calibrated device: intrinsics, distortion and pose."""
+class DeviceEntry(BaseModel):
+    """The schema of one device of the rig file: intrinsics, distortion and pose, checked to be physical."""
 
     model_config = ConfigDict(extra="forbid", frozen=True)
 
@@ -87,37 +92,52 @@ class Device(BaseModel):
             raise ValueError("contains a non-finite value")
         return t
 
-    @property
-    def K_array(self) -> np.ndarray:
-        return np.asarray(self.K, dtype=np.float64)
+    def camera_model(self) -> CameraModel:
+        return CameraModel(kind=self.kind, width=self.width, height=self.height, K=self.K, dist=self.dist,
+                           R=self.R, t=self.t)
 
-    @property
-    def dist_array(self) -> np.ndarray:
-        return np.asarray(self.dist, dtype=np.float64)
-
-    @property
-    def R_array(self) -> np.ndarray:
-        return np.asarray(self.R, dtype=np.float64)
-
-    @property
-    def t_array(self) -> np.ndarray:
-        return np.asarray(self.t, dtype=np.float64)
-
-    @property
-    def size(self) -> tuple[int, int]:
-        """(width, height) in pixels."""
-        return self.width, self.height
+    @classmethod
+    def of(cls, device: CameraModel) -> DeviceEntry:
+        return cls(kind=device.kind, width=device.width, height=device.height, K=device.K.tolist(),
+                   dist=device.dist.tolist(), R=device.R.tolist(), t=device.t.tolist())
 
 
-class Rig(BaseModel):
-    """Named devices in one world frame, lengths in millimetres."""
+class RigFile(BaseModel):
+    """The schema of the rig file."""
 
     model_config = ConfigDict(extra="forbid", frozen=True)
 
     units: Literal["mm"] = "mm"
-    devices: dict[str, Device]
+    devices: dict[str, DeviceEntry]
 
-    def device(self, name: str | None, kind: DeviceKind) -> tuple[str, Device]:
+
+@dataclass(frozen=True)
+class Rig:
+    """Named devices in one world frame, lengths in millimetres."""
+
+    devices: Mapping[str, CameraModel]
+    units: Literal["mm"] = "mm"
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "devices", MappingProxyType(dict(self.devices)))
+
+    def __eq__(self, other: object) -> bool:
+        if not isinstance(other, Rig):
+            return NotImplemented
+        return self.units == other.units and dict(self.devices) == dict(other.devices)
+
+    def __hash__(self) -> int:
+        return hash(tuple(sorted((name, hash(device)) for name, device in self.devices.items())))
+
+    def with_device(self, name: str, device: CameraModel) -> Rig:
+        """This rig with ``name`` added or replaced."""
+        return Rig({**self.devices, name: device}, self.units)
+
+    def without_kind(self, kind: DeviceKind) -> Rig:
+        """This rig without its devices of ``kind``."""
+        return Rig({n: d for n, d in self.devices.items() if d.kind != kind}, self.units)
+
+    def device(self, name: str | None, kind: DeviceKind) -> tuple[str, CameraModel]:
         """The device called ``name``, or the only device of ``kind`` when ``name`` is None.
 
         Raises
@@ -140,7 +160,8 @@ class Rig(BaseModel):
 
 def parse_rig(text: str, source: str = "rig") -> Rig:
     """Validate rig JSON text; errors name ``source``, the device and the field."""
-    return validate_json(Rig, text, source)
+    parsed = validate_json(RigFile, text, source)
+    return Rig({name: entry.camera_model() for name, entry in parsed.devices.items()}, parsed.units)
 
 
 def load_rig(path: str | Path) -> Rig:
@@ -149,7 +170,9 @@ def load_rig(path: str | Path) -> Rig:
 
 
 def rig_to_json(rig: Rig) -> str:
-    return json.dumps(rig.model_dump(), indent=2)
+    """The rig file's text (the inverse of :func:`parse_rig`)."""
+    document = RigFile(units=rig.units, devices={name: DeviceEntry.of(d) for name, d in rig.devices.items()})
+    return json.dumps(document.model_dump(), indent=2)
 
 
 def save_rig(rig: Rig, path: str | Path) -> None:

@@ -1,11 +1,12 @@
-"""A point cloud (dict of per-point arrays) plus thermal views to a temperature-field cloud."""
+"""A point cloud plus thermal views to a temperature field (the cloud with temperatures and colours)."""
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 
 import numpy as np
 
+from services.geometry.cloud import PointCloud
 from services.fusion.colormap import DEFAULT_COLORMAP, temperature_colors
 from services.fusion.fuse import DEFAULT_MAX_VIEW_ANGLE_DEG, ThermalView, fuse_temperature
 from services.fusion.normals import estimate_normals
@@ -13,9 +14,9 @@ from services.fusion.normals import estimate_normals
 FIELD_PROPERTIES = ("temperature", "view_angle", "red", "green", "blue")
 
 
-def cloud_normals(cloud: dict[str, np.ndarray], viewpoint: np.ndarray) -> np.ndarray:
+def cloud_normals(cloud: PointCloud, viewpoint: np.ndarray) -> np.ndarray:
     """The cloud's ``nx, ny, nz`` where given and finite, else estimated by PCA facing ``viewpoint``."""
-    points = np.column_stack([cloud["x"], cloud["y"], cloud["z"]]).astype(np.float64)
+    points = cloud.points
     if all(name in cloud for name in ("nx", "ny", "nz")):
         normals = np.column_stack([cloud["nx"], cloud["ny"], cloud["nz"]]).astype(np.float64)
         missing = ~np.isfinite(normals).all(axis=1)
@@ -26,17 +27,17 @@ def cloud_normals(cloud: dict[str, np.ndarray], viewpoint: np.ndarray) -> np.nda
 
 
 def temperature_field(
-    cloud: dict[str, np.ndarray],
+    cloud: PointCloud | Mapping[str, np.ndarray],
     views: Sequence[ThermalView],
     viewpoint: np.ndarray,
     max_view_angle_deg: float = DEFAULT_MAX_VIEW_ANGLE_DEG,
     colormap: str = DEFAULT_COLORMAP,
-) -> dict[str, np.ndarray]:
+) -> PointCloud:
     """The cloud's properties plus ``temperature``, ``view_angle`` and perceptual ``red, green, blue``.
 
     Parameters
     ----------
-    cloud : dict of 1-D arrays
+    cloud : PointCloud or mapping of 1-D arrays
         At least ``x, y, z`` (world mm); ``nx, ny, nz`` are used when present.
     views : sequence of ThermalView
         Calibrated thermal cameras and their frames in degrees C.
@@ -50,18 +51,14 @@ def temperature_field(
 
     Returns
     -------
-    field : dict of 1-D arrays
+    field : PointCloud
         The input properties (existing temperature/colour properties replaced)
         and float32 ``temperature`` (degrees C, NaN unseen), float32
         ``view_angle`` (degrees), uint8 ``red, green, blue``.
     """
-    missing = [name for name in ("x", "y", "z") if name not in cloud]
-    if missing:
-        raise ValueError(f"The cloud lacks the coordinate properties {missing}.")
-    points = np.column_stack([cloud["x"], cloud["y"], cloud["z"]]).astype(np.float64)
-    fused = fuse_temperature(points, cloud_normals(cloud, viewpoint), views, max_view_angle_deg)
+    if not isinstance(cloud, PointCloud):
+        cloud = PointCloud(dict(cloud))
+    fused = fuse_temperature(cloud.points, cloud_normals(cloud, viewpoint), views, max_view_angle_deg)
     rgb = temperature_colors(fused.temperature, name=colormap)
-    field = {name: values for name, values in cloud.items() if name not in FIELD_PROPERTIES}
-    field.update(temperature=fused.temperature, view_angle=fused.view_angle,
-                 red=rgb[:, 0], green=rgb[:, 1], blue=rgb[:, 2])
-    return field
+    return cloud.without(*FIELD_PROPERTIES).with_properties(
+        temperature=fused.temperature, view_angle=fused.view_angle, red=rgb[:, 0], green=rgb[:, 1], blue=rgb[:, 2])

@@ -7,11 +7,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from services.formats.rig import Device
+from services.geometry.camera_model import CameraModel
 from services.fusion.visibility import (
     SAMPLE_FOOTPRINTS, depth_buffer, depth_gradient, depth_tolerance, nearest_depth_around, seen_mask,
 )
-from services.geometry.camera import camera_center, project_points
+from services.geometry.camera import project_points
 
 DEFAULT_MAX_VIEW_ANGLE_DEG = 75.0
 DEFAULT_DEPTH_TOLERANCE_MM = 2.0
@@ -22,7 +22,7 @@ DEFAULT_OCCLUSION_MARGIN_PX = 6
 class ThermalView:
     """Frames of one calibrated thermal camera, in degrees Celsius, shape (F, height, width)."""
 
-    device: Device
+    device: CameraModel
     frames: np.ndarray
 
     def __post_init__(self) -> None:
@@ -53,9 +53,9 @@ def view_angles(points: np.ndarray, normals: np.ndarray, centre: np.ndarray) -> 
     return np.arccos(cosine)
 
 
-def _project(points: np.ndarray, device: Device) -> np.ndarray:
+def _project(points: np.ndarray, device: CameraModel) -> np.ndarray:
     """Distorted pixel coordinates of world points in the device."""
-    return project_points(points, device.K_array, device.dist_array, device.R_array, device.t_array)
+    return project_points(points, device.K, device.dist, device.R, device.t)
 
 
 def _bilinear_samples(
@@ -123,11 +123,11 @@ def sample_view(
     max_angle = np.deg2rad(max_view_angle_deg)
     pixels = _project(points, device)
     # einsum, not ``@``: a threaded BLAS call on (N, 3) x (3, 3) is many times slower on a busy machine
-    points_device = np.einsum("ij,nj->ni", device.R_array, points) + device.t_array
+    points_device = np.einsum("ij,nj->ni", device.R, points) + device.t
     depth = points_device[:, 2]
-    angle = view_angles(points, normals, camera_center(device.R_array, device.t_array))
-    focal = 0.5 * (device.K_array[0, 0] + device.K_array[1, 1])
-    gradient = depth_gradient(points_device, np.einsum("ij,nj->ni", device.R_array, normals), focal, max_angle)
+    angle = view_angles(points, normals, device.centre)
+    focal = 0.5 * (device.K[0, 0] + device.K[1, 1])
+    gradient = depth_gradient(points_device, np.einsum("ij,nj->ni", device.R, normals), focal, max_angle)
     tolerance = depth_tolerance(gradient, depth_tolerance_mm)
     buffer = depth_buffer(pixels, depth, device.width, device.height)
     seen = seen_mask(pixels, depth, buffer, tolerance)

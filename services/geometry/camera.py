@@ -1,4 +1,5 @@
-"""OpenCV's pinhole camera model with lens distortion, for cameras and projectors alike.
+"""OpenCV's pinhole camera model with lens distortion, for cameras and projectors alike: projection and
+back-projection on arrays (the device itself is :class:`services.geometry.camera_model.CameraModel`).
 
 A device pose (R, t) maps world to device coordinates, x_dev = R x_world + t;
 lengths are in millimetres and distortion coefficients follow OpenCV's order
@@ -10,9 +11,9 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
+from services.geometry.camera_model import as_distortion, camera_center
 from services.geometry.distortion import project_with_distortion, reprojection_errors
 
-VALID_DISTORTION_LENGTHS = (0, 4, 5, 8, 12, 14)
 # A fixed number of iterations is cheap; the reprojection test that OpenCV's EPS criterion runs at every
 # iteration costs ten times more, so it is run only on the points still off after the cheap pass.
 _FAST_UNDISTORT_CRITERIA = (cv2.TERM_CRITERIA_COUNT, 10, 0.0)
@@ -25,20 +26,6 @@ def _as_points(points: np.ndarray, dim: int, name: str) -> np.ndarray:
     if points.ndim != 2 or points.shape[1] != dim:
         raise ValueError(f"{name} must have shape (N, {dim}); got {points.shape}.")
     return points
-
-
-def _as_distortion(dist: np.ndarray) -> np.ndarray:
-    dist = np.asarray(dist, dtype=np.float64).ravel()
-    if dist.size not in VALID_DISTORTION_LENGTHS:
-        raise ValueError(
-            f"Distortion must have one of {VALID_DISTORTION_LENGTHS} coefficients; got {dist.size}."
-        )
-    return dist
-
-
-def camera_center(R: np.ndarray, t: np.ndarray) -> np.ndarray:
-    """Device centre in world coordinates, C = -R^T t."""
-    return -np.asarray(R, dtype=np.float64).T @ np.asarray(t, dtype=np.float64).ravel()
 
 
 def project_points(
@@ -74,7 +61,7 @@ def project_points(
     .. [1] OpenCV, "Camera Calibration and 3D Reconstruction", calib3d module.
     """
     points_world = _as_points(points_world, 3, "points_world")
-    return project_with_distortion(points_world, K, _as_distortion(dist), R, t)
+    return project_with_distortion(points_world, K, as_distortion(dist), R, t)
 
 
 def normalized_coordinates(pixels: np.ndarray, K: np.ndarray, dist: np.ndarray) -> np.ndarray:
@@ -101,7 +88,7 @@ def normalized_coordinates(pixels: np.ndarray, K: np.ndarray, dist: np.ndarray) 
     """
     pixels = _as_points(pixels, 2, "pixels")
     K = np.asarray(K, np.float64)
-    dist = _as_distortion(dist)
+    dist = as_distortion(dist)
     if pixels.shape[0] == 0:
         return np.empty((0, 2))
     if not dist.any():

@@ -70,8 +70,17 @@ class JobTracker:
         self._update(job_id, stage=stage, fraction=fraction)
 
     def succeed(self, job_id: str, result: dict[str, Any]) -> None:
-        self._update(job_id, status="succeeded", stage="done", fraction=1.0, result=result, error=None,
-                     finished_at=datetime.now(UTC))
+        """Record the result; a scan job's ``artifacts`` and ``summary`` go onto its scan in the same commit."""
+        with self.sessions.begin() as session:
+            job = session.get(Job, job_id)
+            if job is None:
+                raise KeyError(f"job {job_id} does not exist")
+            job.status, job.stage, job.fraction, job.result, job.error = "succeeded", "done", 1.0, result, None
+            job.finished_at = datetime.now(UTC)
+            scan = session.get(Scan, job.params["scan_id"]) if job.kind == "scan" and "scan_id" in job.params else None
+            if scan is not None:
+                scan.artifacts, scan.summary = result.get("artifacts", {}), result.get("summary")
+        self.announce(job)
 
     def fail(self, job_id: str, error: str, will_retry: bool) -> None:
         if will_retry:
@@ -100,12 +109,15 @@ class JobTracker:
         self.publisher.publish(job_topic(prefix, job.id), state)
         scan_id = job.params.get("scan_id")
         if scan_id is not None:
-            with self.sessions() as session:
-                scan = session.get(Scan, scan_id)
-                summary = scan.summary if scan is not None else None
+            summary = job.result.get("summary") if job.kind == "scan" else self._scan_summary(scan_id)
             state = {"scan_id": scan_id, **{k: v for k, v in state.items() if k != "scan_id"}, "summary": summary}
             self.publisher.publish(scan_topic(prefix, scan_id), state)
         self.publisher.publish(station_topic(prefix), state, retain=True)
+
+    def _scan_summary(self, scan_id: str) -> dict | None:
+        with self.sessions() as session:
+            scan = session.get(Scan, scan_id)
+            return scan.summary if scan is not None else None
 
     def _update(self, job_id: str, **changes: Any) -> None:
         with self.sessions.begin() as session:

@@ -12,8 +12,10 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
+from services.intensity import STRETCH_PERCENTILES, percentile_stretch
+
 PREPROCESSING = ("paper", "clahe", "gradient", "none")
-_STRETCH_PERCENTILES = (0.5, 99.5)
+
 
 
 def _check_image(image: np.ndarray) -> np.ndarray:
@@ -36,14 +38,7 @@ def to_uint8(image: np.ndarray) -> np.ndarray:
     image = _check_image(image)
     if image.dtype == np.uint8:
         return image
-    values = image.astype(np.float64)
-    finite = np.isfinite(values)
-    if not finite.any():
-        raise ValueError("The image has no finite pixel.")
-    low, high = np.percentile(values[finite], _STRETCH_PERCENTILES)
-    span = high - low if high > low else 1.0
-    stretched = np.clip((np.where(finite, values, low) - low) * (255.0 / span), 0.0, 255.0)
-    return np.rint(stretched).astype(np.uint8)
+    return np.rint(percentile_stretch(image, 255.0)).astype(np.uint8)
 
 
 def invert_equalize(image: np.ndarray, invert: bool = True) -> np.ndarray:
@@ -93,7 +88,7 @@ def gradient_magnitude(image: np.ndarray, sigma: float = 1.0) -> np.ndarray:
     dx = cv2.Scharr(grey, cv2.CV_32F, 1, 0)
     dy = cv2.Scharr(grey, cv2.CV_32F, 0, 1)
     magnitude = cv2.magnitude(dx, dy)
-    top = float(np.percentile(magnitude, _STRETCH_PERCENTILES[1]))
+    top = float(np.percentile(magnitude, STRETCH_PERCENTILES[1]))
     return np.clip(magnitude / (top if top > 0.0 else 1.0), 0.0, 1.0).astype(np.float32)
 
 

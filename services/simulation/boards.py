@@ -13,8 +13,8 @@ import cv2
 import numpy as np
 
 from services.formats.board import BoardSpec, CharucoSpec, ChessboardSpec, CirclesSpec
-from services.formats.rig import Device
 from services.geometry.camera import normalized_coordinates, project_points
+from services.geometry.camera_model import CameraModel
 
 Modality = Literal["visible", "infrared"]
 _MAX_TEXELS_PER_FEATURE = 256
@@ -100,7 +100,7 @@ def render_board_capture(
     R: np.ndarray,
     t: np.ndarray,
     image_size: tuple[int, int],
-    projector: Device,
+    projector: CameraModel,
     patterns: np.ndarray,
     *,
     ambient: float = 0.05,
@@ -115,7 +115,7 @@ def render_board_capture(
     ----------
     board, K, dist, R, t, image_size
         As for ``render_board``; (R, t) is the board-to-camera pose.
-    projector : Device
+    projector : CameraModel
         The projector, its pose mapping camera coordinates to projector coordinates.
     patterns : (F, Hp, Wp) uint8 array
         The projector images.
@@ -144,8 +144,8 @@ def render_board_capture(
     points = points @ np.asarray(R, np.float64).T + np.asarray(t, np.float64).ravel()
     projector_pixels = np.full((len(points), 2), -1e6)
     chosen = valid.ravel()
-    projector_pixels[chosen] = project_points(points[chosen], projector.K_array, projector.dist_array,
-                                              projector.R_array, projector.t_array)
+    projector_pixels[chosen] = project_points(points[chosen], projector.K, projector.dist,
+                                              projector.R, projector.t)
     projector_pixels = np.nan_to_num(projector_pixels, nan=-1e6).astype(np.float32)
     map_x = projector_pixels[:, 0].reshape(albedo.shape)
     map_y = projector_pixels[:, 1].reshape(albedo.shape)

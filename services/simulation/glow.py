@@ -18,7 +18,7 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
-from services.formats.rig import Device
+from services.geometry.camera_model import CameraModel
 from services.simulation.optics import Optics, SensorOptics
 from services.simulation.raycast import cast_rays
 from services.simulation.render import ProjectorEffects, ViewGeometry, integrate_pixels, projector_light, subsample_rays
@@ -45,14 +45,14 @@ class GlowView:
         return integrate_pixels(self.glow(time_s), self.supersample)
 
 
-def render_glow_view(scene: Scene, camera: Device, supersample: int = 3) -> GlowView:
+def render_glow_view(scene: Scene, camera: CameraModel, supersample: int = 3) -> GlowView:
     """Trace the temperature seen through every camera sub-sample of a hot scene.
 
     Parameters
     ----------
     scene : Scene
         With ``temperature`` and ``optics``.
-    camera : Device
+    camera : CameraModel
         The visible camera.
     supersample : int
         Odd number of sub-samples per pixel side; the same as the ``render_view`` it goes with.

@@ -21,8 +21,8 @@ from pathlib import Path
 
 import numpy as np
 
-from services.formats.rig import Device
-from services.geometry.camera import camera_center, normalized_coordinates, pixel_grid, project_points
+from services.geometry.camera import normalized_coordinates, pixel_grid, project_points
+from services.geometry.camera_model import CameraModel
 from services.inspection.materials import Material
 from services.open3d_loader import open3d
 from services.simulation.scene import Mesh
@@ -203,7 +203,7 @@ class _Raycaster:
         return distance, normals
 
 
-def simulated_field(part: HotPart, camera: Device, projector: Device, thermal: Device, rng: np.random.Generator,
+def simulated_field(part: HotPart, camera: CameraModel, projector: CameraModel, thermal: CameraModel, rng: np.random.Generator,
                     noise: ScanNoise = ScanNoise()) -> tuple[dict[str, np.ndarray], np.ndarray]:
     """What the station measures of a hot part: a temperature field as ``thermofield field`` writes it.
 
@@ -211,7 +211,7 @@ def simulated_field(part: HotPart, camera: Device, projector: Device, thermal: D
     ----------
     part : HotPart
         The part, its pose and temperature.
-    camera, projector, thermal : Device
+    camera, projector, thermal : CameraModel
         The structured-light camera and projector and the thermal camera.
     rng : numpy.random.Generator
         Source of the noise.
@@ -236,9 +236,9 @@ def simulated_field(part: HotPart, camera: Device, projector: Device, thermal: D
     point and it falls in its image.
     """
     scene = _Raycaster(part.to_world(part.hot_vertices_part()), part.triangles)
-    origin = camera_center(camera.R_array, camera.t_array)
-    rays = normalized_coordinates(pixel_grid(camera.width, camera.height), camera.K_array, camera.dist_array)
-    directions = np.column_stack([rays, np.ones(len(rays))]) @ camera.R_array
+    origin = camera.centre
+    rays = normalized_coordinates(pixel_grid(camera.width, camera.height), camera.K, camera.dist)
+    directions = np.column_stack([rays, np.ones(len(rays))]) @ camera.R
     directions /= np.linalg.norm(directions, axis=1, keepdims=True)
     distance, normals = scene.cast(origin, directions)
     hit = np.isfinite(distance)
@@ -257,12 +257,12 @@ def simulated_field(part: HotPart, camera: Device, projector: Device, thermal: D
     return field, points
 
 
-def _reaches(scene: _Raycaster, device: Device, points: np.ndarray, normals: np.ndarray) -> np.ndarray:
+def _reaches(scene: _Raycaster, device: CameraModel, points: np.ndarray, normals: np.ndarray) -> np.ndarray:
     """Points that face the device, fall inside its image and that its rays reach unobstructed."""
-    centre = camera_center(device.R_array, device.t_array)
+    centre = device.centre
     toward = centre - points
     facing = np.einsum("ij,ij->i", normals, toward) > 0
-    pixels = project_points(points, device.K_array, device.dist_array, device.R_array, device.t_array)
+    pixels = project_points(points, device.K, device.dist, device.R, device.t)
     inside = ((pixels[:, 0] >= -0.5) & (pixels[:, 0] <= device.width - 0.5)
               & (pixels[:, 1] >= -0.5) & (pixels[:, 1] <= device.height - 0.5))
     distance = np.linalg.norm(toward, axis=1)

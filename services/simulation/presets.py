@@ -20,7 +20,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from services.formats.rig import Device, Rig
+from services.formats.rig import Rig
+from services.geometry.camera_model import CameraModel
 from services.simulation.optics import BandPassFilter, Optics, ProjectorOptics
 from services.simulation.scene import Albedo, Cylinder, Plane, Scene, Sphere
 from services.simulation.temperature import Spot, SurfaceTemperature, TemperatureScene
@@ -39,9 +40,9 @@ def _intrinsics(focal: float, width: int, height: int) -> list[list[float]]:
 
 
 def _device(kind: str, size: tuple[int, int], focal: float, dist: list[float], R: np.ndarray,
-            centre: tuple[float, float, float]) -> Device:
+            centre: tuple[float, float, float]) -> CameraModel:
     t = -R @ np.asarray(centre, dtype=np.float64)
-    return Device(kind=kind, width=size[0], height=size[1], K=_intrinsics(focal, *size), dist=dist,
+    return CameraModel(kind=kind, width=size[0], height=size[1], K=_intrinsics(focal, *size), dist=dist,
                   R=R.tolist(), t=t.tolist())
 
 

@@ -19,8 +19,8 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
-from services.formats.rig import Device
-from services.geometry.camera import camera_center, normalized_coordinates, pixel_grid, project_points
+from services.geometry.camera import normalized_coordinates, pixel_grid, project_points
+from services.geometry.camera_model import CameraModel
 from services.simulation.raycast import cast_rays
 from services.simulation.scene import Scene, surface_albedo
 
@@ -121,8 +121,8 @@ class ViewGeometry:
     (albedo * cos(theta_p), 0 when unlit) and the ambient term (albedo * ambient).
     """
 
-    camera: Device
-    projector: Device
+    camera: CameraModel
+    projector: CameraModel
     supersample: int
     projector_x: np.ndarray = field(repr=False)
     projector_y: np.ndarray = field(repr=False)
@@ -139,7 +139,7 @@ def subsample_offsets(supersample: int) -> np.ndarray:
     return (np.arange(supersample) + 0.5) / supersample - 0.5
 
 
-def subsample_rays(device: Device, supersample: int) -> tuple[np.ndarray, np.ndarray]:
+def subsample_rays(device: CameraModel, supersample: int) -> tuple[np.ndarray, np.ndarray]:
     """World rays through an s x s grid of sub-samples in every pixel of ``device``.
 
     Returns
@@ -158,7 +158,7 @@ def subsample_rays(device: Device, supersample: int) -> tuple[np.ndarray, np.nda
     """
     offsets = subsample_offsets(supersample)
     width, height = device.width, device.height
-    centres = normalized_coordinates(pixel_grid(width, height), device.K_array, device.dist_array)
+    centres = normalized_coordinates(pixel_grid(width, height), device.K, device.dist)
     centres = centres.reshape(height, width, 2)
     edge_order = 2 if min(width, height) > 2 else 1
     d_du = np.gradient(centres, axis=1, edge_order=edge_order) if width > 1 else np.zeros_like(centres)
@@ -167,11 +167,11 @@ def subsample_rays(device: Device, supersample: int) -> tuple[np.ndarray, np.nda
     x, y = ((centres[:, None, :, None, axis] + row_offsets * d_dv[:, None, :, None, axis]
              + column_offsets * d_du[:, None, :, None, axis]).ravel() for axis in (0, 1))
     inverse_length = 1 / np.sqrt(x * x + y * y + 1)  # rotating the device ray (x, y, 1) keeps its length
-    R = device.R_array
+    R = device.R
     directions = np.empty((x.size, 3))
     for axis in range(3):  # world direction R^T (x, y, 1), one component at a time to spare memory
         directions[:, axis] = (x * R[0, axis] + y * R[1, axis] + R[2, axis]) * inverse_length
-    return camera_center(R, device.t_array), directions
+    return device.centre, directions
 
 
 def integrate_pixels(samples: np.ndarray, supersample: int) -> np.ndarray:
@@ -181,13 +181,13 @@ def integrate_pixels(samples: np.ndarray, supersample: int) -> np.ndarray:
     return blocks.mean(axis=(1, 3))
 
 
-def _projector_pixels(points: np.ndarray, projector: Device) -> np.ndarray:
+def _projector_pixels(points: np.ndarray, projector: CameraModel) -> np.ndarray:
     """Distorted projector pixels of world points; NaN outside the image or where distortion is extrapolated.
 
     Only points whose distortion-free projection lies in front of the projector and within 25% beyond its
     image are projected through the distortion model, which wraps around far outside the calibrated field.
     """
-    R, t, K = projector.R_array, projector.t_array, projector.K_array
+    R, t, K = projector.R, projector.t, projector.K
     depth = points @ R[2] + t[2]
     with np.errstate(divide="ignore", invalid="ignore"):
         x, y = (points @ R[0] + t[0]) / depth, (points @ R[1] + t[1]) / depth
@@ -196,9 +196,9 @@ def _projector_pixels(points: np.ndarray, projector: Device) -> np.ndarray:
     near_image = ((depth > 0) & (ideal[:, 0] >= -margin_u) & (ideal[:, 0] <= projector.width + margin_u)
                   & (ideal[:, 1] >= -margin_v) & (ideal[:, 1] <= projector.height + margin_v))
     pixels = np.full((len(points), 2), np.nan)
-    if projector.dist_array.any():
-        pixels[near_image] = project_points(points[near_image], projector.K_array, projector.dist_array,
-                                            projector.R_array, projector.t_array)
+    if projector.dist.any():
+        pixels[near_image] = project_points(points[near_image], projector.K, projector.dist,
+                                            projector.R, projector.t)
     else:
         pixels[near_image] = ideal[near_image]
     with np.errstate(invalid="ignore"):
@@ -208,14 +208,14 @@ def _projector_pixels(points: np.ndarray, projector: Device) -> np.ndarray:
     return pixels
 
 
-def render_view(scene: Scene, camera: Device, projector: Device, supersample: int = 3) -> ViewGeometry:
+def render_view(scene: Scene, camera: CameraModel, projector: CameraModel, supersample: int = 3) -> ViewGeometry:
     """Trace a camera's view of a scene lit by a projector, once for any number of patterns.
 
     Parameters
     ----------
     scene : Scene
         Surfaces and ambient light.
-    camera, projector : Device
+    camera, projector : CameraModel
         The viewing device (any kind) and the projector, with intrinsics, distortion and pose.
     supersample : int
         Odd number s of sub-samples per pixel side (s^2 rays per pixel integrate the pixel area).
@@ -261,7 +261,7 @@ def render_view(scene: Scene, camera: Device, projector: Device, supersample: in
             values[rows] = _centre_samples(getattr(traced, name), grid)
     grid = (height, s, width, s)
     points = centre["points"]
-    truth = GroundTruth(depth=points @ camera.R_array[2] + camera.t_array[2], points=points,
+    truth = GroundTruth(depth=points @ camera.R[2] + camera.t[2], points=points,
                         surface=centre["surface"], lit=lit.reshape(grid).all(axis=(1, 3)),
                         projector_pixels=np.where(centre["lit"][..., None], centre["projector_pixels"], np.nan))
     return ViewGeometry(camera=camera, projector=projector, supersample=supersample,
@@ -281,11 +281,11 @@ class _TracedSamples:
     direct: np.ndarray
 
 
-def _trace_samples(scene: Scene, origin: np.ndarray, directions: np.ndarray, projector: Device) -> _TracedSamples:
+def _trace_samples(scene: Scene, origin: np.ndarray, directions: np.ndarray, projector: CameraModel) -> _TracedSamples:
     """Hit, shadow and shading of one block of camera rays (see ``render_view``)."""
     hits = cast_rays(scene, origin, directions)
     hit = hits.surface >= 0
-    projector_centre = camera_center(projector.R_array, projector.t_array)
+    projector_centre = projector.centre
     to_projector = projector_centre - hits.points
     distance_to_projector = np.sqrt(np.einsum("ij,ij->i", to_projector, to_projector))
     with np.errstate(invalid="ignore", divide="ignore"):

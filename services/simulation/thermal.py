@@ -10,9 +10,9 @@ import cv2
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
-from services.formats.rig import Device
+from services.geometry.camera_model import CameraModel
 from services.fusion.radiometry import PlanckConstants, blackbody_counts, blackbody_temperature
-from services.geometry.camera import camera_center
+
 from services.simulation.raycast import cast_rays
 from services.simulation.render import integrate_pixels, subsample_rays
 from services.simulation.scene import Scene
@@ -61,7 +61,7 @@ THERMAL_RANGES: dict[str, tuple[float, float]] = {
 def render_thermal(
     scene: Scene,
     temperatures: TemperatureScene,
-    device: Device,
+    device: CameraModel,
     effects: ThermalEffects,
     rng: np.random.Generator,
 ) -> np.ndarray:
@@ -73,7 +73,7 @@ def render_thermal(
         The geometry.
     temperatures : TemperatureScene
         One field per surface of ``scene``.
-    device : Device
+    device : CameraModel
         The thermal camera (intrinsics, distortion and pose).
     effects : ThermalEffects
         Area integration, blur and noise.
@@ -111,7 +111,7 @@ def render_thermal(
     return image.astype(np.float32)
 
 
-def seen_by(scene: Scene, device: Device, points: np.ndarray, tolerance_mm: float = 0.5) -> np.ndarray:
+def seen_by(scene: Scene, device: CameraModel, points: np.ndarray, tolerance_mm: float = 0.5) -> np.ndarray:
     """Ground truth visibility: whether the device's line of sight to each point (N, 3) is unobstructed.
 
     A point is seen when the first scene hit along the ray from the device
@@ -119,7 +119,7 @@ def seen_by(scene: Scene, device: Device, points: np.ndarray, tolerance_mm: floa
     Pixel bounds are not checked.
     """
     points = np.asarray(points, dtype=np.float64)
-    centre = camera_center(device.R_array, device.t_array)
+    centre = device.centre
     toward = points - centre
     distance = np.linalg.norm(toward, axis=1)
     hits = cast_rays(scene, centre, toward)

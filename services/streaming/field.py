@@ -13,58 +13,56 @@ Entity tree (world frame = the rig's world frame, OpenCV axes, millimetres):
 
 from __future__ import annotations
 
+from collections.abc import Mapping
+from dataclasses import dataclass
+
 import numpy as np
 import rerun as rr
 
 from services.formats.rig import Rig
 from services.fusion.colormap import temperature_colors
+from services.geometry.cloud import PointCloud
 
 FIELD_ENTITY = "world/field"
 DEVICES_ENTITY = "world/devices"
 _DEVICE_COLORS = {"camera": (80, 160, 255), "projector": (255, 220, 80), "thermal": (255, 90, 60)}
 
 
-def _temperature_range(*temperatures: np.ndarray) -> tuple[float, float] | None:
-    finite = np.concatenate([np.asarray(t, dtype=np.float64).ravel() for t in temperatures])
-    finite = finite[np.isfinite(finite)]
-    if finite.size == 0:
-        return None
-    return float(finite.min()), float(finite.max())
-
-
-def log_rig(recording: rr.RecordingStream, rig: Rig) -> None:
-    """Log every device of ``rig`` as a frustum: its pose and its pinhole intrinsics."""
-    recording.log("world", rr.ViewCoordinates.RDF, static=True)
+def _rig_entities(rig: Rig) -> list[tuple[str, tuple]]:
+    """Every device of ``rig`` as a frustum: its pose and its pinhole intrinsics."""
+    entities = []
     for name, device in rig.devices.items():
-        recording.log(
-            f"{DEVICES_ENTITY}/{name}",
-            rr.Transform3D(translation=device.t_array, mat3x3=device.R_array,
-                           relation=rr.TransformRelation.ChildFromParent),
-        )
-        recording.log(
-            f"{DEVICES_ENTITY}/{name}/image",
-            rr.Pinhole(image_from_camera=device.K_array, resolution=[device.width, device.height],
+        entities.append((f"{DEVICES_ENTITY}/{name}", (
+            rr.Transform3D(translation=device.t, mat3x3=device.R, relation=rr.TransformRelation.ChildFromParent),)))
+        entities.append((f"{DEVICES_ENTITY}/{name}/image", (
+            rr.Pinhole(image_from_camera=device.K, resolution=[device.width, device.height],
                        camera_xyz=rr.ViewCoordinates.RDF, image_plane_distance=100.0,
-                       color=_DEVICE_COLORS[device.kind]),
-        )
+                       color=_DEVICE_COLORS[device.kind]),)))
+    return entities
 
 
-def log_field(
-    recording: rr.RecordingStream,
-    field: dict[str, np.ndarray],
+@dataclass(frozen=True)
+class FieldScene:
+    """What a viewer shows of one field: ``(entity path, archetypes)`` in log order, built once per field and
+    logged to any number of recordings (the scan's ``.rrd`` and the station's live view)."""
+
+    entities: tuple[tuple[str, tuple], ...]
+
+
+def field_scene(
+    field: PointCloud | Mapping[str, np.ndarray],
     rig: Rig,
     thermal_image: np.ndarray | None = None,
     thermal_device: str | None = None,
-) -> None:
-    """Log one 3D temperature field with the rig and, optionally, the thermal frame it was fused from.
+) -> FieldScene:
+    """The field with the rig's device frusta and, optionally, the thermal frame it was fused from.
 
     Parameters
     ----------
-    recording : rerun.RecordingStream
-        Where to log; the caller sets its timeline (e.g. the scan number).
-    field : dict of 1-D arrays
-        A field as read from ``field.ply``: ``x, y, z`` (world mm) and
-        ``temperature`` (degrees Celsius, NaN where unseen).
+    field : PointCloud or mapping of 1-D arrays
+        A field as :func:`services.fusion.field.temperature_field` makes it or ``field.ply`` holds it:
+        ``x, y, z`` (world mm), ``temperature`` (degrees Celsius, NaN where unseen) and, when present,
+        its colours ``red, green, blue``.
     rig : Rig
         The calibration the field was computed with.
     thermal_image : (h, w) float array, optional
@@ -74,23 +72,23 @@ def log_field(
 
     Notes
     -----
-    Points and thermal image share one colour scale, the perceptual map of
-    ``services.fusion.colormap`` from the lowest to the highest temperature seen,
-    so a colour means the same temperature in both views.
+    The points keep the field's own colours (the perceptual map of ``services.fusion.colormap`` from the
+    field's lowest to its highest temperature), computed once by the fusion; the thermal image is mapped
+    on the same scale, so a colour means the same temperature in both views.
     """
     missing = [name for name in ("x", "y", "z", "temperature") if name not in field]
     if missing:
         raise ValueError(f"The field lacks the propert{'y' if len(missing) == 1 else 'ies'} {', '.join(missing)}.")
     positions = np.column_stack([field["x"], field["y"], field["z"]]).astype(np.float32)
     temperature = np.asarray(field["temperature"], dtype=np.float32)
-    scale = _temperature_range(temperature, *(() if thermal_image is None else (thermal_image,)))
-    low, high = scale if scale is not None else (None, None)
-    log_rig(recording, rig)
-    recording.log(
-        FIELD_ENTITY,
-        rr.Points3D(positions, colors=temperature_colors(temperature, low, high)),
-        rr.AnyValues(temperature=temperature),
-    )
+    seen = temperature[np.isfinite(temperature)]
+    low, high = (float(seen.min()), float(seen.max())) if seen.size else (None, None)
+    if all(name in field for name in ("red", "green", "blue")):
+        colours = np.column_stack([field["red"], field["green"], field["blue"]]).astype(np.uint8)
+    else:
+        colours = temperature_colors(temperature, low, high)
+    entities = [*_rig_entities(rig),
+                (FIELD_ENTITY, (rr.Points3D(positions, colors=colours), rr.AnyValues(temperature=temperature)))]
     if thermal_image is not None:
         name, device = rig.device(thermal_device, "thermal")
         thermal_image = np.asarray(thermal_image, dtype=np.float32)
@@ -99,4 +97,12 @@ def log_field(
                 f"The thermal image is {thermal_image.shape[1]}x{thermal_image.shape[0]} but rig device {name!r} "
                 f"is {device.width}x{device.height}."
             )
-        recording.log(f"{DEVICES_ENTITY}/{name}/image", rr.Image(temperature_colors(thermal_image, low, high)))
+        entities.append((f"{DEVICES_ENTITY}/{name}/image", (rr.Image(temperature_colors(thermal_image, low, high)),)))
+    return FieldScene(tuple(entities))
+
+
+def log_field(recording: rr.RecordingStream, scene: FieldScene) -> None:
+    """Log a field's scene (see :func:`field_scene`); the caller sets the recording's timeline."""
+    recording.log("world", rr.ViewCoordinates.RDF, static=True)
+    for path, archetypes in scene.entities:
+        recording.log(path, *archetypes)

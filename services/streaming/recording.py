@@ -13,11 +13,9 @@ import threading
 import time
 from urllib.parse import urlsplit
 
-import numpy as np
 import rerun as rr
 
-from services.formats.rig import Rig
-from services.streaming.field import log_field
+from services.streaming.field import FieldScene, log_field
 from services.streaming.proxy import accepts_connections
 
 APPLICATION_ID = "thermofield"
@@ -28,14 +26,8 @@ def _set_scan_time(recording: rr.RecordingStream, scan_number: int, captured_at:
     recording.set_time("capture_time", timestamp=time.time() if captured_at is None else captured_at)
 
 
-def scan_recording(
-    scan_id: str,
-    field: dict[str, np.ndarray],
-    rig: Rig,
-    thermal_image: np.ndarray | None = None,
-    captured_at: float | None = None,
-) -> bytes:
-    """The ``.rrd`` bytes of one scan's field, rig and thermal frame (see :func:`log_field`).
+def scan_recording(scan_id: str, scene: FieldScene, captured_at: float | None = None) -> bytes:
+    """The ``.rrd`` bytes of one scan's field, rig and thermal frame (see :func:`field_scene`).
 
     ``captured_at`` (seconds since the epoch) stamps the ``capture_time`` timeline;
     default now.
@@ -44,7 +36,7 @@ def scan_recording(
     memory = recording.memory_recording()
     recording.send_recording_name(f"scan {scan_id}")
     _set_scan_time(recording, 0, captured_at)
-    log_field(recording, field, rig, thermal_image)
+    log_field(recording, scene)
     recording.flush()
     data = memory.drain_as_bytes()
     recording.disconnect()
@@ -81,8 +73,7 @@ class StationView:
             self._recording = recording
         return self._recording
 
-    def publish(self, field: dict[str, np.ndarray], rig: Rig, thermal_image: np.ndarray | None = None,
-                captured_at: float | None = None) -> int | None:
+    def publish(self, scene: FieldScene, captured_at: float | None = None) -> int | None:
         """Show a new field; returns its step on the ``scan`` timeline, None when the proxy is unreachable."""
         with self._lock:
             self._scans += 1
@@ -90,7 +81,7 @@ class StationView:
             if recording is None:
                 return None
             _set_scan_time(recording, self._scans, captured_at)
-            log_field(recording, field, rig, thermal_image)
+            log_field(recording, scene)
             return self._scans
 
     def close(self) -> None:

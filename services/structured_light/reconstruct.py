@@ -7,8 +7,9 @@ from dataclasses import dataclass
 import numba
 import numpy as np
 
-from services.formats.rig import Device
 from services.formats.sequence import Sequence
+from services.geometry.camera_model import CameraModel
+from services.geometry.cloud import PointCloud
 from services.numba_options import SAFE_FASTMATH
 from services.structured_light.decode import DecodedCapture, decode
 from services.structured_light.glow import GlowReport, decode_glowing
@@ -17,7 +18,7 @@ from services.structured_light.outline import ASSUMED_CAMERA_BLUR_PX, estimate_c
 from services.structured_light.triangulate import TriangulationTable, triangulate_map, triangulation_table
 
 
-def coded_axis(coded_axes: tuple[str, ...], camera: Device, projector: Device) -> str:
+def coded_axis(coded_axes: tuple[str, ...], camera: CameraModel, projector: CameraModel) -> str:
     """The projector axis to triangulate against: the coded one that best crosses the baseline.
 
     A coded projector column constrains depth when the camera-projector baseline runs across the
@@ -26,16 +27,8 @@ def coded_axis(coded_axes: tuple[str, ...], camera: Device, projector: Device) -
     available = list(coded_axes)
     if not available:
         raise ValueError("The capture codes neither projector axis, so nothing can be triangulated.")
-    camera_centre = -camera.R_array.T @ camera.t_array
-    baseline = projector.R_array @ camera_centre + projector.t_array
+    baseline = projector.R @ camera.centre + projector.t
     return max(available, key=lambda axis: abs(baseline[0 if axis == "x" else 1]))
-
-
-def rig_triangulation_table(camera: Device, projector: Device, axis: str) -> TriangulationTable:
-    """:func:`triangulation_table` of a rig's camera and projector, once per calibration and coded axis."""
-    return triangulation_table(camera.K_array, camera.dist_array, camera.R_array, camera.t_array, camera.size,
-                               projector.K_array, projector.dist_array, projector.R_array, projector.t_array,
-                               projector.size, axis)
 
 
 def _coordinate_step_limit(sequence: Sequence, axis: str) -> float:
@@ -273,7 +266,7 @@ def _cloud_kernel(points_map, row_starts, camera_centre, coordinates, quality, m
 
 
 def _cloud(points_map: np.ndarray, camera_centre: np.ndarray, coordinates: np.ndarray,
-           decoded: DecodedCapture) -> dict[str, np.ndarray]:
+           decoded: DecodedCapture) -> PointCloud:
     """The reconstructed pixels of the point map with their normals and decoding properties, in raster order."""
     counts = np.empty(points_map.shape[0], dtype=np.int64)
     _row_point_counts(points_map, counts)
@@ -281,30 +274,30 @@ def _cloud(points_map: np.ndarray, camera_centre: np.ndarray, coordinates: np.nd
     columns = np.empty((len(_CLOUD_FIELDS), row_starts[-1]), dtype=np.float32)
     _cloud_kernel(points_map, row_starts, camera_centre, coordinates, decoded.quality, decoded.modulation,
                   decoded.intensity, columns)
-    return dict(zip(_CLOUD_FIELDS, columns, strict=True))
+    return PointCloud(dict(zip(_CLOUD_FIELDS, columns, strict=True)))
 
 
 @dataclass(frozen=True)
-class Scan:
+class Reconstruction:
     """A reconstructed capture: the ``cloud`` (see :func:`reconstruct_points`) and, for a capture of a
     glowing part (a sequence closed by a second black frame), what the glow did (``glow``), else None."""
 
-    cloud: dict[str, np.ndarray]
+    cloud: PointCloud
     glow: GlowReport | None
 
 
 def reconstruct_scan(
     frames: np.ndarray,
     sequence: Sequence,
-    camera: Device,
-    projector: Device,
+    camera: CameraModel,
+    projector: CameraModel,
     *,
     table: TriangulationTable | None = None,
     gray_boundaries: bool = True,
     saturation_level: float | None = None,
     max_indirect: float = np.inf,
     consistency: float = 0.25,
-) -> Scan:
+) -> Reconstruction:
     """Decode a capture and triangulate every valid camera pixel, reporting what a hot part's glow did.
 
     Parameters
@@ -315,11 +308,11 @@ def reconstruct_scan(
         What each frame encodes. A sequence that opens and closes with a black frame (our hot-part
         sequences) is decoded by ``glow.decode_glowing``: the drifting glow is interpolated between the
         two and subtracted, and the thresholds follow the noise measured per pixel.
-    camera, projector : Device
+    camera, projector : CameraModel
         Calibrated devices of the rig.
     table : TriangulationTable, optional
-        :func:`rig_triangulation_table` of the devices for the sequence, to reuse across scans of one
-        calibration; computed here when None.
+        :func:`~services.structured_light.triangulate.triangulation_table` of the devices for the
+        sequence's coded axis, to reuse across scans of one calibration; computed here when None.
     gray_boundaries : bool
         Interpolate axes coded by Gray code alone between their stripe boundaries (``decode``'s option);
         False triangulates their stripe centres.
@@ -338,7 +331,7 @@ def reconstruct_scan(
 
     Returns
     -------
-    Scan
+    Reconstruction
     """
     height, width = frames.shape[1:]
     if (width, height) != camera.size:
@@ -347,7 +340,7 @@ def reconstruct_scan(
         )
     axis = coded_axis(sequence.coded_axes, camera, projector)
     if table is None:
-        table = rig_triangulation_table(camera, projector, axis)
+        table = triangulation_table(camera, projector, axis)
     elif table.axis != axis or table.pixel_geometry.shape[:2] != (height, width):
         raise ValueError(f"The triangulation table is for projector {table.axis} and a "
                          f"{table.pixel_geometry.shape[1]}x{table.pixel_geometry.shape[0]} camera, "
@@ -364,21 +357,21 @@ def reconstruct_scan(
     coordinates = _refined_coordinates(decoded, sequence, axis, noise)
     coordinates = remove_speckles(coordinates, _coordinate_step_limit(sequence, axis))
     points_map = triangulate_map(table, coordinates)
-    return Scan(cloud=_cloud(points_map, table.centre_world, coordinates, decoded), glow=report)
+    return Reconstruction(cloud=_cloud(points_map, table.centre_world, coordinates, decoded), glow=report)
 
 
 def reconstruct_points(
     frames: np.ndarray,
     sequence: Sequence,
-    camera: Device,
-    projector: Device,
+    camera: CameraModel,
+    projector: CameraModel,
     *,
     table: TriangulationTable | None = None,
     gray_boundaries: bool = True,
     saturation_level: float | None = None,
     max_indirect: float = np.inf,
     consistency: float = 0.25,
-) -> dict[str, np.ndarray]:
+) -> PointCloud:
     """Decode a capture and triangulate every valid camera pixel.
 
     Parameters
@@ -387,11 +380,11 @@ def reconstruct_points(
         Camera frames in the manifest's display order.
     sequence : Sequence
         What each frame encodes.
-    camera, projector : Device
+    camera, projector : CameraModel
         Calibrated devices of the rig.
     table : TriangulationTable, optional
-        :func:`rig_triangulation_table` of the devices for the sequence, to reuse across scans of one
-        calibration; computed here when None.
+        :func:`~services.structured_light.triangulate.triangulation_table` of the devices for the
+        sequence's coded axis, to reuse across scans of one calibration; computed here when None.
     gray_boundaries : bool
         Interpolate axes coded by Gray code alone between their stripe boundaries (``decode``'s option);
         False triangulates their stripe centres.
@@ -409,7 +402,7 @@ def reconstruct_points(
 
     Returns
     -------
-    cloud : dict of 1-D arrays
+    cloud : PointCloud
         ``x, y, z`` (float32 world mm), ``nx, ny, nz`` (unit normals, NaN at the cloud's border),
         ``u, v`` (camera pixel, float32), ``projector`` (decoded projector coordinate),
         ``quality``, ``modulation``, ``intensity`` (float32), one entry per reconstructed point, in

@@ -12,6 +12,7 @@ import numba
 import numpy as np
 
 from services.geometry.camera import normalized_coordinates, pixel_grid
+from services.geometry.camera_model import CameraModel
 from services.geometry.distortion import distorted_pixel, opencv_distortion_terms
 from services.numba_options import SAFE_FASTMATH
 
@@ -304,29 +305,13 @@ def _line_offsets_kernel(first_line, line_step, reference, origin, fx, fy, cx, c
             exact_cells[c, q] = not error <= tolerance
 
 
-def triangulation_table(
-    camera_K: np.ndarray,
-    camera_dist: np.ndarray,
-    camera_R: np.ndarray,
-    camera_t: np.ndarray,
-    camera_size: tuple[int, int],
-    projector_K: np.ndarray,
-    projector_dist: np.ndarray,
-    projector_R: np.ndarray,
-    projector_t: np.ndarray,
-    projector_size: tuple[int, int],
-    axis: str,
-) -> TriangulationTable:
+def triangulation_table(camera: CameraModel, projector: CameraModel, axis: str) -> TriangulationTable:
     """Precompute, once per calibration, the triangulation of every camera pixel against a coded axis.
 
     Parameters
     ----------
-    camera_K, camera_dist, camera_R, camera_t : arrays
-        Camera intrinsics, OpenCV distortion and pose (world to camera).
-    camera_size, projector_size : (width, height)
-        Image sizes of the devices.
-    projector_K, projector_dist, projector_R, projector_t : arrays
-        Projector intrinsics, OpenCV distortion and pose.
+    camera, projector : CameraModel
+        The calibrated camera and projector (intrinsics, OpenCV distortion, world-to-device pose).
     axis : {"x", "y"}
         The coded projector axis.
 
@@ -358,9 +343,9 @@ def triangulation_table(
     if axis not in _AXES:
         raise ValueError(f"The coded axis must be 'x' or 'y'; got {axis!r}.")
     a = _AXES[axis]
-    width, height = camera_size
-    rays = camera_ray_table(camera_K, camera_dist, width, height).reshape(-1, 2)
-    centre, origin, rotation, camera_to_world = _geometry(camera_R, camera_t, projector_R, projector_t)
+    width, height = camera.size
+    rays = camera_ray_table(camera.K, camera.dist, width, height).reshape(-1, 2)
+    centre, origin, rotation, camera_to_world = _geometry(camera.R, camera.t, projector.R, projector.t)
     reference = _reference_coordinate(origin, a)
     intercepts = np.empty(len(rays))
     _line_intercepts_kernel(rays, origin, rotation, reference, a, intercepts)
@@ -373,10 +358,10 @@ def triangulation_table(
     geometry = np.empty((height, width, 3), dtype=np.float32)
     geometry[..., _LINE] = ((intercepts - first) / step).reshape(height, width)
     geometry[..., _RAY_X:] = rays.reshape(height, width, 2)
-    K = np.asarray(projector_K, dtype=np.float64)
-    terms, tilt = opencv_distortion_terms(projector_dist)
-    offsets = np.empty((projector_size[a] + 2, _LINE_NODES), dtype=np.float32)
-    exact_cells = np.empty((projector_size[a] + 1, _LINE_NODES - 1), dtype=np.bool_)
+    K = np.array(projector.K)
+    terms, tilt = opencv_distortion_terms(projector.dist)
+    offsets = np.empty((projector.size[a] + 2, _LINE_NODES), dtype=np.float32)
+    exact_cells = np.empty((projector.size[a] + 1, _LINE_NODES - 1), dtype=np.bool_)
     _line_offsets_kernel(first, step, reference, origin, K[0, 0], K[1, 1], K[0, 2], K[1, 2], terms, tilt, a, offsets,
                          exact_cells)
     return TriangulationTable(

@@ -10,22 +10,28 @@ def runtime(engine, tmp_path):
     from services.jobs.tracker import JobTracker
     from services.settings import Settings
     from services.storage.artifacts import ArtifactStore
-    from workers.broker import setup_broker
-    from workers.runtime import Runtime
+    from services.runtime import Runtime
 
     settings = Settings(data_dir=tmp_path, broker_url="", mqtt_host="")
     sessions = make_sessions(engine)
-    setup_broker(settings)
     return Runtime(settings, engine, sessions, ArtifactStore(tmp_path / "artifacts"), JobTracker(sessions))
 
 
 @pytest.fixture
-def client(runtime):
+def job_queue(runtime):
+    """The API's job queue on an in-memory broker: messages wait on it, no worker runs them."""
+    from services.jobs.queue import JobQueue, job_broker
+
+    return JobQueue(job_broker(runtime.settings), runtime.settings.job_queue)
+
+
+@pytest.fixture
+def client(runtime, job_queue):
     from fastapi.testclient import TestClient
 
     from api.app import create_app
 
-    with TestClient(create_app(runtime), raise_server_exceptions=False) as client:
+    with TestClient(create_app(runtime, job_queue), raise_server_exceptions=False) as client:
         yield client
 
 

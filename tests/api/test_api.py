@@ -91,12 +91,17 @@ def test_validation_errors_are_problems_naming_the_field(client, auth):
     assert {"body.part_id", "body.colour"} <= fields
 
 
-def test_scan_is_accepted_with_a_location_and_a_queued_job(client, auth, runtime):
+def test_scan_is_accepted_with_a_location_and_a_queued_job(client, auth, runtime, job_queue):
     calibration = upload_rig(client, auth["admin"]).json()
     response = client.post("/v1/scans", headers=auth["operate"], json={"part_id": "billet-17"})
     assert response.status_code == 202
     accepted = response.json()
     assert response.headers["location"] == f"/v1/jobs/{accepted['job_id']}"
+    assert accepted["links"] == {"job": f"/v1/jobs/{accepted['job_id']}", "scan": f"/v1/scans/{accepted['scan_id']}",
+                                 "events": f"/v1/jobs/{accepted['job_id']}/events"}
+    # one message for the actor named "scan", sent without the API knowing the actor
+    (message,) = [json.loads(data) for data in job_queue.broker.queues[job_queue.queue_name].queue]
+    assert (message["actor_name"], message["args"]) == ("scan", [accepted["job_id"]])
     job = client.get(response.headers["location"], headers=auth["read"]).json()
     assert (job["status"], job["kind"], job["scan_id"]) == ("queued", "scan", accepted["scan_id"])
     scan = client.get(f"/v1/scans/{accepted['scan_id']}", headers=auth["read"]).json()

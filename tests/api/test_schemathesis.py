@@ -30,8 +30,8 @@ def api_schema(request, tmp_path):
     from services.jobs.tracker import JobTracker
     from services.settings import Settings
     from services.storage.artifacts import ArtifactStore
-    from workers.broker import setup_broker
-    from workers.runtime import Runtime
+    from services.jobs.queue import JobQueue, job_broker
+    from services.runtime import Runtime
 
     from api.app import create_app
 
@@ -39,10 +39,10 @@ def api_schema(request, tmp_path):
     migrate(engine)
     settings_ = Settings(data_dir=tmp_path, broker_url="", mqtt_host="", rate_limit_per_s=0, min_free_bytes=0)
     sessions = make_sessions(engine)
-    setup_broker(settings_)
     runtime = Runtime(settings_, engine, sessions, ArtifactStore(tmp_path / "artifacts"), JobTracker(sessions))
     _seed(runtime)
-    return schemathesis.openapi.from_asgi("/openapi.json", create_app(runtime))
+    return schemathesis.openapi.from_asgi("/openapi.json", create_app(runtime, JobQueue(job_broker(settings_),
+                                                                                         settings_.job_queue)))
 
 
 def _seed(runtime) -> None:

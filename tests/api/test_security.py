@@ -70,13 +70,13 @@ def test_keys_are_created_listed_and_revoked_through_the_api(client, auth, runti
 
 
 @pytest.fixture
-def limited_client(runtime):
+def limited_client(runtime, job_queue):
     from fastapi.testclient import TestClient
 
     from api.app import create_app
 
     runtime.settings = runtime.settings.model_copy(update={"rate_limit_per_s": 2.0, "rate_limit_burst": 3})
-    with TestClient(create_app(runtime), raise_server_exceptions=False) as client:
+    with TestClient(create_app(runtime, job_queue), raise_server_exceptions=False) as client:
         yield client
 
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from services.formats.rig import Device
+from services.geometry.camera_model import CameraModel
 from services.simulation.boards import render_board, render_board_capture
 from services.structured_light.patterns import generate_sequence
 
@@ -59,11 +59,11 @@ PROJECTOR_CAMERA_K = np.array([[560.0, 0.0, 240.5], [0.0, 560.0, 179.0], [0.0, 0
 PROJECTOR_CAMERA_DIST = np.array([-0.05, 0.02, 0.0, 0.0, 0.0])
 
 
-def projector_beside_camera() -> Device:
+def projector_beside_camera() -> CameraModel:
     """A 400x300 projector 150 mm left of the camera, turned 15 degrees toward its axis (pose from the camera)."""
     R = cv2.Rodrigues(np.array([0.0, np.radians(-15.0), 0.0]))[0]
     centre = np.array([-150.0, 5.0, 10.0])
-    return Device(kind="projector", width=400, height=300,
+    return CameraModel(kind="projector", width=400, height=300,
                   K=[[600.0, 0.0, 199.5], [0.0, 600.0, 170.0], [0.0, 0.0, 1.0]], dist=[0.03, -0.02, 0.0, 0.0],
                   R=R.tolist(), t=(-R @ centre).tolist())
 

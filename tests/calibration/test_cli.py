@@ -9,7 +9,8 @@ from services.cli.main import main
 from services.formats.board import parse_board
 from services.formats.calibration import CameraCalibrationFile, load_camera_calibration, save_camera_calibration
 from services.formats.images import write_png
-from services.formats.rig import Device, Rig, load_rig, save_rig
+from services.formats.rig import Rig, load_rig, save_rig
+from services.geometry.camera_model import CameraModel
 
 from .simulated_rig import CAMERA_DIST, CAMERA_K, CAMERA_SIZE, THERMAL_DIST, THERMAL_FROM_CAMERA, THERMAL_K, THERMAL_SIZE
 
@@ -109,7 +110,7 @@ def test_calibrate_stereo_places_the_thermal_camera_in_the_rig(tmp_path, visible
         write_png(tmp_path / "pairs" / "visible" / f"pair{index:02d}.png", visible)
         write_png(tmp_path / "pairs" / "thermal" / f"pair{index:02d}.png", infrared)
     camera_R, camera_t = cv2.Rodrigues(np.array([0.0, 0.35, 0.0]))[0], np.array([-140.0, 0.0, 50.0])
-    rig = Rig(devices={"visible": Device(kind="camera", width=CAMERA_SIZE[0], height=CAMERA_SIZE[1],
+    rig = Rig(devices={"visible": CameraModel(kind="camera", width=CAMERA_SIZE[0], height=CAMERA_SIZE[1],
                                          K=CAMERA_K.tolist(), dist=CAMERA_DIST.tolist(), R=camera_R.tolist(),
                                          t=camera_t.tolist())})
     save_rig(rig, tmp_path / "rig.json")
@@ -122,16 +123,16 @@ def test_calibrate_stereo_places_the_thermal_camera_in_the_rig(tmp_path, visible
                  str(tmp_path / "thermal.json"), "--out", str(tmp_path / "rig2.json")]) == 0
     thermal = load_rig(tmp_path / "rig2.json").devices["thermal"]
     R_rel, t_rel = THERMAL_FROM_CAMERA
-    np.testing.assert_allclose(thermal.R_array, R_rel @ camera_R, atol=1e-3)
-    np.testing.assert_allclose(thermal.t_array, R_rel @ camera_t + t_rel, atol=0.5)
-    assert thermal.kind == "thermal" and thermal.K == THERMAL_K.tolist()
+    np.testing.assert_allclose(thermal.R, R_rel @ camera_R, atol=1e-3)
+    np.testing.assert_allclose(thermal.t, R_rel @ camera_t + t_rel, atol=0.5)
+    assert thermal.kind == "thermal" and np.array_equal(thermal.K, THERMAL_K)
     report = json.loads((tmp_path / "rig2_stereo_thermal.json").read_text())
     assert report["stereo_rms_px"] < 0.1 and len(report["pairs"]) == len(visible_infrared_pairs)
     assert abs(report["baseline_mm"] - np.linalg.norm(t_rel)) < 0.5
 
 
 def test_calibrate_stereo_needs_the_device_intrinsics(tmp_path, capsys, opencv_board_file):
-    save_rig(Rig(devices={"visible": Device(kind="camera", width=640, height=480,
+    save_rig(Rig(devices={"visible": CameraModel(kind="camera", width=640, height=480,
                                             K=CAMERA_K.tolist())}), tmp_path / "rig.json")
     _expect_error(capsys, ["calibrate", "stereo", "--board", str(opencv_board_file), "--pairs", str(tmp_path),
                            "--rig", str(tmp_path / "rig.json"), "--device", "thermal", "--out",

@@ -34,8 +34,8 @@ def test_projector_corners_and_calibration_meet_the_targets(projector_captures, 
     for capture in projector_captures:
         image_points, corners, found = _corners_of(capture, chessboard_15mm)
         R, t = capture[2]
-        truth = project_points(chessboard_15mm.object_points() @ R.T + t, projector.K_array, projector.dist_array,
-                               projector.R_array, projector.t_array)
+        truth = project_points(chessboard_15mm.object_points() @ R.T + t, projector.K, projector.dist,
+                               projector.R, projector.t)
         assert found.all()
         assert np.sqrt(np.mean(np.sum((corners - truth) ** 2, axis=1))) < 0.15
         objects.append(chessboard_15mm.object_points())
@@ -44,10 +44,10 @@ def test_projector_corners_and_calibration_meet_the_targets(projector_captures, 
     result = calibrate_projector(objects, camera_points, projector_points, (PROJECTOR_CAMERA_K, PROJECTOR_CAMERA_DIST),
                                  PROJECTOR_CAMERA_SIZE, projector.size)
     assert result.projector.rms <= 0.3
-    assert np.abs(np.diag(result.projector.K)[:2] / np.diag(projector.K_array)[:2] - 1).max() < 2e-3
-    angle = np.degrees(np.linalg.norm(cv2.Rodrigues(result.stereo.R @ projector.R_array.T)[0]))
+    assert np.abs(np.diag(result.projector.K)[:2] / np.diag(projector.K)[:2] - 1).max() < 2e-3
+    angle = np.degrees(np.linalg.norm(cv2.Rodrigues(result.stereo.R @ projector.R.T)[0]))
     assert angle < 0.2
-    assert np.linalg.norm(result.stereo.t - projector.t_array) < 2.0
+    assert np.linalg.norm(result.stereo.t - projector.t) < 2.0
     assert result.stereo.rms <= 0.3
 
 
@@ -80,12 +80,12 @@ def test_calibrate_projector_command_writes_the_rig_and_its_report(tmp_path, pro
                  "--camera", str(tmp_path / "camera.json"), "--out", str(out)]) == 0
     rig = load_rig(out)
     assert set(rig.devices) == {"visible", "projector"}
-    np.testing.assert_allclose(rig.devices["visible"].R_array, np.eye(3))
+    np.testing.assert_allclose(rig.devices["visible"].R, np.eye(3))
     truth = projector_beside_camera()
-    assert np.linalg.norm(rig.devices["projector"].t_array - truth.t_array) < 2.0
+    assert np.linalg.norm(rig.devices["projector"].t - truth.t) < 2.0
     report = json.loads((tmp_path / "rig_projector.json").read_text())
     assert report["projector_rms_px"] <= 0.3 and report["stereo_rms_px"] <= 0.3
-    assert len(report["views"]) == 5 and abs(report["baseline_mm"] - np.linalg.norm(truth.t_array)) < 2.0
+    assert len(report["views"]) == 5 and abs(report["baseline_mm"] - np.linalg.norm(truth.t)) < 2.0
 
 
 def test_calibrate_projector_needs_three_captures(tmp_path, capsys, chessboard_15mm):

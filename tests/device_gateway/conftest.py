@@ -7,21 +7,22 @@ import socket
 import numpy as np
 import pytest
 
-from device_gateway.devices import Camera, DeviceInfo, DeviceLost, DeviceUnavailable, Frame
+from device_gateway.devices import CameraDriver, DeviceInfo, DeviceLost, DeviceUnavailable, Frame
 from device_gateway.drivers.simulated import SimulatedStation
 from device_gateway.station import Station
-from services.formats.rig import Device, Rig
+from services.formats.rig import Rig
+from services.geometry.camera_model import CameraModel
 from services.simulation import presets
 from services.structured_light.patterns import generate_sequence
 
 SCALE = 4
 
 
-def _downscaled(device: Device, scale: int) -> Device:
-    K = device.K_array.copy()
+def _downscaled(device: CameraModel, scale: int) -> CameraModel:
+    K = device.K.copy()
     K[:2, :2] /= scale
     K[:2, 2] = (K[:2, 2] + 0.5) / scale - 0.5  # pixel centres at integers
-    return device.model_copy(update={"width": device.width // scale, "height": device.height // scale,
+    return device.replace(**{"width": device.width // scale, "height": device.height // scale,
                                      "K": K.tolist()})
 
 
@@ -63,10 +64,10 @@ def free_port() -> int:
         return probe.getsockname()[1]
 
 
-class Unplugged(Camera):
+class Unplugged(CameraDriver):
     """A camera lost at its ``fail_at``-th grab, which then stays away for ``away`` openings."""
 
-    def __init__(self, camera: Camera, fail_at: int, away: int = 0) -> None:
+    def __init__(self, camera: CameraDriver, fail_at: int, away: int = 0) -> None:
         self.camera, self.fail_at, self.away = camera, fail_at, away
         self.grabs = self.opens = 0
 

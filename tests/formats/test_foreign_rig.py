@@ -40,14 +40,14 @@ def test_slstudio_calibration_xml_is_read_with_its_conventions():
     camera, projector = rig.devices["camera"], rig.devices["projector"]
     assert (camera.kind, camera.size, projector.kind, projector.size) == ("camera", (1688, 1352), "projector",
                                                                           (1824, 1140))
-    np.testing.assert_allclose(camera.K_array, [[2195.12036, 0, 843.5], [0, 2195.12036, 675.5], [0, 0, 1]], rtol=1e-8)
-    np.testing.assert_allclose(camera.dist_array, [-5.80352657e-02, 0, 0, 0, 0], rtol=1e-6)
-    np.testing.assert_allclose(projector.K_array[0], [2601.52563, 0, 866.541504], rtol=1e-8)
-    np.testing.assert_allclose(projector.t_array, [-145.282562, -36.4983406, 67.9231644], rtol=1e-6)
+    np.testing.assert_allclose(camera.K, [[2195.12036, 0, 843.5], [0, 2195.12036, 675.5], [0, 0, 1]], rtol=1e-8)
+    np.testing.assert_allclose(camera.dist, [-5.80352657e-02, 0, 0, 0, 0], rtol=1e-6)
+    np.testing.assert_allclose(projector.K[0], [2601.52563, 0, 866.541504], rtol=1e-8)
+    np.testing.assert_allclose(projector.t, [-145.282562, -36.4983406, 67.9231644], rtol=1e-6)
     # the camera is the world; Rp maps camera to projector coordinates, so Rp itself is the projector's R
-    np.testing.assert_array_equal(camera.R_array, np.eye(3))
-    np.testing.assert_allclose(projector.R_array[0], [0.964402318, -0.120346159, 0.235467508], atol=1e-7)
-    np.testing.assert_allclose(projector.R_array @ projector.R_array.T, np.eye(3), atol=1e-12)
+    np.testing.assert_array_equal(camera.R, np.eye(3))
+    np.testing.assert_allclose(projector.R[0], [0.964402318, -0.120346159, 0.235467508], atol=1e-7)
+    np.testing.assert_allclose(projector.R @ projector.R.T, np.eye(3), atol=1e-12)
 
 
 @pytest.mark.parametrize("suffix", ["yml", "xml"])
@@ -59,11 +59,11 @@ def test_opencv_stereo_file_round_trips_through_the_cli(tmp_path, suffix, capsys
     rig = load_rig(out)
     visible, ir = rig.devices["visible"], rig.devices["ir"]
     assert (visible.kind, visible.size, ir.kind, ir.size) == ("camera", (640, 480), "thermal", (320, 256))
-    np.testing.assert_allclose(ir.R_array, _R, atol=1e-12)
-    np.testing.assert_allclose(ir.t_array, _T.ravel())
-    np.testing.assert_allclose(ir.dist_array, [-0.2, 0.1, 0, 0, 0])
+    np.testing.assert_allclose(ir.R, _R, atol=1e-12)
+    np.testing.assert_allclose(ir.t, _T.ravel())
+    np.testing.assert_allclose(ir.dist, [-0.2, 0.1, 0, 0, 0])
     # x_2 = R x_1 + T: the second device's centre in the first's frame is -R^T T
-    np.testing.assert_allclose(-ir.R_array.T @ ir.t_array, -_R.T @ _T.ravel())
+    np.testing.assert_allclose(-ir.R.T @ ir.t, -_R.T @ _T.ravel())
     assert "baseline" in capsys.readouterr().out
 
 
@@ -75,7 +75,7 @@ def test_opencv_sample_names_and_sizes_from_the_command_line(tmp_path):
         import_rig(source, "opencv-stereo")
     rig = import_rig(source, "opencv-stereo", sizes=((640, 480), (1024, 768)))
     assert rig.devices["projector"].size == (1024, 768)
-    assert rig.devices["camera"].K_array[1, 1] == 805
+    assert rig.devices["camera"].K[1, 1] == 805
 
 
 @pytest.mark.parametrize("overrides, message", [

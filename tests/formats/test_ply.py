@@ -2,7 +2,8 @@ import numpy as np
 import pytest
 
 from services.errors import InputError
-from services.formats.ply import read_cloud, write_cloud
+from services.formats.ply import cloud_from_ply, cloud_to_ply, read_cloud, write_cloud
+from services.geometry.cloud import PointCloud
 
 
 def test_binary_little_endian_round_trip(tmp_path):
@@ -25,3 +26,21 @@ def test_bad_files(tmp_path):
     (tmp_path / "junk.ply").write_bytes(b"not a ply")
     with pytest.raises(InputError, match="junk.ply"):
         read_cloud(tmp_path / "junk.ply")
+
+
+def test_bytes_round_trip_keeps_units_and_comments():
+    cloud = PointCloud({"x": np.arange(3, dtype=np.float32), "y": np.zeros(3, np.float32),
+                        "z": np.full(3, 500, np.float32), "temperature": np.array([900.0, np.nan, 950.0], np.float32)},
+                       comments=("made by a test",))
+    data = cloud_to_ply(cloud)
+    assert b"comment unit temperature degC" in data and b"comment unit x mm" in data
+    again = cloud_from_ply(data, "field.ply")
+    assert again.units == {"x": "mm", "y": "mm", "z": "mm", "temperature": "degC"}
+    assert again.comments == ("made by a test",)
+    np.testing.assert_array_equal(again["temperature"], cloud["temperature"])
+    assert len(again) == 3
+
+
+def test_bytes_that_are_not_a_ply_name_their_source():
+    with pytest.raises(InputError, match="artifact abc: not a readable PLY"):
+        cloud_from_ply(b"junk", "artifact abc")

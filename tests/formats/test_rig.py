@@ -26,7 +26,7 @@ def test_round_trip(tmp_path):
     again = load_rig(tmp_path / "rig.json")
     assert again == rig
     assert json.loads(rig_to_json(rig))["devices"]["cam"]["kind"] == "camera"
-    np.testing.assert_array_equal(again.devices["cam"].K_array, rig.devices["cam"].K_array)
+    np.testing.assert_array_equal(again.devices["cam"].K, rig.devices["cam"].K)
 
 
 @pytest.mark.parametrize("overrides, field, words", [

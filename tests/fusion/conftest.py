@@ -13,7 +13,8 @@ import numpy as np
 import pytest
 
 from services.formats.images import write_png
-from services.formats.rig import Device, Rig, save_rig
+from services.formats.rig import Rig, save_rig
+from services.geometry.camera_model import CameraModel
 from services.formats.sequence import save_sequence
 from services.formats.thermal import write_thermal_frame
 from services.geometry.camera import pixel_grid, pixel_rays
@@ -32,12 +33,12 @@ from services.structured_light.patterns import generate_sequence
 _FORGING_SCALE = 2
 
 
-def look_at(kind: str, centre, target, focal: float, width: int, height: int, dist=()) -> Device:
+def look_at(kind: str, centre, target, focal: float, width: int, height: int, dist=()) -> CameraModel:
     """A device at ``centre`` whose optical axis points at ``target`` (y roughly down)."""
     centre = np.asarray(centre, dtype=float)
     R = look_at_rotation(centre, target)
     K = [[focal, 0, (width - 1) / 2], [0, focal, (height - 1) / 2], [0, 0, 1]]
-    return Device(kind=kind, width=width, height=height, K=K, dist=list(dist), R=R.tolist(),
+    return CameraModel(kind=kind, width=width, height=height, K=K, dist=list(dist), R=R.tolist(),
                   t=(-R @ centre).tolist())
 
 
@@ -45,8 +46,8 @@ def look_at(kind: str, centre, target, focal: float, width: int, height: int, di
 class HotScene:
     scene: Scene
     temperatures: TemperatureScene
-    camera: Device
-    thermal: Device
+    camera: CameraModel
+    thermal: CameraModel
     points: np.ndarray
     normals: np.ndarray
     truth: np.ndarray
@@ -66,8 +67,8 @@ def make_hot_scene(seed: int = 0) -> HotScene:
     ])
     camera = look_at("camera", [350, 0, 0], [0, 0, 600], 700, 640, 400)
     thermal = look_at("thermal", [180, -120, 0], [0, 0, 600], 380, 320, 256, dist=[-0.1, 0.05, 0, 0, 0])
-    origin, directions = pixel_rays(pixel_grid(camera.width, camera.height), camera.K_array, camera.dist_array,
-                                    camera.R_array, camera.t_array)
+    origin, directions = pixel_rays(pixel_grid(camera.width, camera.height), camera.K, camera.dist,
+                                    camera.R, camera.t)
     hits = cast_rays(scene, origin, directions)
     hit = hits.surface >= 0
     points, normals = hits.points[hit], hits.normals[hit]
@@ -88,12 +89,12 @@ def hot_scene() -> HotScene:
     return make_hot_scene()
 
 
-def _downscaled(device: Device, factor: int) -> Device:
+def _downscaled(device: CameraModel, factor: int) -> CameraModel:
     """The same device with ``factor`` times fewer pixels per side (distortion is in normalised units)."""
-    K = device.K_array.copy()
+    K = device.K.copy()
     K[:2, :2] /= factor
     K[:2, 2] = (K[:2, 2] + 0.5) / factor - 0.5
-    return device.model_copy(update={"width": device.width // factor, "height": device.height // factor,
+    return device.replace(**{"width": device.width // factor, "height": device.height // factor,
                                      "K": K.tolist()})
 
 

@@ -103,8 +103,7 @@ def test_bad_input_exits_2_with_a_message_naming_it(change, message, field_ply, 
     if change.get("rig") == "no-thermal":
         rig = forging_capture.rig
         rig_path = tmp_path / "rig.json"
-        save_rig(rig.model_copy(update={"devices": {n: d for n, d in rig.devices.items() if d.kind != "thermal"}}),
-                 rig_path)
+        save_rig(rig.without_kind("thermal"), rig_path)
     cloud = tmp_path / change["cloud"] if "cloud" in change else field_ply
     argv = ["fuse", "--rig", str(rig_path), "--cloud", str(cloud), "--thermal", str(thermal),
             "--out", str(tmp_path / "out.ply")]

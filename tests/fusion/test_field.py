@@ -16,7 +16,7 @@ def _cloud(hot_scene, with_normals: bool) -> dict:
 
 @pytest.mark.parametrize("with_normals", [True, False])
 def test_field_adds_temperature_view_angle_and_colours(hot_scene, with_normals):
-    viewpoint = -hot_scene.camera.R_array.T @ hot_scene.camera.t_array
+    viewpoint = -hot_scene.camera.R.T @ hot_scene.camera.t
     field = temperature_field(_cloud(hot_scene, with_normals), [ThermalView(hot_scene.thermal, hot_scene.image)],
                               viewpoint)
     assert set(field) >= {"x", "y", "z", "quality", "temperature", "view_angle", "red", "green", "blue"}

@@ -2,7 +2,7 @@ import numpy as np
 import pytest
 
 from services.fusion.fuse import ThermalView, fuse_temperature, view_angles
-from services.geometry.camera import camera_center, project_points
+from services.geometry.camera import project_points
 
 
 def test_seen_points_get_their_true_temperature(hot_scene):
@@ -24,8 +24,8 @@ def test_occluded_points_would_read_the_occluder_without_the_z_buffer(hot_scene)
     """The scene tests occlusion for real: where hidden plate points project, the image shows the bar."""
     hidden_plate = ~hot_scene.visible & (hot_scene.points[:, 2] > 649)
     assert hidden_plate.sum() > 1000
-    pixels = project_points(hot_scene.points[hidden_plate], hot_scene.thermal.K_array, hot_scene.thermal.dist_array,
-                            hot_scene.thermal.R_array, hot_scene.thermal.t_array)
+    pixels = project_points(hot_scene.points[hidden_plate], hot_scene.thermal.K, hot_scene.thermal.dist,
+                            hot_scene.thermal.R, hot_scene.thermal.t)
     column, row = np.rint(pixels).astype(int).T
     shown = hot_scene.image[row, column]
     assert np.median(np.abs(shown - hot_scene.truth[hidden_plate])) > 50
@@ -35,7 +35,7 @@ def test_view_angle_limit_leaves_grazing_points_nan(hot_scene):
     field = fuse_temperature(hot_scene.points, hot_scene.normals, [ThermalView(hot_scene.thermal, hot_scene.image)],
                              max_view_angle_deg=30.0)
     angle = np.rad2deg(view_angles(hot_scene.points, hot_scene.normals,
-                                   camera_center(hot_scene.thermal.R_array, hot_scene.thermal.t_array)))
+                                   hot_scene.thermal.centre))
     beyond = hot_scene.visible & (angle > 31)
     assert beyond.sum() > 1000
     assert np.all(np.isnan(field.temperature[beyond]))
@@ -67,8 +67,8 @@ def test_views_are_weighted_by_cosine_of_view_angle(hot_scene):
     points, normals = hot_scene.points[plate], hot_scene.normals[plate]
     uniform = [ThermalView(head_on, np.full((256, 320), 100.0)), ThermalView(oblique, np.full((256, 320), 200.0))]
     field = fuse_temperature(points, normals, uniform)
-    cos_head_on = np.cos(view_angles(points, normals, camera_center(head_on.R_array, head_on.t_array)))
-    cos_oblique = np.cos(view_angles(points, normals, camera_center(oblique.R_array, oblique.t_array)))
+    cos_head_on = np.cos(view_angles(points, normals, head_on.centre))
+    cos_oblique = np.cos(view_angles(points, normals, oblique.centre))
     expected = (100 * cos_head_on + 200 * cos_oblique) / (cos_head_on + cos_oblique)
     both = np.isfinite(field.temperature) & (np.abs(field.temperature - 100) > 1) & (np.abs(field.temperature - 200) > 1)
     assert both.sum() > 1000
@@ -80,8 +80,8 @@ def test_nan_pixels_of_a_frame_are_not_sampled(hot_scene):
     image[:, : image.shape[1] // 2] = np.nan
     field = fuse_temperature(hot_scene.points, hot_scene.normals, [ThermalView(hot_scene.thermal, image)])
     assert np.isfinite(field.temperature).sum() > 1000
-    pixels = project_points(hot_scene.points, hot_scene.thermal.K_array, hot_scene.thermal.dist_array,
-                            hot_scene.thermal.R_array, hot_scene.thermal.t_array)
+    pixels = project_points(hot_scene.points, hot_scene.thermal.K, hot_scene.thermal.dist,
+                            hot_scene.thermal.R, hot_scene.thermal.t)
     in_nan_half = pixels[:, 0] < image.shape[1] // 2 - 1
     assert in_nan_half.sum() > 1000
     assert np.all(np.isnan(field.temperature[in_nan_half]))
@@ -106,8 +106,8 @@ def test_points_beside_a_saturated_pixel_get_no_temperature(hot_scene):
     column = image.shape[1] // 2
     image[:, column] = np.nan  # one saturated column: beyond the camera's measuring range
     field = fuse_temperature(hot_scene.points, hot_scene.normals, [ThermalView(hot_scene.thermal, image)])
-    pixels = project_points(hot_scene.points, hot_scene.thermal.K_array, hot_scene.thermal.dist_array,
-                            hot_scene.thermal.R_array, hot_scene.thermal.t_array)
+    pixels = project_points(hot_scene.points, hot_scene.thermal.K, hot_scene.thermal.dist,
+                            hot_scene.thermal.R, hot_scene.thermal.t)
     beside = (np.abs(pixels[:, 0] - column) < 0.99) & hot_scene.visible
     assert beside.sum() > 20
     assert np.all(np.isnan(field.temperature[beside]))  # never the lower temperature of the other neighbours

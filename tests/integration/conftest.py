@@ -156,7 +156,7 @@ def field_errors(path: Path) -> dict[str, float]:
     rig, scene = forging_rig(), forging_scene()
     camera, thermal = rig.devices["camera"], rig.devices["thermal"]
     pixels = np.column_stack([field["u"], field["v"]]).astype(np.float64)
-    origin, directions = pixel_rays(pixels, camera.K_array, camera.dist_array, camera.R_array, camera.t_array)
+    origin, directions = pixel_rays(pixels, camera.K, camera.dist, camera.R, camera.t)
     hits = cast_rays(scene, origin, directions)
     points = np.column_stack([field["x"], field["y"], field["z"]]).astype(np.float64)
     on_surface = hits.surface >= 0
@@ -164,8 +164,8 @@ def field_errors(path: Path) -> dict[str, float]:
     temperature = np.asarray(field["temperature"], dtype=np.float64)
     truth = surface_temperature(forging_temperatures(), hits.points[on_surface], hits.surface[on_surface])
     measured = temperature[on_surface]
-    in_frame = project_points(hits.points[on_surface], thermal.K_array, thermal.dist_array, thermal.R_array,
-                              thermal.t_array)
+    in_frame = project_points(hits.points[on_surface], thermal.K, thermal.dist, thermal.R,
+                              thermal.t)
     inside = ((in_frame >= 0) & (in_frame <= [thermal.width - 1, thermal.height - 1])).all(axis=1)
     visible = seen_by(scene, thermal, hits.points[on_surface]) & inside
     compared = np.isfinite(measured) & visible

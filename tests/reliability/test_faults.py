@@ -18,8 +18,8 @@ from services.jobs.tracker import JobTracker
 from services.settings import Settings
 from services.simulation.presets import forging_rig
 from services.storage.artifacts import ArtifactStore
-from workers.broker import setup_broker
-from workers.runtime import Runtime
+from services.jobs.queue import JobQueue, job_broker
+from services.runtime import Runtime
 
 PROBLEM = "application/problem+json"
 
@@ -29,7 +29,10 @@ def _client(runtime):
 
     from api.app import create_app
 
-    return TestClient(create_app(runtime), raise_server_exceptions=False)
+
+
+    return TestClient(create_app(runtime, JobQueue(job_broker(runtime.settings), runtime.settings.job_queue)),
+                      raise_server_exceptions=False)
 
 
 def _runtime(url: str, tmp_path, **settings) -> Runtime:
@@ -37,7 +40,6 @@ def _runtime(url: str, tmp_path, **settings) -> Runtime:
     migrate(engine)
     sessions = make_sessions(engine)
     config = Settings(data_dir=tmp_path, broker_url="", mqtt_host="", **settings)
-    setup_broker(config)
     return Runtime(config, engine, sessions, ArtifactStore(config.resolved_artifact_dir), JobTracker(sessions))
 
 

@@ -3,7 +3,8 @@
 import numpy as np
 import pytest
 
-from services.formats.rig import Device, Rig
+from services.formats.rig import Rig
+from services.geometry.camera_model import CameraModel
 
 
 def aimed_device(kind, size, focal, centre, target, dist=()):
@@ -15,7 +16,7 @@ def aimed_device(kind, size, focal, centre, target, dist=()):
     R = np.stack([right, np.cross(forward, right), forward])
     width, height = size
     K = [[focal, 0, (width - 1) / 2], [0, focal, (height - 1) / 2], [0, 0, 1]]
-    return Device(kind=kind, width=width, height=height, K=K, dist=list(dist), R=R.tolist(),
+    return CameraModel(kind=kind, width=width, height=height, K=K, dist=list(dist), R=R.tolist(),
                   t=(-R @ np.asarray(centre, float)).tolist())
 
 

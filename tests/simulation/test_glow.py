@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from services.errors import InputError
-from services.formats.rig import Device
+from services.geometry.camera_model import CameraModel
 from services.simulation.glow import expose_sensor, render_glow_view, render_hot_frames
 from services.simulation.optics import SensorOptics
 from services.simulation.presets import hot_optics
@@ -12,8 +12,8 @@ from services.simulation.render import render_view
 from services.simulation.scene import Plane, Scene, parse_scene
 from services.simulation.temperature import SurfaceTemperature, TemperatureScene
 
-PROJECTOR = Device(kind="projector", width=64, height=48, K=[[60, 0, 31.5], [0, 60, 23.5], [0, 0, 1]])
-CAMERA = Device(kind="camera", width=32, height=24, K=[[30, 0, 15.5], [0, 30, 11.5], [0, 0, 1]],
+PROJECTOR = CameraModel(kind="projector", width=64, height=48, K=[[60, 0, 31.5], [0, 60, 23.5], [0, 0, 1]])
+CAMERA = CameraModel(kind="camera", width=32, height=24, K=[[30, 0, 15.5], [0, 30, 11.5], [0, 0, 1]],
                 R=np.eye(3).tolist(), t=[-20.0, 0.0, 0.0])
 WALL = Plane(center=[0, 0, 500], normal=[0, 0, -1], u_axis=[1, 0, 0], size=[2000, 2000])
 

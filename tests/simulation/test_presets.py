@@ -1,7 +1,7 @@
 import numpy as np
 import pytest
 
-from services.geometry.camera import camera_center, project_points
+from services.geometry.camera import project_points
 from services.simulation.presets import forging_rig, forging_scene, paper_plane, paper_rig, paper_sphere
 from services.simulation.raycast import cast_rays
 from services.simulation.render import render_view
@@ -10,7 +10,7 @@ PAPER_DEPTHS = range(430, 571, 20)
 
 
 def _project(device, points):
-    return project_points(points, device.K_array, device.dist_array, device.R_array, device.t_array)
+    return project_points(points, device.K, device.dist, device.R, device.t)
 
 
 def _margin(device, pixels):
@@ -21,12 +21,12 @@ def _margin(device, pixels):
 def test_paper_rig_matches_the_paper():
     rig = paper_rig()
     camera, projector = rig.devices["camera"], rig.devices["projector"]
-    np.testing.assert_allclose(camera.R_array, [[0.94, 0, 0.342], [0, 1, 0], [-0.342, 0, 0.94]], atol=1e-3)
-    np.testing.assert_allclose(camera_center(camera.R_array, camera.t_array), [400, 0, 0], atol=1e-12)
-    np.testing.assert_allclose(projector.R_array, np.eye(3))
-    np.testing.assert_allclose(projector.t_array, 0)
-    assert camera.size == projector.size == (1024, 768) and camera.dist == projector.dist == []
-    np.testing.assert_allclose(camera.R_array[2], [-np.sin(np.radians(20)), 0, np.cos(np.radians(20))])
+    np.testing.assert_allclose(camera.R, [[0.94, 0, 0.342], [0, 1, 0], [-0.342, 0, 0.94]], atol=1e-3)
+    np.testing.assert_allclose(camera.centre, [400, 0, 0], atol=1e-12)
+    np.testing.assert_allclose(projector.R, np.eye(3))
+    np.testing.assert_allclose(projector.t, 0)
+    assert camera.size == projector.size == (1024, 768) and camera.dist.size == projector.dist.size == 0
+    np.testing.assert_allclose(camera.R[2], [-np.sin(np.radians(20)), 0, np.cos(np.radians(20))])
 
 
 @pytest.mark.parametrize("depth", PAPER_DEPTHS)
@@ -63,10 +63,10 @@ def test_paper_spheres_are_fully_in_view():
 
 def _quarter_size(device):
     """The same view at a quarter of the resolution."""
-    K = device.K_array.copy()
+    K = device.K.copy()
     K[:2] /= 4
     K[:2, 2] = (K[:2, 2] * 4 + 0.5) / 4 - 0.5
-    return device.model_copy(update={"width": device.width // 4, "height": device.height // 4, "K": K.tolist()})
+    return device.replace(**{"width": device.width // 4, "height": device.height // 4, "K": K.tolist()})
 
 
 def test_forging_rig_devices():
@@ -75,7 +75,7 @@ def test_forging_rig_devices():
         "projector": ("projector", 1280, 800), "camera": ("camera", 1280, 800), "thermal": ("thermal", 320, 256)}
     for name, centre in (("projector", [0, 0, 0]), ("camera", [350, 0, 0]), ("thermal", [180, -120, 0])):
         device = rig.devices[name]
-        np.testing.assert_allclose(camera_center(device.R_array, device.t_array), centre, atol=1e-9)
+        np.testing.assert_allclose(device.centre, centre, atol=1e-9)
         assert any(device.dist)
         centre_pixel = _project(device, np.array([[0.0, 0.0, 600.0]]))[0]
         np.testing.assert_allclose(centre_pixel, [(device.width - 1) / 2, (device.height - 1) / 2], atol=1e-6)
@@ -88,7 +88,7 @@ def test_forging_scene_has_points_the_camera_sees_lit_but_the_thermal_camera_can
     truth = render_view(scene, _quarter_size(camera), projector, supersample=1).truth
     lit_points = truth.points[truth.lit]
     assert set(np.unique(truth.surface[truth.lit])) == {0, 1, 2}
-    thermal_centre = camera_center(thermal.R_array, thermal.t_array)
+    thermal_centre = thermal.centre
     towards = lit_points - thermal_centre
     distance = np.linalg.norm(towards, axis=1)
     hidden = cast_rays(scene, thermal_centre, towards).distance < distance - 1e-3

@@ -1,8 +1,8 @@
 import numpy as np
 import pytest
 
-from services.formats.rig import Device
-from services.geometry.camera import camera_center, pixel_grid, pixel_rays, project_points
+from services.geometry.camera import pixel_grid, pixel_rays, project_points
+from services.geometry.camera_model import CameraModel
 from services.simulation.raycast import cast_rays
 from services.simulation.render import CameraEffects, ProjectorEffects, expose, render_frames, render_view
 from services.simulation.scene import Albedo, Mesh, Plane, Scene, Sphere
@@ -19,7 +19,7 @@ def _uniform(projector, value, count=1):
 
 
 def _project(device, points):
-    return project_points(points, device.K_array, device.dist_array, device.R_array, device.t_array)
+    return project_points(points, device.K, device.dist, device.R, device.t)
 
 
 def test_ground_truth_points_project_back_to_their_pixel_centres(small_rig):
@@ -30,7 +30,7 @@ def test_ground_truth_points_project_back_to_their_pixel_centres(small_rig):
     assert seen.mean() > 0.5 and truth.lit.mean() > 0.3
     centres = pixel_grid(camera.width, camera.height).reshape(camera.height, camera.width, 2)
     np.testing.assert_allclose(_project(camera, truth.points[seen]), centres[seen], atol=1e-6)
-    camera_frame = truth.points[seen] @ camera.R_array.T + camera.t_array
+    camera_frame = truth.points[seen] @ camera.R.T + camera.t
     np.testing.assert_allclose(truth.depth[seen], camera_frame[:, 2])
     lit_centre = np.isfinite(truth.projector_pixels[..., 0])
     np.testing.assert_allclose(truth.projector_pixels[lit_centre], _project(projector, truth.points[lit_centre]))
@@ -45,7 +45,7 @@ def _spot_centroid(frame, around, radius=6):
 
 
 def _undistorted(device):
-    return device.model_copy(update={"dist": []})
+    return device.replace(**{"dist": []})
 
 
 def test_a_projected_spot_lands_where_both_distorted_lens_models_say(small_rig):
@@ -54,7 +54,7 @@ def test_a_projected_spot_lands_where_both_distorted_lens_models_say(small_rig):
     spot = np.array([[128.0, 28.0]])  # near a projector corner, where distortion is strong
 
     def expected_camera_pixel(cam, proj):
-        origin, direction = pixel_rays(spot, proj.K_array, proj.dist_array, proj.R_array, proj.t_array)
+        origin, direction = pixel_rays(spot, proj.K, proj.dist, proj.R, proj.t)
         return _project(cam, cast_rays(scene, origin, direction).points)[0]
 
     pattern = _uniform(projector, 0)
@@ -100,7 +100,7 @@ def test_lambertian_shading_albedo_and_ambient_light(small_rig):
     interior = truth.lit & np.all((truth.projector_pixels >= 1)
                                   & (truth.projector_pixels <= [projector.width - 2, projector.height - 2]), axis=-1)
     assert interior.sum() > 1000
-    to_projector = camera_center(projector.R_array, projector.t_array) - truth.points[interior]
+    to_projector = projector.centre - truth.points[interior]
     cosine = to_projector @ np.array([np.sin(tilt), 0, -np.cos(tilt)]) / np.linalg.norm(to_projector, axis=1)
     assert np.ptp(cosine) > 0.1
     np.testing.assert_allclose(white[interior], 65535 * 0.8 * 0.6 * (0.1 + cosine), atol=1.0)
@@ -112,8 +112,8 @@ def test_lambertian_shading_albedo_and_ambient_light(small_rig):
 def _facing_rig(width=41, focal=100.0):
     """Camera and projector sharing the origin, looking along +z, no distortion."""
     K = [[focal, 0, (width - 1) / 2], [0, focal, (width - 1) / 2], [0, 0, 1]]
-    camera = Device(kind="camera", width=width, height=width, K=K)
-    projector = Device(kind="projector", width=4 * width, height=4 * width,
+    camera = CameraModel(kind="camera", width=width, height=width, K=K)
+    projector = CameraModel(kind="projector", width=4 * width, height=4 * width,
                        K=[[4 * focal, 0, (4 * width - 1) / 2], [0, 4 * focal, (4 * width - 1) / 2], [0, 0, 1]])
     return camera, projector
 

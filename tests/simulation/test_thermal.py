@@ -1,7 +1,7 @@
 import numpy as np
 import pytest
 
-from services.formats.rig import Device
+from services.geometry.camera_model import CameraModel
 from services.fusion.radiometry import PlanckConstants, blackbody_counts, blackbody_temperature
 from services.simulation.presets import forging_rig, forging_scene
 from services.simulation.scene import Plane, Scene, Sphere
@@ -11,7 +11,7 @@ from services.simulation.thermal import (
     surface_temperature,
 )
 
-CAMERA = Device(kind="thermal", width=64, height=48, K=[[60, 0, 31.5], [0, 60, 23.5], [0, 0, 1]])
+CAMERA = CameraModel(kind="thermal", width=64, height=48, K=[[60, 0, 31.5], [0, 60, 23.5], [0, 0, 1]])
 WALL = Plane(center=[0, 0, 500], normal=[0, 0, -1], u_axis=[1, 0, 0], size=[2000, 2000])
 
 

@@ -14,9 +14,11 @@ import pytest
 import rerun.chunk
 
 from services.errors import InputError
-from services.formats.rig import Device, Rig
+from services.formats.rig import Rig
+from services.geometry.camera_model import CameraModel
 from services.fusion.colormap import temperature_colors
 from services.streaming.proxy import RerunProxy, rerun_executable
+from services.streaming.field import field_scene
 from services.streaming.recording import StationView, scan_recording
 
 # A file a viewer is still saving has no footer yet; reading it is the point of the live tests.
@@ -32,10 +34,10 @@ def _rotation_about_y(degrees: float) -> list[list[float]]:
 @pytest.fixture
 def rig() -> Rig:
     return Rig(devices={
-        "projector": Device(kind="projector", width=1280, height=800, K=[[1500, 0, 640], [0, 1500, 400], [0, 0, 1]]),
-        "camera": Device(kind="camera", width=1280, height=800, K=[[1400, 0, 639.5], [0, 1410, 399.5], [0, 0, 1]],
+        "projector": CameraModel(kind="projector", width=1280, height=800, K=[[1500, 0, 640], [0, 1500, 400], [0, 0, 1]]),
+        "camera": CameraModel(kind="camera", width=1280, height=800, K=[[1400, 0, 639.5], [0, 1410, 399.5], [0, 0, 1]],
                          R=_rotation_about_y(-20), t=[-330.0, 0.0, 120.0]),
-        "thermal": Device(kind="thermal", width=320, height=256, K=[[380, 0, 160], [0, 385, 128], [0, 0, 1]],
+        "thermal": CameraModel(kind="thermal", width=320, height=256, K=[[380, 0, 160], [0, 385, 128], [0, 0, 1]],
                           R=_rotation_about_y(-10), t=[-180.0, 120.0, 30.0]),
     })
 
@@ -64,7 +66,7 @@ def _read_rrd(path: Path) -> dict[str, dict[str, list]]:
 
 def test_scan_recording_holds_points_temperatures_and_colours(tmp_path, rig, field):
     path = tmp_path / "field.rrd"
-    path.write_bytes(scan_recording("scan-42", field, rig))
+    path.write_bytes(scan_recording("scan-42", field_scene(field, rig)))
 
     assert [entry.recording_id for entry in rerun.chunk.RrdReader(path).recordings()] == ["scan-42"]
     logged = _read_rrd(path)["/world/field"]
@@ -80,46 +82,54 @@ def test_scan_recording_holds_points_temperatures_and_colours(tmp_path, rig, fie
 
 def test_device_frusta_keep_the_world_to_device_pose(tmp_path, rig, field):
     path = tmp_path / "field.rrd"
-    path.write_bytes(scan_recording("scan-1", field, rig))
+    path.write_bytes(scan_recording("scan-1", field_scene(field, rig)))
     logged = _read_rrd(path)
     for name, device in rig.devices.items():
         transform = logged[f"/world/devices/{name}"]
-        np.testing.assert_allclose(transform["Transform3D:translation"][0][0], device.t_array, atol=1e-5)
+        np.testing.assert_allclose(transform["Transform3D:translation"][0][0], device.t, atol=1e-5)
         # Rerun stores 3x3 matrices column-major.
         matrix = np.array(transform["Transform3D:mat3x3"][0][0]).reshape(3, 3).T
-        np.testing.assert_allclose(matrix, device.R_array, atol=1e-6)
+        np.testing.assert_allclose(matrix, device.R, atol=1e-6)
         assert transform["Transform3D:relation"][0] == [2]  # ChildFromParent: x_dev = R x_world + t
         pinhole = logged[f"/world/devices/{name}/image"]
         intrinsics = np.array(pinhole["Pinhole:image_from_camera"][0][0]).reshape(3, 3).T
-        np.testing.assert_allclose(intrinsics, device.K_array)
+        np.testing.assert_allclose(intrinsics, device.K)
         assert pinhole["Pinhole:resolution"][0][0] == [device.width, device.height]
 
 
 def test_thermal_image_shares_the_points_colour_scale(tmp_path, rig, field):
+    """The thermal image is mapped on the field's scale; the points keep the field's own colours."""
+    low, high = np.nanmin(field["temperature"]), np.nanmax(field["temperature"])
     thermal = np.linspace(600, 1200, 320 * 256, dtype=np.float32).reshape(256, 320)
     path = tmp_path / "field.rrd"
-    path.write_bytes(scan_recording("scan-1", field, rig, thermal_image=thermal))
+    path.write_bytes(scan_recording("scan-1", field_scene(field, rig, thermal_image=thermal)))
     logged = _read_rrd(path)["/world/devices/thermal/image"]
 
     image_format = logged["Image:format"][0][0]
     assert (image_format["width"], image_format["height"]) == (320, 256)
     pixels = np.array(logged["Image:buffer"][0][0], dtype=np.uint8).reshape(256, 320, 3)
-    np.testing.assert_array_equal(pixels, temperature_colors(thermal, 600, 1200))
-    points = np.array(_read_rrd(path)["/world/field"]["Points3D:colors"][0], dtype=np.uint32)
-    finite = np.isfinite(field["temperature"])
-    expected = temperature_colors(field["temperature"], 600, 1200)[finite].astype(np.uint32)
-    np.testing.assert_array_equal(points[finite] >> 24, expected[:, 0])
+    np.testing.assert_array_equal(pixels, temperature_colors(thermal, low, high))
+    assert (pixels[0, 0] == temperature_colors(np.array([low]))[0]).all()  # 600 C is below the field: clipped
+
+
+def test_the_fields_own_colours_are_logged_not_recomputed(tmp_path, rig, field):
+    field = {**field, "red": np.full(500, 10, np.uint8), "green": np.full(500, 20, np.uint8),
+             "blue": np.full(500, 30, np.uint8)}
+    path = tmp_path / "field.rrd"
+    path.write_bytes(scan_recording("scan-1", field_scene(field, rig)))
+    colours = np.array(_read_rrd(path)["/world/field"]["Points3D:colors"][0], dtype=np.uint32)
+    assert (colours == (10 << 24 | 20 << 16 | 30 << 8 | 0xFF)).all()
 
 
 def test_field_without_temperature_is_refused(rig, field):
     del field["temperature"]
     with pytest.raises(ValueError, match="temperature"):
-        scan_recording("scan-1", field, rig)
+        scan_recording("scan-1", field_scene(field, rig))
 
 
 def test_thermal_image_of_the_wrong_size_is_refused(rig, field):
     with pytest.raises(ValueError, match="320x256"):
-        scan_recording("scan-1", field, rig, thermal_image=np.zeros((10, 10)))
+        scan_recording("scan-1", field_scene(field, rig, thermal_image=np.zeros((10, 10))))
 
 
 def _free_port() -> int:
@@ -176,7 +186,7 @@ def test_live_view_delivers_each_field_to_a_connected_viewer(tmp_path, rig, fiel
     saved = tmp_path / "live.rrd"
     with RerunProxy("127.0.0.1", _free_port()) as proxy:
         view = StationView(proxy.url, "press-3")
-        steps = [view.publish(field, rig), view.publish(field, rig)]
+        steps = [view.publish(field_scene(field, rig)), view.publish(field_scene(field, rig))]
         view.close()
         # A viewer joining late still gets every field: the proxy buffers them.
         viewer = subprocess.Popen([rerun_executable(), proxy.url, "--save", str(saved)],
@@ -195,10 +205,10 @@ def test_live_view_delivers_each_field_to_a_connected_viewer(tmp_path, rig, fiel
 def test_live_view_waits_for_a_proxy_that_is_down_without_holding_up_scans(tmp_path, rig, field):
     port = _free_port()
     view = StationView(f"rerun+http://127.0.0.1:{port}/proxy", "press-3")
-    assert view.publish(field, rig) is None, "no proxy: the field is not shown, the scan goes on"
+    assert view.publish(field_scene(field, rig)) is None, "no proxy: the field is not shown, the scan goes on"
     saved = tmp_path / "live.rrd"
     with RerunProxy("127.0.0.1", port) as proxy:
-        assert view.publish(field, rig) == 2, "connects as soon as the proxy is up"
+        assert view.publish(field_scene(field, rig)) == 2, "connects as soon as the proxy is up"
         view.close()
         viewer = subprocess.Popen([rerun_executable(), proxy.url, "--save", str(saved)],
                                   stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)

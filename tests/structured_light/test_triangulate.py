@@ -3,6 +3,7 @@ import numpy as np
 import pytest
 
 from services.geometry.camera import camera_center, normalized_coordinates, project_points
+from services.geometry.camera_model import CameraModel
 from services.structured_light.triangulate import camera_ray_table, triangulate, triangulate_map, triangulation_table
 
 
@@ -105,8 +106,9 @@ def _rear_rig(projector_dist):
 
 
 def _table(camera, projector, axis):
-    return triangulation_table(camera["K"], camera["dist"], camera["R"], camera["t"], (1280, 800), projector["K"],
-                               projector["dist"], projector["R"], projector["t"], (1030, 1520), axis)
+    return triangulation_table(CameraModel("camera", 1280, 800, camera["K"], camera["dist"], camera["R"], camera["t"]),
+                               CameraModel("projector", 1030, 1520, projector["K"], projector["dist"], projector["R"],
+                                           projector["t"]), axis)
 
 
 def _pixel_points(rng, camera, n=3000):

@@ -12,7 +12,7 @@ from services.formats.board import board_to_json, parse_board
 from services.formats.rig import parse_rig, rig_to_json
 from services.simulation.boards import render_board
 from services.simulation.presets import forging_rig
-from workers.runtime import current_runtime
+from services.runtime import current_runtime
 
 BOARD = parse_board('{"type": "chessboard", "inner_corners": [9, 6], "square_mm": 25.0}')
 
@@ -29,8 +29,8 @@ def board_pairs(count: int) -> tuple[list[bytes], list[bytes]]:
         board_translation = board_centre - board_rotation @ centre
         for name, modality in (("camera", "visible"), ("thermal", "infrared")):
             device = rig.devices[name]
-            image = render_board(BOARD, device.K_array, device.dist_array, device.R_array @ board_rotation,
-                                 device.R_array @ board_translation + device.t_array, device.size,
+            image = render_board(BOARD, device.K, device.dist, device.R @ board_rotation,
+                                 device.R @ board_translation + device.t, device.size,
                                  modality=modality, supersample=1, noise_sigma=1.0,
                                  rng=np.random.default_rng(index))
             images[name].append(cv2.imencode(".png", image)[1].tobytes())
@@ -84,8 +84,8 @@ def test_calibrate_replaces_the_thermal_camera_where_it_really_is(broker, wrong_
         assert not session.get(CalibrationSet, wrong_thermal_pose).active
     placed = parse_rig(store.read_bytes(calibration.rig_sha256).decode()).devices["thermal"]
     truth = forging_rig().devices["thermal"]
-    assert np.abs(placed.t_array - truth.t_array).max() < 0.5  # mm
-    angle = np.degrees(np.arccos(np.clip((np.trace(placed.R_array @ truth.R_array.T) - 1) / 2, -1, 1)))
+    assert np.abs(placed.t - truth.t).max() < 0.5  # mm
+    angle = np.degrees(np.arccos(np.clip((np.trace(placed.R @ truth.R.T) - 1) / 2, -1, 1)))
     assert angle < 0.05
     assert json.loads(store.read_bytes(job.result["artifacts"]["stereo.json"]))["stereo_rms_px"] < 0.5
 
@@ -148,6 +148,6 @@ def test_calibration_capture_job_films_the_board_and_replaces_the_thermal_camera
         assert calibration.active
     placed = parse_rig(runtime.store.read_bytes(calibration.rig_sha256).decode()).devices["thermal"]
     truth = forging_rig().devices["thermal"]
-    assert np.abs(placed.t_array - truth.t_array).max() < 0.5  # mm; it started 5..15 mm off
-    angle = np.degrees(np.arccos(np.clip((np.trace(placed.R_array @ truth.R_array.T) - 1) / 2, -1, 1)))
+    assert np.abs(placed.t - truth.t).max() < 0.5  # mm; it started 5..15 mm off
+    angle = np.degrees(np.arccos(np.clip((np.trace(placed.R @ truth.R.T) - 1) / 2, -1, 1)))
     assert angle < 0.05

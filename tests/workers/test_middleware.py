@@ -23,7 +23,7 @@ def run_jobs(broker, actor, count):
 
 
 def broker_runtime_engine(broker):
-    from workers.runtime import current_runtime
+    from services.runtime import current_runtime
 
     return current_runtime().engine
 

@@ -1,8 +1,8 @@
 import numpy as np
 
 from api.schemas import FieldSummary
+from services.pipeline.summary import field_summary, glow_summary
 from services.structured_light.glow import GlowReport
-from workers.summary import field_summary, glow_summary
 
 FIELD = {"x": np.array([0.0, 10.0]), "y": np.array([0.0, 5.0]), "z": np.array([600.0, 610.0]),
          "temperature": np.array([1000.0, np.nan])}

@@ -1,18 +1,20 @@
-"""The summary of a scan that the scan endpoint and MQTT events report: its temperature field and what a
-hot part's glow did to it."""
+"""Use case: the summary of a scan that the scan endpoint, MQTT events and the demo report: its temperature field
+and what a hot part's glow did to it."""
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from typing import Any
 
 import numpy as np
 
+from services.geometry.cloud import PointCloud
 from services.structured_light.glow import GlowReport
 
 PERCENTILES = (5, 25, 50, 75, 95)
 
 
-def field_summary(field: dict[str, np.ndarray]) -> dict:
+def field_summary(field: PointCloud | Mapping[str, np.ndarray]) -> dict:
     """Point count, bounding box (world mm) and temperature statistics (degrees C) of a field.
 
     Statistics cover the points with a temperature (finite); ``temperature`` is None

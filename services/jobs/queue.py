@@ -1,0 +1,36 @@
+"""The job queue as the API sees it: messages to actors by name, without importing the actors.
+
+A job is a row in the jobs table (:mod:`services.jobs.tracker`) plus one Dramatiq message carrying its
+id to the actor named after its kind. Enqueueing needs only the broker's transport, so the API process
+never loads the workers' science.
+"""
+
+from __future__ import annotations
+
+import dramatiq
+from dramatiq.brokers.rabbitmq import RabbitmqBroker
+from dramatiq.brokers.stub import StubBroker
+
+from services.settings import Settings
+
+
+def job_broker(settings: Settings) -> dramatiq.Broker:
+    """The transport: RabbitMQ when ``settings.broker_url`` is set, else an in-memory broker for the
+    embedded in-process worker. Made the global broker."""
+    broker = RabbitmqBroker(url=settings.broker_url) if settings.broker_url else StubBroker()
+    dramatiq.set_broker(broker)
+    return broker
+
+
+class JobQueue:
+    """Sends job ids to actors by name on one queue of ``broker``."""
+
+    def __init__(self, broker: dramatiq.Broker, queue_name: str) -> None:
+        self.broker, self.queue_name = broker, queue_name
+        broker.declare_queue(queue_name)
+
+    def send(self, kind: str, job_id: str) -> dramatiq.Message:
+        """Queue job ``job_id`` for the actor named ``kind``."""
+        message = dramatiq.Message(queue_name=self.queue_name, actor_name=kind, args=(job_id,), kwargs={},
+                                   options={})
+        return self.broker.enqueue(message)

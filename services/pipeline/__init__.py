@@ -1,0 +1,14 @@
+"""The application layer: one keyword-only use case per job, called by the CLI, the workers, the
+benchmarks and the experiments (which only translate to and from it).
+
+- :func:`reconstruct_capture`: a capture to a point cloud.
+- :func:`fuse_field`, :func:`capture_field`: a cloud (or a capture) plus thermal frames to a field.
+- :func:`process_scan`, :func:`scan_artifacts`: one scan's frames to its cloud, field, summary and files.
+- :func:`calibrate_camera_views`, :func:`calibrate_projector_captures`, :func:`place_device`: calibration.
+- :func:`register_pair`, :func:`register_scan`: infrared-to-visible registration.
+- :func:`field_summary`: what the scan endpoint and MQTT report of a field.
+- :class:`TriangulationTables`: the per-calibration precomputation, in memory and on disk.
+
+Import the submodules (``services.pipeline.scan``...): this package does not import them itself, so that
+a command pays only for what it uses.
+"""

@@ -1,0 +1,237 @@
+"""Use cases: calibrate a camera, a projector, and place a device in a rig, from images in memory.
+
+The command line reads the images from directories and writes the results to files; the calibrate
+actor passes uploaded or gateway-filmed images. Every check is made here, with errors that name the
+image (by the label the caller gives it) and what is wrong.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+from matplotlib.figure import Figure
+
+from services.calibration.camera import calibrate_camera
+from services.calibration.corners import BoardDetection, detect_board
+from services.calibration.model_selection import ModelSelection
+from services.calibration.projector import calibrate_projector, projector_corners
+from services.calibration.report import coverage_map, residual_bars, residual_vectors
+from services.calibration.stereo import calibrate_stereo
+from services.errors import InputError
+from services.formats.board import MIN_VIEWS, BoardSpec
+from services.formats.calibration import (
+    CalibratedView, CameraCalibrationFile, ModelCandidate, ModelSelectionRecord, ProjectorCalibrationFile, RejectedView,
+    StereoCalibrationFile,
+)
+from services.formats.rig import Rig
+from services.formats.sequence import Sequence as PatternSequence
+from services.geometry.camera_model import CameraModel, DeviceKind
+from services.structured_light.decode import decode
+
+LabelledImage = tuple[str, np.ndarray]
+"""An image and the label that names it in errors and reports (its file name)."""
+
+
+def detect_in_images(images: Sequence[LabelledImage], board: BoardSpec,
+                     unreadable: Sequence[str] = ()) -> tuple[list[BoardDetection], tuple[int, int]]:
+    """Detect the board in every image; one error lists every image that failed and why, after the
+    ``unreadable`` ones (the caller's reasons for the images it could not read)."""
+    detections, problems, size = [], list(unreadable), None
+    for label, image in images:
+        image_size = (image.shape[1], image.shape[0])
+        if size is None:
+            size = image_size
+        elif image_size != size:
+            problems.append(f"{label}: image is {image_size[0]}x{image_size[1]} but {images[0][0]} is "
+                            f"{size[0]}x{size[1]}; all images must have one size")
+            continue
+        detection = detect_board(image, board)
+        if detection is None:
+            problems.append(f"{label}: no {_describe(board)} found (polarity {board.polarity}); "
+                            "check the board file or remove the image")
+            continue
+        detections.append(detection)
+    if problems:
+        raise InputError(f"{len(problems)} of {len(images) + len(unreadable)} images cannot be used:\n  "
+                         + "\n  ".join(problems))
+    return detections, size
+
+
+def capture_board_image(sequence: PatternSequence, frames: np.ndarray) -> np.ndarray:
+    """The board image of a structured-light capture: its decoded intensity (white frame, or the mean of the
+    phase frames), in the frames' dtype."""
+    intensity = decode(frames, sequence, edge_margin=0).intensity
+    return np.clip(np.round(intensity), 0, np.iinfo(frames.dtype).max).astype(frames.dtype)
+
+
+def _describe(board: BoardSpec) -> str:
+    cols, rows = board.pattern_size
+    feature = "circle" if board.type == "circles" else "inner-corner"
+    return f"{board.type} of {cols}x{rows} {feature}s"
+
+
+@dataclass(frozen=True)
+class CameraCalibrationOutcome:
+    """The calibration file's content and its report figures (``residual_bars``, ``residual_vectors``,
+    ``coverage``)."""
+
+    calibration: CameraCalibrationFile
+    figures: dict[str, Figure]
+
+
+def calibrate_camera_views(*, images: Sequence[LabelledImage], board: BoardSpec, name: str,
+                           kind: DeviceKind = "camera", distortion: str = "standard",
+                           unreadable: Sequence[str] = (), source: str = "the images") -> CameraCalibrationOutcome:
+    """Zhang's calibration of one camera from board images, with automatic outlier rejection.
+
+    ``unreadable`` lists the reasons why other images could not be read; they are reported with the
+    images in which no board is found.
+    """
+    if len(images) + len(unreadable) < MIN_VIEWS:
+        raise InputError(f"{source}: {len(images) + len(unreadable)} images; calibration needs at least "
+                         f"{MIN_VIEWS} views")
+    detections, size = detect_in_images(images, board, unreadable)
+    object_points = [board.object_points()[d.ids] for d in detections]
+    result = calibrate_camera(object_points, [d.image_points for d in detections], size, distortion)
+    names = [label for label, _ in images]
+    views = [
+        CalibratedView(image=names[i], rms_px=float(rms), polarity=detections[i].polarity, R=R.tolist(),
+                       t=t.tolist(), pose_std=std.tolist())
+        for i, rms, R, t, std in zip(result.views, result.per_view_rms, result.rotations, result.translations,
+                                     result.pose_std)
+    ]
+    calibration = CameraCalibrationFile(
+        name=name, kind=kind, width=size[0], height=size[1], K=result.K.tolist(), dist=result.dist.tolist(),
+        distortion_model=result.distortion_model, rms_px=result.rms, std=result.std, board=board, views=views,
+        rejected=[RejectedView(image=names[i], reason=reason) for i, reason in result.rejected],
+        model_selection=_model_selection_record(result.model_selection),
+    )
+    kept_points = [detections[i].image_points for i in result.views]
+    figures = {
+        "residual_bars": residual_bars(result.per_view_rms, [names[i] for i in result.views], result.rms),
+        "residual_vectors": residual_vectors(kept_points, result.residuals, size),
+        "coverage": coverage_map(kept_points, size),
+    }
+    return CameraCalibrationOutcome(calibration, figures)
+
+
+def _model_selection_record(selection: ModelSelection | None) -> ModelSelectionRecord | None:
+    if selection is None:
+        return None
+    return ModelSelectionRecord(reason=selection.reason, candidates=[
+        ModelCandidate(model=fit.model, rms_px=fit.rms, parameters=fit.parameters, bic=fit.bic)
+        for fit in selection.fits])
+
+
+BoardCapture = tuple[str, PatternSequence, np.ndarray]
+"""A structured-light capture of the board in one pose: its label, manifest and frames."""
+
+
+def calibrate_projector_captures(*, captures: Sequence[BoardCapture], board: BoardSpec,
+                                 camera: CameraCalibrationFile, name: str = "projector",
+                                 distortion: str = "radial") -> tuple[Rig, ProjectorCalibrationFile]:
+    """The projector's intrinsics and pose from board captures coding both axes, by local homographies.
+
+    Returns the rig (the camera at the origin and the projector) and the projector report.
+    """
+    if len(captures) < MIN_VIEWS:
+        raise InputError(f"{len(captures)} captures given; projector calibration needs at least {MIN_VIEWS} "
+                         "board poses")
+    objects, camera_points, projector_points, problems, projector_size = [], [], [], [], None
+    for label, sequence, frames in captures:
+        size = (sequence.projector.width, sequence.projector.height)
+        if projector_size is not None and size != projector_size:
+            problems.append(f"{label}: projector is {size[0]}x{size[1]} but {captures[0][0]} has "
+                            f"{projector_size[0]}x{projector_size[1]}")
+            continue
+        projector_size = size
+        if (frames.shape[2], frames.shape[1]) != (camera.width, camera.height):
+            problems.append(f"{label}: frames are {frames.shape[2]}x{frames.shape[1]} but the camera {camera.name!r} "
+                            f"is calibrated for {camera.width}x{camera.height}")
+            continue
+        # No edge margin: it is for depth outlines, and around each pixel rejected inside the board (a noisy
+        # dark square) it would drop 49 good ones; the corners' homographies need the whole window.
+        decoded = decode(frames, sequence, edge_margin=0)
+        if set(decoded.coded_axes) != {"x", "y"}:
+            problems.append(f"{label}: the sequence codes only {'/'.join(decoded.coded_axes)}; both axes are "
+                            "needed (thermofield patterns --axes xy)")
+            continue
+        lit = np.clip(np.round(decoded.intensity), 0, np.iinfo(frames.dtype).max).astype(frames.dtype)
+        detection = detect_board(lit, board)
+        if detection is None:
+            problems.append(f"{label}: no {_describe(board)} found in the lit frame")
+            continue
+        half_window = max(2, int(0.5 * _corner_spacing(detection.image_points)))
+        corners, found = projector_corners(detection.image_points, decoded.projector_x, decoded.projector_y,
+                                           half_window, decoded.modulation)
+        if found.sum() < 6:
+            problems.append(f"{label}: only {found.sum()} board corners were decoded (is the board lit?)")
+            continue
+        objects.append(board.object_points()[detection.ids[found]])
+        camera_points.append(detection.image_points[found])
+        projector_points.append(corners[found])
+    if problems:
+        raise InputError(f"{len(problems)} of {len(captures)} captures cannot be used:\n  " + "\n  ".join(problems))
+    result = calibrate_projector(objects, camera_points, projector_points, (np.asarray(camera.K), np.asarray(camera.dist)),
+                                 (camera.width, camera.height), projector_size, distortion)
+    projector = CameraModel(kind="projector", width=projector_size[0], height=projector_size[1],
+                            K=result.projector.K, dist=result.projector.dist, R=result.stereo.R, t=result.stereo.t)
+    labels = [label for label, _, _ in captures]
+    report = ProjectorCalibrationFile(
+        projector_rms_px=result.projector.rms, stereo_rms_px=result.stereo.rms, baseline_mm=result.stereo.baseline_mm,
+        std=result.projector.std, views=[labels[i] for i in result.projector.views],
+        per_view_rms_px=result.projector.per_view_rms.tolist(),
+        stereo_std=dict(zip(("rx", "ry", "rz", "tx", "ty", "tz"), result.stereo.pose_std.tolist())),
+        stereo_per_view_rms_px=result.stereo.per_view_rms.tolist(),
+        rejected=[RejectedView(image=labels[i], reason=reason) for i, reason in result.projector.rejected],
+    )
+    return Rig({camera.name: camera.device(), name: projector}), report
+
+
+def _corner_spacing(points: np.ndarray) -> float:
+    distances = np.linalg.norm(points[:, None] - points[None], axis=-1)
+    np.fill_diagonal(distances, np.inf)
+    return float(np.median(distances.min(axis=1)))
+
+
+def place_device(*, board: BoardSpec, rig: Rig, device: str, reference_images: Sequence[LabelledImage],
+                 device_images: Sequence[LabelledImage], camera: str | None = None,
+                 intrinsics: CameraModel | None = None,
+                 source: str = "the pairs") -> tuple[Rig, StereoCalibrationFile]:
+    """Place ``device`` relative to the rig's camera from paired board images (stereo calibration).
+
+    ``reference_images[i]`` (the camera) and ``device_images[i]`` show the same board pose.
+    ``intrinsics`` calibrates the device when the rig does not hold it yet. Returns the rig with the
+    device placed and the stereo report.
+    """
+    camera_name, camera_model = rig.device(camera, "camera")
+    if intrinsics is None:
+        if device not in rig.devices:
+            raise InputError(f"the rig has no device {device!r}; give its intrinsics (--intrinsics)")
+        intrinsics = rig.devices[device]
+    if not reference_images or len(reference_images) != len(device_images):
+        raise InputError(f"{source}: give the same number of {camera_name} and {device} images, at least one; "
+                         f"got {len(reference_images)} and {len(device_images)}")
+    reference, reference_size = detect_in_images(reference_images, board)
+    seen, device_size = detect_in_images(device_images, board)
+    for label, size, expected in ((camera_name, reference_size, camera_model), (device, device_size, intrinsics)):
+        if size != expected.size:
+            raise InputError(f"{source}: the {label} images are {size[0]}x{size[1]} but the calibration of "
+                             f"{label} is for {expected.width}x{expected.height}")
+    object_points, first, second, pair_names = [], [], [], []
+    for (label, _), a, b in zip(reference_images, reference, seen):
+        shared, index_a, index_b = np.intersect1d(a.ids, b.ids, return_indices=True)
+        if len(shared) >= 4:
+            object_points.append(board.object_points()[shared])
+            first.append(a.image_points[index_a])
+            second.append(b.image_points[index_b])
+            pair_names.append(label)
+    result = calibrate_stereo(object_points, first, second, (camera_model.K, camera_model.dist),
+                              (intrinsics.K, intrinsics.dist), reference_size)
+    placed = intrinsics.replace(R=result.R @ camera_model.R, t=result.R @ camera_model.t + result.t)
+    report = StereoCalibrationFile(device=device, reference=camera_name, stereo_rms_px=result.rms,
+                                   baseline_mm=result.baseline_mm, pairs=pair_names,
+                                   per_view_rms_px=result.per_view_rms.tolist())
+    return rig.with_device(device, placed), report

@@ -1,0 +1,93 @@
+"""Use case: one scan's captured frames to its cloud, field, summary and stored artifacts (as bytes)."""
+
+from __future__ import annotations
+
+import io
+import json
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from services.formats.ply import cloud_to_ply
+from services.formats.rig import Rig
+from services.formats.sequence import Sequence, sequence_to_json
+from services.geometry.cloud import PointCloud
+from services.pipeline.field import fuse_field
+from services.pipeline.reconstruct import reconstruct_capture
+from services.pipeline.summary import field_summary, glow_summary
+from services.pipeline.tables import TriangulationTables
+
+Progress = Callable[[str, float], None]
+"""Called with a stage's name and the job's fraction done when the stage starts."""
+
+
+@dataclass
+class StageClock:
+    """Reports each stage as it starts and keeps the seconds each took."""
+
+    progress: Progress | None = None
+    seconds: dict[str, float] = field(default_factory=dict)
+    _current: tuple[str, float] | None = None
+
+    def start(self, name: str, fraction: float) -> None:
+        self.stop()
+        if self.progress is not None:
+            self.progress(name, fraction)
+        self._current = (name, time.perf_counter())
+
+    def stop(self) -> None:
+        if self._current is not None:
+            name, started = self._current
+            self.seconds[name] = round(time.perf_counter() - started, 3)
+            self._current = None
+
+
+@dataclass(frozen=True)
+class ScanOutcome:
+    cloud: PointCloud
+    field: PointCloud
+    summary: dict
+
+
+def process_scan(*, frames: np.ndarray, sequence: Sequence, thermal: np.ndarray, rig: Rig,
+                 tables: TriangulationTables, exposure: dict[str, Any] | None = None,
+                 clock: StageClock | None = None) -> ScanOutcome:
+    """Reconstruct the capture, fuse the thermal frames (F, h, w) of the rig's thermal camera, summarise.
+
+    ``exposure`` is the capture's exposure record (the gateway's: mode, exposures, ``saturation_level``);
+    the summary holds the field's and what a hot part's glow did (``glow``).
+    """
+    exposure = exposure or {}
+    clock = clock or StageClock()
+    clock.start("reconstruct", 0.3)
+    reconstruction = reconstruct_capture(frames=frames, sequence=sequence, rig=rig, tables=tables,
+                                         saturation_level=exposure.get("saturation_level"), source="the scan")
+    clock.start("fuse", 0.55)
+    field_ = fuse_field(cloud=reconstruction.cloud, rig=rig, thermal=[(None, thermal)], source="the scan")
+    clock.stop()
+    summary = {**field_summary(field_), "glow": glow_summary(reconstruction.glow, exposure)}
+    return ScanOutcome(reconstruction.cloud, field_, summary)
+
+
+def npy_bytes(stack: np.ndarray) -> bytes:
+    """An array as ``.npy`` bytes (uncompressed: storing must not slow the scan; the API encodes on request)."""
+    buffer = io.BytesIO()
+    np.save(buffer, stack, allow_pickle=False)
+    return buffer.getvalue()
+
+
+def scan_artifacts(*, frames: np.ndarray, sequence: Sequence, thermal: np.ndarray, outcome: ScanOutcome,
+                   exposure: dict[str, Any] | None = None) -> dict[str, bytes]:
+    """The files a scan keeps: ``cloud.ply``, ``field.ply``, ``frames.npy``, ``thermal.npy`` (float32 degrees C),
+    ``sequence.json`` and ``exposure.json``."""
+    return {
+        "cloud.ply": cloud_to_ply(outcome.cloud),
+        "field.ply": cloud_to_ply(outcome.field),
+        "frames.npy": npy_bytes(frames),
+        "thermal.npy": npy_bytes(thermal.astype(np.float32)),
+        "sequence.json": sequence_to_json(sequence).encode(),
+        "exposure.json": json.dumps(exposure or {}).encode(),
+    }

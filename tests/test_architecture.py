@@ -1,0 +1,58 @@
+"""The import rules of docs/architecture.md."""
+
+import ast
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+SCIENCE = ("services.structured_light", "services.fusion", "services.calibration", "services.registration",
+           "services.simulation", "services.streaming", "services.pipeline", "services.geometry.camera",
+           "services.geometry.distortion")
+SHELLS = ("api", "workers", "device_gateway", "services.cli")
+
+
+def _imports(path: Path) -> set[str]:
+    """Every module a file imports, at the top or inside functions."""
+    names = set()
+    for node in ast.walk(ast.parse(path.read_text())):
+        if isinstance(node, ast.Import):
+            names.update(alias.name for alias in node.names)
+        elif isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
+            names.add(node.module)
+    return names
+
+
+def _modules_importing(package: str) -> dict[str, set[str]]:
+    return {str(path.relative_to(ROOT)): _imports(path) for path in (ROOT / package.replace(".", "/")).rglob("*.py")}
+
+
+def _within(name: str, prefixes: tuple[str, ...]) -> bool:
+    return any(name == prefix or name.startswith(prefix + ".") for prefix in prefixes)
+
+
+def test_importing_the_api_app_loads_no_numba_rerun_or_science():
+    code = "import json, sys; import api.app; print(json.dumps(sorted(sys.modules)))"
+    loaded = json.loads(subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True,
+                                       check=True, timeout=120).stdout)
+    assert not [name for name in loaded if _within(name, ("numba", "rerun", "matplotlib", "workers") + SCIENCE)]
+
+
+@pytest.mark.parametrize("package, forbidden", [
+    ("api", ("workers", "services.cli", "services.pipeline") + SCIENCE),
+    ("workers", ("api", "services.cli")),
+    ("services/cli", ("workers.actors", "workers.middleware")),
+    ("device_gateway", ("api", "workers", "services.pipeline", "services.cli")),
+    *((science.replace(".", "/"), SHELLS + ("services.pipeline",)) for science in SCIENCE[:6]),
+    ("services/formats", SHELLS + ("services.pipeline",)),
+    ("services/geometry", SHELLS + ("services.pipeline",)),
+    ("services/db", SHELLS + SCIENCE),
+    ("services/jobs", SHELLS + SCIENCE),
+])
+def test_layers_import_only_what_they_may(package, forbidden):
+    offending = {path: sorted(name for name in names if _within(name, forbidden))
+                 for path, names in _modules_importing(package).items()}
+    assert {path: names for path, names in offending.items() if names} == {}
