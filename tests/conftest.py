@@ -64,10 +64,17 @@ def _private_table_cache(tmp_path_factory):
         os.environ["XDG_CACHE_HOME"] = previous
 
 
-# Test files that start processes or servers: the integration tier (with the modules marked by hand
-# ``pytestmark = pytest.mark.integration`` because they render full-size simulated scans).
-_INTEGRATION_FILES = ("integration/", "cli/", "docker/", "device_gateway/test_app.py", "workers/test_calibrate.py",
-                      "streaming/test_recording.py", "test_cli.py", "_cli.py", "test_cli_simulate.py")
+# The integration tier: test files that start processes or servers, and those that render full-size
+# simulated scans or run whole calibrations and registrations (seconds per test).
+_INTEGRATION_FILES = (
+    "integration/", "reliability/", "cli/", "docker/", "device_gateway/test_app.py", "workers/test_calibrate.py",
+    "streaming/test_recording.py", "test_cli.py", "_cli.py", "test_cli_simulate.py", "api/test_schemathesis.py",
+    "structured_light/test_reconstruct.py", "structured_light/test_gray_subpixel.py", "structured_light/test_glow.py",
+    "simulation/test_render.py", "simulation/test_glow.py", "fusion/test_field.py", "fusion/test_fuse.py",
+    "calibration/test_projector.py", "calibration/test_camera.py", "calibration/test_real_slstudio.py",
+    "calibration/test_model_selection.py", "registration/test_register.py", "registration/test_gradient_fields.py",
+    "inspection/", "pipeline/test_reconstruct.py", "formats/test_parser_properties.py",
+)
 
 
 def pytest_collection_modifyitems(config, items):

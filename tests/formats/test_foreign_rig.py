@@ -10,7 +10,7 @@ import pytest
 from services.cli.main import main
 from services.errors import InputError
 from services.formats.foreign_rig import import_rig
-from services.formats.rig import load_rig
+from services.formats.rig import load_rig, rig_to_json
 
 SLSTUDIO_XML = Path(__file__).resolve().parents[2].parent / "shared" / "data" / "slstudio" / "calibration" / \
     "calibration.xml"  # shared/ beside the clone
@@ -118,6 +118,6 @@ def test_bad_slstudio_files(tmp_path):
         import_rig(partial, "slstudio")
     _write_storage(partial, {**entries, "screenResY": 1140})
     rig = import_rig(partial, "slstudio", names=("cam", "proj"))
-    assert json.loads(rig.model_dump_json())["devices"]["proj"]["t"] == [-150.0, 0.0, 60.0]
+    assert json.loads(rig_to_json(rig))["devices"]["proj"]["t"] == [-150.0, 0.0, 60.0]
     with pytest.raises(InputError, match="different names"):
         import_rig(partial, "slstudio", names=("same", "same"))
