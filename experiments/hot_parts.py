@@ -32,7 +32,7 @@ from services.simulation.presets import HOT_STEEL_EMISSIVITY, forging_rig, hot_o
 from services.simulation.render import CameraEffects, ProjectorEffects
 from services.simulation.thermal import ThermalEffects
 from services.structured_light.patterns import generate_sequence
-from services.structured_light.reconstruct import Scan, reconstruct_scan
+from services.structured_light.reconstruct import Reconstruction, reconstruct_scan
 
 PART_SURFACES = (0, 1)
 FIXTURE_SURFACE = 2
@@ -83,7 +83,7 @@ class Result:
     fixture_reconstructed: float
     part_mean_error_mm: float
     part_off_1mm: float
-    scan: Scan
+    scan: Reconstruction
     frames: np.ndarray
     depth_map: np.ndarray  # camera-frame z of the reconstructed points, NaN elsewhere
 
