@@ -83,7 +83,7 @@ constraints:
 
 # The unit tier alone: no servers, no PostgreSQL, under a minute.
 test-fast: install-test
-	$(BIN)/python -m pytest -m "unit and not postgres"
+	$(BIN)/python -m pytest -m "unit and not postgres and not containers and not reliability"
 
 # tests/docker validates docker/compose.yaml with Debian's docker-compose (no Docker engine needed).
 docker-compose:

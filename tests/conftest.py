@@ -67,7 +67,7 @@ def _private_table_cache(tmp_path_factory):
 # The integration tier: test files that start processes or servers, and those that render full-size
 # simulated scans or run whole calibrations and registrations (seconds per test).
 _INTEGRATION_FILES = (
-    "integration/", "reliability/", "cli/", "docker/", "device_gateway/test_app.py", "workers/test_calibrate.py",
+    "integration/", "reliability/", "containers/", "cli/", "docker/", "device_gateway/test_app.py", "workers/test_calibrate.py",
     "streaming/test_recording.py", "test_cli.py", "_cli.py", "test_cli_simulate.py", "api/test_schemathesis.py",
     "structured_light/test_reconstruct.py", "structured_light/test_gray_subpixel.py", "structured_light/test_glow.py",
     "simulation/test_render.py", "simulation/test_glow.py", "fusion/test_field.py", "fusion/test_fuse.py",
