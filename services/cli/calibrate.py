@@ -5,6 +5,8 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+import numpy as np
+
 from services.errors import InputError
 from services.formats.board import load_board
 from services.formats.calibration import (
@@ -17,6 +19,7 @@ from services.formats.calibration import (
 from services.formats.images import FRAME_SUFFIXES, read_frame
 from services.formats.rig import load_rig, save_rig
 from services.formats.sequence import read_capture
+from services.structured_light.decode import decode
 from services.pipeline.calibrate import (
     LabelledImage, calibrate_camera_views, calibrate_projector_captures, capture_board_image, place_device,
 )
@@ -113,7 +116,7 @@ def run_camera(args: argparse.Namespace) -> int:
     board = load_board(args.board)
     if args.captures is not None:
         images, unreadable = read_images(
-            list(args.captures), lambda directory: capture_board_image(*read_capture(directory, args.manifest)), str)
+            list(args.captures), lambda directory: capture_board_image(directory, args.manifest), str)
         source = f"{len(args.captures)} captures"
     else:
         images, unreadable = read_images(list_frames(args.images))
@@ -149,6 +152,8 @@ def report_path(calibration_path: Path, figure: str) -> Path:
 def run_projector(args: argparse.Namespace) -> int:
     board = load_board(args.board)
     camera = load_camera_calibration(args.camera)
+    if len(args.captures) < 3:  # before reading them: frames of a few captures are large
+        raise InputError(f"calibrate projector needs at least 3 captures (board poses); got {len(args.captures)}.")
     captures = [(str(directory), *read_capture(directory, args.manifest)) for directory in args.captures]
     rig, report = calibrate_projector_captures(captures=captures, board=board, camera=camera, name=args.name,
                                                distortion=args.distortion)
