@@ -50,7 +50,7 @@ def skull(six, slstudio_rig):
     """skull_2x3 reconstructed with our calibration and with SLStudio's, as camera-pixel point maps."""
     maps = {}
     for name, rig in (("ours", six["rig"]), ("slstudio", slstudio_rig)):
-        cloud = reconstruct_from_files(rig, DATA / "skull_2x3", manifest=SKULL_MANIFEST, max_indirect=0.33,
+        _, cloud = reconstruct_from_files(rig, DATA / "skull_2x3", manifest=SKULL_MANIFEST, max_indirect=0.33,
                                        consistency=0.5)
         points = np.full((1352, 1688, 3), np.nan)
         points[np.round(cloud["v"]).astype(int), np.round(cloud["u"]).astype(int)] = np.column_stack(
@@ -91,7 +91,6 @@ def test_sequence_2_is_found_and_kept_because_its_residuals_are_ordinary(six):
         assert rms[1] < 1.3 * median
 
 
-@pytest.mark.xfail(strict=True, raises=TypeError, reason="known breakage, issue 11 open: the skull fixture reads the pipeline's reconstruct result as a dict since issue 10 made it a typed result")
 def test_skull_is_covered_and_its_concavities_rejected(skull):
     ours = np.isfinite(skull["ours"][..., 2])
 
@@ -105,7 +104,6 @@ def test_skull_is_covered_and_its_concavities_rejected(skull):
     assert ours.mean() > 0.12  # 13.8 % of the image measured
 
 
-@pytest.mark.xfail(strict=True, raises=TypeError, reason="known breakage, issue 11 open: the skull fixture reads the pipeline's reconstruct result as a dict since issue 10 made it a typed result")
 def test_skull_clouds_of_both_calibrations_agree_to_their_calibration_difference(skull):
     both = np.isfinite(skull["ours"][..., 2]) & np.isfinite(skull["slstudio"][..., 2])
     assert both.sum() > 0.95 * np.isfinite(skull["ours"][..., 2]).sum()  # one decoding, two calibrations
