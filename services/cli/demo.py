@@ -91,6 +91,8 @@ def _print_summary(scan: dict) -> None:
 
 def _serve_until_interrupted(server: subprocess.Popen, data_dir: Path) -> None:
     """Wait for Ctrl-C (which the service, in the same process group, receives too) or for the service to end."""
+    # a shell's background job inherits SIGINT ignored; the service stops on it regardless, so the demo must see it too
+    signal.signal(signal.SIGINT, signal.default_int_handler)
     try:
         server.wait()
     except KeyboardInterrupt:
