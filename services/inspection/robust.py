@@ -6,7 +6,7 @@ import numpy as np
 
 TUKEY_C = 4.685
 MIN_SCALE_MM = 1e-3
-MAX_FIT_POINTS = 50000
+MAX_FIT_POINTS = 20000
 
 
 def robust_scale(residual: np.ndarray) -> float:
