@@ -12,7 +12,7 @@ from services.inspection.nominal import NominalSurface
 
 _COARSE_POINTS = 300
 _CANDIDATE_POINTS = 3000
-_FINE_POINTS = 20000
+_FINE_POINTS = 10000
 _COARSE_KEEP = 3
 _PRUNED_STARTS = 6
 
@@ -27,7 +27,7 @@ class Alignment:
         Homogeneous transform from the part frame to the world (measured) frame.
     rms_mm : float
         Root mean square distance from the nominal surface of the measured points within
-        ``max_distance_mm`` of it (at most 30 000 of them, evenly drawn).
+        ``max_distance_mm`` of it (at most 10 000 of them, evenly drawn).
     inlier_fraction : float
         Fraction of those points within ``max_distance_mm`` of the nominal surface.
     """
@@ -147,7 +147,7 @@ def align_nominal(points: np.ndarray, nominal: NominalSurface, max_distance_mm: 
         A known part-to-world transform to refine; without it the 24 axis-to-axis matches of the
         principal frames are tried.
     polish : bool
-        Refine the winner on 20 000 points; without, the alignment ends on 3000 points (a first
+        Refine the winner on 10 000 points; without, the alignment ends on 3000 points (a first
         alignment that a later call refines).
 
     Returns
@@ -166,7 +166,7 @@ def align_nominal(points: np.ndarray, nominal: NominalSurface, max_distance_mm: 
     (after 3, only the 6 starts with most points near the nominal go on); the three starts with most
     points near the nominal are refined on 3000 points down to ``max_distance_mm``; the one with most
     points within that distance of the nominal surface (then the lowest residual) wins and is
-    polished by 5 iterations on 20 000 points. Symmetries of the part (a cylinder's rotation about its axis) leave
+    polished by 5 iterations on 10 000 points. Symmetries of the part (a cylinder's rotation about its axis) leave
     the transform undetermined along them, which no measure depends on.
 
     References

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from functools import cached_property
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -74,7 +75,7 @@ class NominalSurface:
         dense, _ = _area_samples(vertices, triangles, int(np.ceil(8 * area / GRID_SPACING_MM**2)) + 1)
         self.grid = build_distance_grid(dense, self._exact, GRID_BAND_MM, GRID_SPACING_MM)
 
-    @property
+    @cached_property
     def centroid(self) -> np.ndarray:
         """Centre of the solid's volume (the divergence theorem over tetrahedra from the origin)."""
         corners = self.vertices[self.triangles]
