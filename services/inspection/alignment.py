@@ -12,7 +12,7 @@ from services.inspection.nominal import NominalSurface
 
 _COARSE_POINTS = 300
 _CANDIDATE_POINTS = 3000
-_FINE_POINTS = 20000
+_FINE_POINTS = 10000
 _COARSE_KEEP = 3
 _PRUNED_STARTS = 6
 
@@ -27,7 +27,7 @@ class Alignment:
         Homogeneous transform from the part frame to the world (measured) frame.
     rms_mm : float
         Root mean square distance from the nominal surface of the measured points within
-        ``max_distance_mm`` of it (at most 30 000 of them, evenly drawn).
+        ``max_distance_mm`` of it (at most 10 000 of them, evenly drawn).
     inlier_fraction : float
         Fraction of those points within ``max_distance_mm`` of the nominal surface.
     """
@@ -78,21 +78,29 @@ def _rotation(omega: np.ndarray) -> np.ndarray:
     return np.eye(3) + np.sin(angle) * cross + (1 - np.cos(angle)) * cross @ cross
 
 
-def _icp(points: np.ndarray, nominal: NominalSurface, transform: np.ndarray, distances: np.ndarray) -> np.ndarray:
+def _samples(nominal: NominalSurface, coarse: bool):
+    if coarse:
+        return nominal.coarse_tree, nominal.coarse_samples, nominal.coarse_normals
+    return nominal.sample_tree, nominal.samples, nominal.sample_normals
+
+
+def _icp(points: np.ndarray, nominal: NominalSurface, transform: np.ndarray, distances: np.ndarray,
+         coarse: bool = False) -> np.ndarray:
     """Point-to-plane ICP with Tukey weights, one iteration per entry of ``distances`` (the Tukey cut-off, mm).
 
-    ``transform`` maps measured points to the part frame. Hand-written on the nominal's prepared
-    cKDTree: Open3D's ``registration_icp`` searches its own tree by radius on every call, which made
-    the 24 starts take seconds.
+    ``transform`` maps measured points to the part frame; ``coarse`` matches against the nominal's
+    sparse samples. Hand-written on the nominal's prepared cKDTrees: Open3D's ``registration_icp``
+    searches its own tree by radius on every call, which made the 24 starts take seconds.
     """
+    tree, samples, sample_normals = _samples(nominal, coarse)
     rotation, translation = transform[:3, :3].copy(), transform[:3, 3].copy()
     for cut_off in distances:
         moved = points @ rotation.T + translation
         # bounded: a far query visits much of the tree, and beyond the cut-off its weight is 0 anyway
-        distance, index = nominal.sample_tree.query(moved, distance_upper_bound=cut_off)
+        distance, index = tree.query(moved, distance_upper_bound=cut_off)
         near = np.isfinite(distance)
         moved, index = moved[near], index[near]
-        target, normal = nominal.samples[index], nominal.sample_normals[index]
+        target, normal = samples[index], sample_normals[index]
         residual = np.einsum("ij,ij->i", moved - target, normal)
         u = residual / cut_off
         weight = np.where(np.abs(u) < 1, (1 - u * u) ** 2, 0.0)
@@ -109,22 +117,22 @@ def _icp(points: np.ndarray, nominal: NominalSurface, transform: np.ndarray, dis
 
 
 def _near_score(points: np.ndarray, nominal: NominalSurface, transform: np.ndarray, cut_off: float):
-    """(-fraction of points within ``cut_off`` of a nominal sample, their median distance): lower is better."""
+    """(-fraction of points within ``cut_off`` of a sparse nominal sample, their median distance): lower is better."""
     moved = points @ transform[:3, :3].T + transform[:3, 3]
-    distance, _ = nominal.sample_tree.query(moved, distance_upper_bound=cut_off)
+    distance, _ = nominal.coarse_tree.query(moved, distance_upper_bound=cut_off)
     near = np.isfinite(distance)
     return -round(float(near.mean()), 2), float(np.median(distance[near])) if near.any() else np.inf
 
 
 def _score(points: np.ndarray, nominal: NominalSurface, transform: np.ndarray, max_distance: float):
-    distance = np.abs(nominal.closest(points @ transform[:3, :3].T + transform[:3, 3]).signed_distance)
+    distance = np.abs(nominal.signed_distance(points @ transform[:3, :3].T + transform[:3, 3]))
     inliers = distance <= max_distance
     rms = float(np.sqrt(np.mean(distance[inliers] ** 2))) if inliers.any() else float("inf")
     return float(inliers.mean()), rms
 
 
 def align_nominal(points: np.ndarray, nominal: NominalSurface, max_distance_mm: float = 2.0,
-                  start: np.ndarray | None = None) -> Alignment:
+                  start: np.ndarray | None = None, polish: bool = True) -> Alignment:
     """Find the rigid transform that puts the nominal part onto measured (cold-equivalent) points.
 
     Parameters
@@ -138,6 +146,9 @@ def align_nominal(points: np.ndarray, nominal: NominalSurface, max_distance_mm: 
     start : (4, 4) array, optional
         A known part-to-world transform to refine; without it the 24 axis-to-axis matches of the
         principal frames are tried.
+    polish : bool
+        Refine the winner on 10 000 points; without, the alignment ends on 3000 points (a first
+        alignment that a later call refines).
 
     Returns
     -------
@@ -150,12 +161,12 @@ def align_nominal(points: np.ndarray, nominal: NominalSurface, max_distance_mm: 
     other way, so the part's unseen side does not pull on the fit: the view may be one-sided.
     Each start R0 = E_n P E_m^T, t0 = c_n - R0 c_m (principal axes E and centroids c of the nominal
     samples and the measured points, P one of the 24 signed permutations with det +1) is refined by
-    point-to-plane ICP [1]_ with Tukey weights [2]_ on 300 points, the weights' cut-off shrinking
-    from a quarter to a thirtieth of the part's size over 10 iterations (after 3, only the 6 starts
-    with most points near the nominal go on); the three starts with most
+    point-to-plane ICP [1]_ with Tukey weights [2]_ on 300 points against 3000 nominal samples, the
+    weights' cut-off shrinking from a quarter to a thirtieth of the part's size over 10 iterations
+    (after 3, only the 6 starts with most points near the nominal go on); the three starts with most
     points near the nominal are refined on 3000 points down to ``max_distance_mm``; the one with most
-    points within that distance of the exact nominal surface (then the lowest residual) wins and is
-    polished by 5 iterations on 20 000 points. Symmetries of the part (a cylinder's rotation about its axis) leave
+    points within that distance of the nominal surface (then the lowest residual) wins and is
+    polished by 5 iterations on 10 000 points. Symmetries of the part (a cylinder's rotation about its axis) leave
     the transform undetermined along them, which no measure depends on.
 
     References
@@ -185,7 +196,7 @@ def align_nominal(points: np.ndarray, nominal: NominalSurface, max_distance_mm: 
             starts.append(guess)
         schedule = np.geomspace(size / 4, size / 30, 10)
         for distances, keep in ((schedule[:3], _PRUNED_STARTS), (schedule[3:], _COARSE_KEEP)):
-            refined = [_icp(coarse, nominal, start, distances) for start in starts]
+            refined = [_icp(coarse, nominal, start, distances, coarse=True) for start in starts]
             scored = sorted((_near_score(coarse, nominal, transform, distances[-1]), index)
                             for index, transform in enumerate(refined))
             starts = [refined[index] for _, index in scored[:keep]]
@@ -198,6 +209,8 @@ def align_nominal(points: np.ndarray, nominal: NominalSurface, max_distance_mm: 
         key = (-round(fraction, 3), rms)
         if best is None or key < best[0]:
             best = (key, transform)
+    if not polish:
+        return Alignment(matrix=np.linalg.inv(best[1]), rms_mm=best[0][1], inlier_fraction=-best[0][0])
     transform = _icp(fine, nominal, best[1], np.full(5, max_distance_mm))
     fraction, rms = _score(fine, nominal, transform, max_distance_mm)
     return Alignment(matrix=np.linalg.inv(transform), rms_mm=rms, inlier_fraction=fraction)

@@ -9,6 +9,8 @@ from scipy import ndimage
 
 from services.inspection.nominal import NominalSurface
 
+_DENSE_CELLS = 20_000_000
+
 
 @dataclass(frozen=True)
 class DeviationSummary:
@@ -37,7 +39,7 @@ def surface_deviation(points_part: np.ndarray, nominal: NominalSurface) -> np.nd
 
     See :meth:`NominalSurface.closest` for how the sign is found.
     """
-    return nominal.closest(points_part).signed_distance
+    return nominal.signed_distance(points_part)
 
 
 def summarize_deviation(deviation: np.ndarray, tolerance: tuple[float, float]) -> DeviationSummary:
@@ -51,9 +53,20 @@ def summarize_deviation(deviation: np.ndarray, tolerance: tuple[float, float]) -
                             min=float(finite.min()), max=float(finite.max()), fraction_outside=float(outside.mean()))
 
 
-def find_defects(points_part: np.ndarray, deviation: np.ndarray, threshold_mm: float, cell_mm: float = 1.0,
-                 min_cells: int = 10) -> list[Defect]:
-    """Dents and bulges: connected patches where the locally averaged deviation passes +- ``threshold_mm``.
+@dataclass(frozen=True)
+class CellMeans:
+    """The deviation map averaged over cubic cells: one entry per occupied cell."""
+
+    shape: tuple[int, int, int]
+    keys: np.ndarray  # flat index of each occupied cell in ``shape``
+    mean: np.ndarray  # mean deviation of its points, mm
+    centroid: np.ndarray  # (K, 3) centroid of its points, part frame
+    counts: np.ndarray
+    cell_mm: float
+
+
+def cell_means(points_part: np.ndarray, deviation: np.ndarray, cell_mm: float = 1.0) -> CellMeans:
+    """Bin the points with a finite deviation into cubic cells of edge ``cell_mm`` and average each cell.
 
     Parameters
     ----------
@@ -61,10 +74,47 @@ def find_defects(points_part: np.ndarray, deviation: np.ndarray, threshold_mm: f
         Points in the part frame.
     deviation : (N,) array
         Their signed deviations (NaN for points that are not the part's).
+    cell_mm : float
+        Edge of the cells (the averaging smooths the structured-light noise).
+
+    Returns
+    -------
+    CellMeans
+    """
+    finite = np.isfinite(deviation) & np.isfinite(points_part).all(axis=1)
+    points, values = points_part[finite], deviation[finite]
+    if len(values) == 0:
+        return CellMeans((1, 1, 1), np.zeros(0, np.intp), np.zeros(0), np.zeros((0, 3)), np.zeros(0, np.intp), cell_mm)
+    cells = np.floor(points / cell_mm).astype(np.int64)
+    cells -= cells.min(axis=0)
+    shape = tuple(int(n) for n in cells.max(axis=0) + 1)
+    flat = np.ravel_multi_index(cells.T, shape)
+    if np.prod(shape) <= _DENSE_CELLS:  # counting in the box's cells is several times faster than sorting
+        counts = np.bincount(flat)
+        keys = np.flatnonzero(counts)
+        counts = counts[keys]
+
+        def cell_sums(weights: np.ndarray) -> np.ndarray:
+            return np.bincount(flat, weights=weights)[keys]
+    else:
+        keys, inverse, counts = np.unique(flat, return_inverse=True, return_counts=True)
+
+        def cell_sums(weights: np.ndarray) -> np.ndarray:
+            return np.bincount(inverse, weights=weights)
+    mean = cell_sums(values) / counts
+    centroid = np.column_stack([cell_sums(points[:, k]) / counts for k in range(3)])
+    return CellMeans(shape, keys, mean, centroid, counts, cell_mm)
+
+
+def find_defects(cells: CellMeans, threshold_mm: float, min_cells: int = 10) -> list[Defect]:
+    """Dents and bulges: connected patches where the cell-averaged deviation passes +- ``threshold_mm``.
+
+    Parameters
+    ----------
+    cells : CellMeans
+        The deviation map averaged over cells (``cell_means``).
     threshold_mm : float
         A patch is a dent where the mean deviation of its cells is below -threshold, a bulge above.
-    cell_mm : float
-        Edge of the cubic cells the deviation is averaged over (smooths the structured-light noise).
     min_cells : int
         Smaller patches are noise or the ragged edge of the view (10 cells of 1 mm: 10 mm^2).
 
@@ -75,43 +125,31 @@ def find_defects(points_part: np.ndarray, deviation: np.ndarray, threshold_mm: f
 
     Notes
     -----
-    The points are binned into cubic cells of edge ``cell_mm``; each cell's deviation is the mean
-    of its points'. Cells beyond the threshold are grouped by 26-connectivity after a one-cell
-    dilation (``scipy.ndimage``), so that the gaps of a cloud sparser than the cells do not split a
-    patch. A patch's depth is the extreme cell mean, its centre that cell's
-    point centroid, its area the cell count times cell_mm^2.
+    Cells beyond the threshold are grouped by 26-connectivity after a one-cell dilation
+    (``scipy.ndimage``), so that the gaps of a cloud sparser than the cells do not split a
+    patch. A patch's depth is the extreme cell mean, its centre that cell's point centroid, its
+    area the cell count times cell_mm^2.
     """
-    finite = np.isfinite(deviation) & np.isfinite(points_part).all(axis=1)
-    if finite.sum() == 0:
-        return []
-    points, values = points_part[finite], deviation[finite]
-    cells = np.floor(points / cell_mm).astype(np.int64)
-    low = cells.min(axis=0)
-    cells -= low
-    shape = cells.max(axis=0) + 1
-    flat = np.ravel_multi_index(cells.T, shape)
-    keys, inverse, counts = np.unique(flat, return_inverse=True, return_counts=True)
-    mean = np.bincount(inverse, weights=values) / counts
-    centroid = np.column_stack([np.bincount(inverse, weights=points[:, k]) / counts for k in range(3)])
     defects = []
     for sign in (-1.0, 1.0):
-        beyond = sign * mean > threshold_mm
+        beyond = sign * cells.mean > threshold_mm
         if not beyond.any():
             continue
-        grid = np.zeros(np.prod(shape), dtype=bool)
-        grid[keys[beyond]] = True
+        grid = np.zeros(np.prod(cells.shape), dtype=bool)
+        grid[cells.keys[beyond]] = True
         # cells one empty cell apart belong together: a cloud sparser than the cells leaves such gaps
-        bridged = ndimage.binary_dilation(grid.reshape(shape), structure=np.ones((3, 3, 3)))
+        bridged = ndimage.binary_dilation(grid.reshape(cells.shape), structure=np.ones((3, 3, 3)))
         labels, _ = ndimage.label(bridged, structure=np.ones((3, 3, 3)))
-        cell_labels = labels.ravel()[keys[beyond]]
+        cell_labels = labels.ravel()[cells.keys[beyond]]
         beyond_index = np.flatnonzero(beyond)
         for label in np.unique(cell_labels):
             members = beyond_index[cell_labels == label]
             if len(members) < min_cells:
                 continue
-            extreme = members[np.argmax(sign * mean[members])]
-            defects.append(Defect(center=centroid[extreme], depth_mm=float(mean[extreme]),
-                                  area_mm2=float(len(members) * cell_mm**2), points=int(counts[members].sum())))
+            extreme = members[np.argmax(sign * cells.mean[members])]
+            defects.append(Defect(center=cells.centroid[extreme], depth_mm=float(cells.mean[extreme]),
+                                  area_mm2=float(len(members) * cells.cell_mm**2),
+                                  points=int(cells.counts[members].sum())))
     return sorted(defects, key=lambda defect: -abs(defect.depth_mm))
 
 

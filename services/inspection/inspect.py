@@ -10,7 +10,7 @@ import numpy as np
 from services.formats.part import Feature, Part
 from services.inspection.alignment import Alignment, align_nominal
 from services.inspection.cold_equivalent import cold_equivalent
-from services.inspection.deviation import find_defects, summarize_deviation, surface_deviation
+from services.inspection.deviation import cell_means, find_defects, summarize_deviation, surface_deviation
 from services.inspection.distance import feature_distance
 from services.inspection.features import (NominalFeature, element_position_std, fit_measured, fit_nominal_feature,
                                           measure_std, measure_value)
@@ -126,12 +126,14 @@ def inspect_field(*, field: dict[str, np.ndarray], part: Part | PreparedPart) ->
 
     seed = _even(np.flatnonzero(hot), _SEED_POINTS)
     first = cold_equivalent(points[seed], temperature[seed], part.material)
-    coarse = align_nominal(first.points, prepared.nominal, max_distance_mm=max_distance)
+    coarse = align_nominal(first.points, prepared.nominal, max_distance_mm=max_distance, polish=False)
     centre = coarse.to_world(prepared.nominal.centroid[None])[0]
 
     candidates = np.flatnonzero(finite & (hot | ~np.isfinite(temperature)))
     cold = cold_equivalent(points[candidates], temperature[candidates], part.material, centre=centre)
-    hot_seed = np.isin(candidates, seed)
+    is_seed = np.zeros(len(points), dtype=bool)
+    is_seed[seed] = True
+    hot_seed = is_seed[candidates]
     alignment = align_nominal(cold.points[hot_seed], prepared.nominal, max_distance_mm=max_distance,
                               start=coarse.matrix)
     cold_part_frame = alignment.to_part(cold.points)
@@ -245,10 +247,9 @@ def _surface_result(in_part: np.ndarray, deviation: np.ndarray, temperature: np.
     definition = part.definition
     tolerance = tuple(definition.surface_tolerance)
     summary = summarize_deviation(deviation, tolerance)
-    defects = find_defects(in_part, deviation, definition.defect_threshold_mm)
-    cells = find_defects(in_part, deviation, 0.0, min_cells=1)  # every cell's extreme, either way
-    lowest = min((cell.depth_mm for cell in cells), default=float("nan"))
-    highest = max((cell.depth_mm for cell in cells), default=float("nan"))
+    cells = cell_means(in_part, deviation)
+    defects = find_defects(cells, definition.defect_threshold_mm)
+    lowest, highest = (float(cells.mean.min()), float(cells.mean.max())) if len(cells.mean) else (np.nan, np.nan)
     # a cell's deviation: its mean noise, the structured light's systematic error and, far from the centre,
     # the temperature and table errors acting on its distance from the centre
     mean_t = float(np.mean(temperature))

@@ -6,7 +6,7 @@ import numpy as np
 
 TUKEY_C = 4.685
 MIN_SCALE_MM = 1e-3
-MAX_FIT_POINTS = 50000
+MAX_FIT_POINTS = 20000
 
 
 def robust_scale(residual: np.ndarray) -> float:
@@ -37,13 +37,3 @@ def form_range(residual: np.ndarray, weights: np.ndarray) -> float:
     """Peak-to-valley of the residuals of the points the robust fit kept (weight > 0)."""
     kept = residual[weights > 0]
     return float(np.ptp(kept)) if len(kept) else float("nan")
-
-
-def numeric_jacobian(function, parameters: np.ndarray, step: float = 1e-6) -> np.ndarray:
-    """Central-difference Jacobian (N, P) of a residual function at ``parameters``."""
-    columns = []
-    for index in range(len(parameters)):
-        delta = np.zeros(len(parameters))
-        delta[index] = step
-        columns.append((function(parameters + delta) - function(parameters - delta)) / (2 * step))
-    return np.column_stack(columns)
