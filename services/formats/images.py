@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import io
+import os
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import cv2
@@ -64,23 +66,31 @@ def png_bytes(image: np.ndarray) -> bytes:
 
 
 def read_frame_stack(paths: list[Path]) -> np.ndarray:
-    """Read frames into one (F, H, W) array; all must share size and bit depth."""
+    """Read frames into one (F, H, W) array; all must share size and bit depth.
+
+    The files are decoded on one thread per CPU (OpenCV releases the GIL while it decodes).
+    """
     if not paths:
         raise InputError("no frames to read")
-    first = read_frame(paths[0])
-    stack = np.empty((len(paths),) + first.shape, dtype=first.dtype)
-    stack[0] = first
-    for index, path in enumerate(paths[1:], start=1):
-        frame = read_frame(path)
-        if frame.shape != first.shape:
-            raise InputError(
-                f"{path}: frame is {frame.shape[1]}x{frame.shape[0]} but {paths[0].name} is "
-                f"{first.shape[1]}x{first.shape[0]}; all frames of a capture must have one size"
-            )
-        if frame.dtype != first.dtype:
-            raise InputError(f"{path}: frame is {frame.dtype} but {paths[0].name} is {first.dtype}")
-        stack[index] = frame
+    with ThreadPoolExecutor(max_workers=min(len(paths), os.cpu_count() or 1)) as pool:
+        frames = pool.map(read_frame, paths)
+        first = next(frames)
+        stack = np.empty((len(paths),) + first.shape, dtype=first.dtype)
+        stack[0] = first
+        for index, (path, frame) in enumerate(zip(paths[1:], frames), start=1):
+            _check_like_first(frame, path, first, paths[0])
+            stack[index] = frame
     return stack
+
+
+def _check_like_first(frame: np.ndarray, path: Path, first: np.ndarray, first_path: Path) -> None:
+    if frame.shape != first.shape:
+        raise InputError(
+            f"{path}: frame is {frame.shape[1]}x{frame.shape[0]} but {first_path.name} is "
+            f"{first.shape[1]}x{first.shape[0]}; all frames of a capture must have one size"
+        )
+    if frame.dtype != first.dtype:
+        raise InputError(f"{path}: frame is {frame.dtype} but {first_path.name} is {first.dtype}")
 
 
 def write_png(path: str | Path, image: np.ndarray) -> None:
