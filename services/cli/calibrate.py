@@ -136,14 +136,6 @@ def run_camera(args: argparse.Namespace) -> int:
     return 0
 
 
-def _model_selection_record(selection: ModelSelection | None) -> ModelSelectionRecord | None:
-    if selection is None:
-        return None
-    return ModelSelectionRecord(reason=selection.reason, candidates=[
-        ModelCandidate(model=fit.model, rms_px=fit.rms, parameters=fit.parameters, bic=fit.bic)
-        for fit in selection.fits])
-
-
 def report_path(calibration_path: Path, figure: str) -> Path:
     """Where the report figure ``figure`` of a calibration file goes: beside it, sharing its stem."""
     return calibration_path.with_name(f"{calibration_path.stem}_{figure}.png")
