@@ -159,7 +159,9 @@ def _row(result: Result) -> str:
     glow = result.scan.glow
     hint = glow.hint if glow is not None and glow.hint else "-"
     lost = 0.0 if glow is None else glow.saturated_fraction + glow.lost_fraction
-    exposures = " + ".join(f"{e:.0f}" for e in result.exposures_us)
+    repeats = result.exposures_us.count(result.exposures_us[0])
+    exposures = " + ".join([f"{repeats} x {result.exposures_us[0]:.0f}" if repeats > 1 else f"{result.exposures_us[0]:.0f}"]
+                           + [f"{e:.0f}" for e in result.exposures_us[repeats:]])
     return (f"| {result.case.name} | {exposures} | {100 * result.glow_level:.1f} % | "
             f"{100 * result.part_reconstructed:.2f} % | {100 * result.fixture_reconstructed:.2f} % | "
             f"{result.part_mean_error_mm:.4f} | {100 * result.part_off_1mm:.3f} % | "

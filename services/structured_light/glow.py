@@ -22,6 +22,7 @@ from services.structured_light.decode import DecodedCapture, Rejection, decode
 # modulation must then be at least 2.0 sigma, where a Gray plane and its inverse are misread once in 500.
 MAX_PHASE_NOISE_RAD = 0.2
 _DARK_OF_FULL_SCALE = 0.02  # the cold decoder's darkness limit (decode's default min_intensity)
+_UNLIT_SIGMAS = 3.0  # on a glowing pixel, a mean phase frame this many of its sigmas above the glow is lit
 _NOISE_WINDOW_PX = 9
 _LOG_LEVELS = 255  # noise variances are median-filtered as 8-bit codes of log2(variance)
 _LOG_RANGE = (-8.0, 40.0)
@@ -185,13 +186,17 @@ def decode_glowing(
     saturated = np.any(frames[coded] >= full_scale, axis=0)
     glowing = (glow >= _DARK_OF_FULL_SCALE * full_scale) & (saturated | (glow >= decoded.intensity))
     least_modulation = noise * np.float32(np.sqrt(2.0 / steps) / max_phase_noise)
+    phase_frames = [i for group in groups for i in group.frames]
+    lit_level = np.mean(frames[phase_frames].astype(np.float32) - offset[phase_frames], axis=0)
     dark_limit = _DARK_OF_FULL_SCALE * full_scale
     rejection = decoded.rejection.copy()
     weak = decoded.modulation < least_modulation
     codes = [
         (saturated & glowing, Rejection.GLOW_SATURATED),
         (saturated & ~glowing, Rejection.SATURATED),
-        ((decoded.intensity < dark_limit) & (2 * least_modulation < dark_limit), Rejection.DARK),
+        (((decoded.intensity < dark_limit) & (2 * least_modulation < dark_limit) & ~glowing)
+         | ((lit_level < _UNLIT_SIGMAS * noise * np.float32(1 / np.sqrt(len(phase_frames)))) & glowing),
+         Rejection.DARK),
         (weak & glowing, Rejection.GLOW_NOISE),
         (weak & ~glowing, Rejection.LOW_MODULATION),
     ]
