@@ -77,7 +77,7 @@ class ExposureControl:
     target: float = 0.85
     hdr_exposures: int = 2
     hdr_ratio: float = 4.0
-    hdr_repeats: int = 8
+    hdr_repeats: int = 4
     min_exposure_us: float = 10.0
     max_exposure_us: float = 100_000.0
 
