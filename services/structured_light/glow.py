@@ -32,6 +32,7 @@ WINDOW_SIGMA_PX = 1.0
 # plane against its inverse at 5.8 sigma, misread once in 10^8).
 _WINDOWED_MARGIN = 2.0
 _AGREEMENT_SIGMAS = 4.0  # the window's phase within this many of the pixel's own phase noise
+_GLOW_OUTLINE_PX = 2  # the camera's point spread (0.76 px) beside a silhouette, as outline.py's margin
 _UNLIT_SIGMAS = 3.0  # a glowing pixel whose windowed pattern is below this many sigmas gets no projector light
 _LOG_LEVELS = 255  # noise variances are median-filtered as 8-bit codes of log2(variance)
 _LOG_RANGE = (-8.0, 40.0)
@@ -168,6 +169,24 @@ def _windowed_recovery(decoded: DecodedCapture, own: dict[str, np.ndarray], clea
     return replace(decoded, rejection=rejection, **fields), unlit
 
 
+def _glow_outline(decoded: DecodedCapture, glowing: np.ndarray) -> DecodedCapture:
+    """Valid pixels that do not glow within 2 px of a glowing pixel without a coordinate become ``EDGE``:
+    the part's silhouette against a cooler surface, where a pixel mixes the glowing part, whose pattern
+    is lost, with the surface beyond it, whose pattern it then reads at a ray that sees the part."""
+    lost = (glowing & (decoded.rejection != Rejection.VALID)).astype(np.uint8)
+    size = 2 * _GLOW_OUTLINE_PX + 1
+    near = cv2.dilate(lost, np.ones((size, size), np.uint8)).astype(bool)
+    edge = near & ~glowing & (decoded.rejection == Rejection.VALID)
+    if not edge.any():
+        return decoded
+    rejection = decoded.rejection.copy()
+    rejection[edge] = Rejection.EDGE
+    x, y = decoded.projector_x.copy(), decoded.projector_y.copy()
+    x[edge] = np.nan
+    y[edge] = np.nan
+    return replace(decoded, projector_x=x, projector_y=y, rejection=rejection)
+
+
 def decode_glowing(
     frames: np.ndarray,
     sequence: Sequence,
@@ -281,7 +300,8 @@ def decode_glowing(
         decoded, unlit = _windowed_recovery(decoded, own, clean, sequence, glowing, noise, least_modulation, steps,
                                             min_quality=min_quality, consistency=consistency, max_jump=max_jump,
                                             sigma_px=window_sigma_px)
-        rejection = decoded.rejection
+    decoded = _glow_outline(decoded, glowing)
+    rejection = decoded.rejection
 
     saturated_share, lost_share, drift = 0.0, 0.0, 0.0
     if glowing.any():
