@@ -241,9 +241,11 @@ def decode_glowing(
     the window's noise gain (about 0.29 for sigma = 1 px: a phase noise of 0.1 rad), its decode is valid,
     and its phase lies within 4 of the pixel's own phase-noise sigmas of the pixel's own phase (a window
     across a depth step disagrees with its centre). Its ``modulation`` is then the window's divided by
-    g, the modulation a single pixel of that precision would have. ``GlowReport.lost_fraction`` counts
-    the ``GLOW_NOISE`` pixels whose windowed pattern is at least 3 sigma above the glow: a part's
-    surfaces that the projector does not light are not lost to the glow.
+    g, the modulation a single pixel of that precision would have. Last, valid pixels that do not glow
+    within 2 px of a glowing pixel without a coordinate are ``EDGE`` (the part's silhouette against a
+    cooler surface, which no coordinate jump reveals when the part's side is lost).
+    ``GlowReport.lost_fraction`` counts the ``GLOW_NOISE`` pixels whose windowed pattern is at least 3
+    sigma above the glow: a part's surfaces that the projector does not light are not lost to the glow.
 
     References
     ----------
