@@ -87,7 +87,9 @@ class GlowSummary(BaseModel):
     glowing_fraction: float = Field(description="Share of the camera's pixels where the part's glow is at least "
                                                 "2 % of full scale and at least the reflected pattern.")
     saturated_fraction: float = Field(description="Share of the glowing pixels the glow saturates.")
-    lost_fraction: float = Field(description="Share of the glowing pixels whose pattern the glow's shot noise buries.")
+    lost_fraction: float = Field(description="Share of the glowing pixels whose pattern the glow's shot noise "
+                                             "buries, even over a window of neighbours (surfaces the projector "
+                                             "does not light are not counted).")
     lost_to_glow: float = Field(description="saturated_fraction + lost_fraction.")
     glow_level: float = Field(description="99th percentile of the glow, as a fraction of full scale.")
     drift: float = Field(description="Median relative change of the glow over the sequence (negative: cooling).")

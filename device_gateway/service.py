@@ -12,13 +12,16 @@ from services.structured_light.patterns import generate_sequence
 
 
 def build_station(settings: Settings) -> Station:
-    """The station of ``settings.gateway_driver``: the simulated forging rig, or OAK cameras and a display."""
+    """The station of ``settings.gateway_driver``: the simulated forging rig (filming ``settings.simulated_scene``
+    when set), or OAK cameras and a display."""
     settle_s = None if settings.projector_settle_ms is None else settings.projector_settle_ms / 1000
     # Drivers are imported on use: depthai and SDL load native libraries a simulated station never needs.
     if settings.gateway_driver == "simulated":
         from device_gateway.drivers.simulated import SimulatedStation
+        from services.simulation.scene import load_scene
 
-        simulated = SimulatedStation()
+        scene = None if settings.simulated_scene is None else load_scene(settings.simulated_scene)
+        simulated = SimulatedStation(scene=scene, temperatures=None if scene is None else scene.temperature)
         return Station(simulated.camera, simulated.thermal, simulated.projector, settle_s=settle_s,
                        board_holder=simulated)
     try:

@@ -65,14 +65,19 @@ class ExposureControl:
     ``fixed`` keeps the camera's exposure. ``auto`` meters first: a frame with the projector dark (the
     glow and ambient light) and one fully white, shortened until it no longer saturates; the exposure
     is then set so that the white frame's 99.9th percentile (glow plus full pattern) reaches ``target``
-    of saturation. ``hdr`` films the sequence at that exposure and ``hdr_exposures - 1`` more, each
-    ``hdr_ratio`` times longer, and merges them per pixel (``structured_light.hdr.merge_exposures``).
+    of saturation. ``hdr`` films the sequence ``hdr_repeats`` times at that exposure and once at each of
+    ``hdr_exposures - 1`` more, each ``hdr_ratio`` times longer, and merges them per pixel
+    (``structured_light.hdr.merge_exposures``: the exposure-weighted mean of the unsaturated ones). The
+    repeats collect the photons that a glowing part's pattern lacks where every longer exposure
+    saturates (signal-to-noise ratio with the square root of their number); the longer exposures
+    collect them on a cool fixture.
     """
 
     mode: Literal["fixed", "auto", "hdr"] = "fixed"
     target: float = 0.85
     hdr_exposures: int = 2
     hdr_ratio: float = 4.0
+    hdr_repeats: int = 4
     min_exposure_us: float = 10.0
     max_exposure_us: float = 100_000.0
 
@@ -81,6 +86,8 @@ class ExposureControl:
             raise ValueError(f"The exposure target must be a fraction of saturation in (0, 1); got {self.target}.")
         if self.hdr_exposures < 2 or self.hdr_ratio <= 1:
             raise ValueError("HDR needs at least 2 exposures, each more than 1x longer than the last.")
+        if self.hdr_repeats < 1:
+            raise ValueError(f"HDR films its shortest exposure at least once; got hdr_repeats={self.hdr_repeats}.")
         if not 0 < self.min_exposure_us < self.max_exposure_us:
             raise ValueError("The exposure limits must satisfy 0 < min_exposure_us < max_exposure_us.")
 
@@ -233,8 +240,8 @@ class Station:
             metadata["exposures_us"] = [self.camera.exposure_us]
         else:
             chosen, glow = self.meter(control)
-            exposures = [chosen] if control.mode == "auto" else [
-                min(chosen * control.hdr_ratio**k, control.max_exposure_us) for k in range(control.hdr_exposures)]
+            exposures = [chosen] if control.mode == "auto" else [chosen] * control.hdr_repeats + [
+                min(chosen * control.hdr_ratio**k, control.max_exposure_us) for k in range(1, control.hdr_exposures)]
             stacks = []
             for exposure_us in exposures:
                 self.camera.set_exposure(exposure_us)

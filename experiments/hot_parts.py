@@ -6,7 +6,7 @@ Every case films ``presets.hot_part_scene`` with the forging rig's projector and
 simulated gateway (``SimulatedStation`` behind a ``Station``: metering, automatic exposure or HDR, the
 part cooling from frame to frame), reconstructs with ``reconstruct_scan`` and compares every point with
 the simulator's ground truth at its camera pixel. ``--scale`` shrinks the camera (focal length and
-size) for quick runs; the tests use 0.5.
+size) for quick runs; the tests use 0.3 and 0.5.
 
 Measures, per surface group (the part: billet and dome; the fixture plate):
 - reconstructed: share of the lit pixels whose 4-neighbours see the same surface (a pixel straddling
@@ -159,7 +159,9 @@ def _row(result: Result) -> str:
     glow = result.scan.glow
     hint = glow.hint if glow is not None and glow.hint else "-"
     lost = 0.0 if glow is None else glow.saturated_fraction + glow.lost_fraction
-    exposures = " + ".join(f"{e:.0f}" for e in result.exposures_us)
+    repeats = result.exposures_us.count(result.exposures_us[0])
+    first = f"{repeats} x {result.exposures_us[0]:.0f}" if repeats > 1 else f"{result.exposures_us[0]:.0f}"
+    exposures = " + ".join([first] + [f"{e:.0f}" for e in result.exposures_us[repeats:]])
     return (f"| {result.case.name} | {exposures} | {100 * result.glow_level:.1f} % | "
             f"{100 * result.part_reconstructed:.2f} % | {100 * result.fixture_reconstructed:.2f} % | "
             f"{result.part_mean_error_mm:.4f} | {100 * result.part_off_1mm:.3f} % | "

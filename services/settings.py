@@ -45,6 +45,9 @@ class Settings(BaseSettings):
     gateway_driver: Literal["simulated", "oak"] = Field(
         "simulated", description="Devices behind the gateway: the virtual rig, or OAK cameras and a display projector."
     )
+    simulated_scene: Path | None = Field(
+        None, description="Scene file the simulated gateway films (docs/simulator.md; with the temperature and "
+                          "optics blocks of docs/hot-parts.md a glowing part); default the forging preset.")
     oak_camera_id: str | None = Field(None, description="OAK filming the patterns (MxId, IP or name); default the only one.")
     oak_thermal_id: str | None = Field(None, description="OAK-T thermal camera (MxId, IP or name); default the only one.")
     camera_socket: str = Field("CAM_A", pattern=r"^CAM_[A-J]$", description="Board socket of the OAK camera's sensor.")

@@ -4,7 +4,8 @@ A hot part adds its own emission to every frame: an offset per pixel that drifts
 and shot noise that grows with it. Our hot-part sequences open and close with a black frame
 (``generate_sequence(closing_black=True)``); the offset is interpolated in time between the two and
 subtracted before any threshold, the camera noise is measured per pixel from the capture itself, and
-a pixel whose pattern the glow saturates or buries in noise gets a rejection code of its own
+a pixel whose pattern is too noisy is decoded again over a small window of its neighbours, and one
+whose pattern the glow saturates or buries even there gets a rejection code of its own
 (``GLOW_SATURATED``, ``GLOW_NOISE``) instead of a coordinate. See docs/hot-parts.md.
 """
 
@@ -15,14 +16,24 @@ from dataclasses import asdict, dataclass, replace
 import cv2
 import numpy as np
 
-from services.formats.sequence import Sequence
+from services.formats.sequence import AXES, Sequence
 from services.structured_light.decode import DecodedCapture, Rejection, decode
+from services.structured_light.windowed_phase import windowed_frames
 
 # A pixel's phase must be measurable to this standard deviation (radians): with N = 12 steps the
 # modulation must then be at least 2.0 sigma, where a Gray plane and its inverse are misread once in 500.
 MAX_PHASE_NOISE_RAD = 0.2
 _DARK_OF_FULL_SCALE = 0.02  # the cold decoder's darkness limit (decode's default min_intensity)
 _NOISE_WINDOW_PX = 9
+# Weak pixels are decoded again over a Gaussian window of this sigma on the glowing part (2.4 px FWHM).
+WINDOW_SIGMA_PX = 1.0
+# A windowed pixel's errors are correlated over its window, so a misread Gray bit there is a blob that the
+# speckle filter cannot tell from surface: its modulation must be twice B_min (phase noise 0.1 rad, a Gray
+# plane against its inverse at 5.8 sigma, misread once in 10^8).
+_WINDOWED_MARGIN = 2.0
+_AGREEMENT_SIGMAS = 4.0  # the window's phase within this many of the pixel's own phase noise
+_GLOW_OUTLINE_PX = 2  # the camera's point spread (0.76 px) beside a silhouette, as outline.py's margin
+_UNLIT_SIGMAS = 3.0  # a glowing pixel whose windowed pattern is below this many sigmas gets no projector light
 _LOG_LEVELS = 255  # noise variances are median-filtered as 8-bit codes of log2(variance)
 _LOG_RANGE = (-8.0, 40.0)
 _HINT_SHARE = 0.05  # the scan result carries a hint when the glow costs more than this share of the part
@@ -84,7 +95,8 @@ class GlowReport:
         reflected pattern: the hot part as the camera sees it.
     saturated_fraction, lost_fraction : float
         Shares of those glowing pixels rejected because the glow saturated their pattern
-        (``GLOW_SATURATED``) or buried it in its shot noise (``GLOW_NOISE``).
+        (``GLOW_SATURATED``) or buried it in its shot noise (``GLOW_NOISE`` where a windowed average
+        still detects projector light).
     glow_level : float
         99th percentile of the glow, as a fraction of full scale.
     drift : float
@@ -115,6 +127,66 @@ def _hint(saturated: float, lost: float) -> str | None:
             "filter on the camera")
 
 
+def _windowed_recovery(decoded: DecodedCapture, own: dict[str, np.ndarray], clean: np.ndarray, sequence: Sequence,
+                       glowing: np.ndarray, noise: np.ndarray, least_modulation: np.ndarray, steps: int, *,
+                       min_quality: float, consistency: float, max_jump: float,
+                       sigma_px: float) -> tuple[DecodedCapture, np.ndarray]:
+    """``GLOW_NOISE`` pixels decoded again from windowed frames (``windowed_phase.windowed_frames``) over
+    the glowing part, kept where the window's phase meets the same noise standard and agrees with the
+    pixel's own phase; and the map of the glowing pixels that no projector light reaches (the window's
+    mean phase-frame level within 3 of its sigmas of the glow)."""
+    weak = decoded.rejection == Rejection.GLOW_NOISE
+    # The glowing surface, dark and noisy pixels included (they add noise, no bias), less the pixels
+    # whose samples are clipped or that straddle a depth step.
+    support = glowing & ~np.isin(decoded.rejection, (Rejection.GLOW_SATURATED, Rejection.SATURATED, Rejection.EDGE))
+    windowed, noise_gain, _ = windowed_frames(clean, sequence, support, sigma_px=sigma_px)
+    again = decode(windowed, sequence, saturation_level=np.inf, min_intensity=-np.inf, min_modulation=0.0,
+                   min_quality=min_quality, consistency=consistency, edge_margin=0, max_jump=max_jump)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        effective = again.modulation / noise_gain  # the windowed modulation against the pixel's own noise
+    agrees = np.ones(weak.shape, dtype=bool)
+    for axis in AXES:
+        if not sequence.phase_groups(axis):
+            continue
+        period = sequence.phase_groups(axis)[-1].period
+        with np.errstate(divide="ignore", invalid="ignore"):
+            own_spread = period / (2 * np.pi) * noise * np.float32(np.sqrt(2.0 / steps)) / again.modulation
+        step = np.remainder(getattr(again, f"projector_{axis}") - own[axis] + period / 2, period) - period / 2
+        agrees &= ~np.isfinite(own[axis]) | (np.abs(step) <= _AGREEMENT_SIGMAS * own_spread)
+    recovered = (weak & (again.rejection == Rejection.VALID) & (effective >= _WINDOWED_MARGIN * least_modulation)
+                 & agrees)
+    phase_frames = [i for group in sequence.phase_groups() for i in group.frames]
+    lit_level = np.mean(windowed[phase_frames], axis=0)
+    with np.errstate(invalid="ignore"):
+        unlit = glowing & (lit_level < _UNLIT_SIGMAS * noise * noise_gain / np.float32(np.sqrt(len(phase_frames))))
+    rejection = decoded.rejection.copy()
+    rejection[recovered] = Rejection.VALID
+    fields = {}
+    for name in ("projector_x", "projector_y", "modulation", "quality"):
+        values = getattr(decoded, name).copy()
+        values[recovered] = (effective if name == "modulation" else getattr(again, name))[recovered]
+        fields[name] = values
+    return replace(decoded, rejection=rejection, **fields), unlit
+
+
+def _glow_outline(decoded: DecodedCapture, glowing: np.ndarray) -> DecodedCapture:
+    """Valid pixels that do not glow within 2 px of a glowing pixel without a coordinate become ``EDGE``:
+    the part's silhouette against a cooler surface, where a pixel mixes the glowing part, whose pattern
+    is lost, with the surface beyond it, whose pattern it then reads at a ray that sees the part."""
+    lost = (glowing & (decoded.rejection != Rejection.VALID)).astype(np.uint8)
+    size = 2 * _GLOW_OUTLINE_PX + 1
+    near = cv2.dilate(lost, np.ones((size, size), np.uint8)).astype(bool)
+    edge = near & ~glowing & (decoded.rejection == Rejection.VALID)
+    if not edge.any():
+        return decoded
+    rejection = decoded.rejection.copy()
+    rejection[edge] = Rejection.EDGE
+    x, y = decoded.projector_x.copy(), decoded.projector_y.copy()
+    x[edge] = np.nan
+    y[edge] = np.nan
+    return replace(decoded, projector_x=x, projector_y=y, rejection=rejection)
+
+
 def decode_glowing(
     frames: np.ndarray,
     sequence: Sequence,
@@ -123,6 +195,7 @@ def decode_glowing(
     min_quality: float = 0.5,
     consistency: float = 0.25,
     max_phase_noise: float = MAX_PHASE_NOISE_RAD,
+    window_sigma_px: float = WINDOW_SIGMA_PX,
 ) -> tuple[DecodedCapture, np.ndarray, GlowReport]:
     """Decode a capture of a glowing part whose sequence opens and closes with a black frame.
 
@@ -138,6 +211,9 @@ def decode_glowing(
         As in :func:`decode`.
     max_phase_noise : float
         Largest phase standard deviation (radians) that the noise may leave a valid pixel.
+    window_sigma_px : float
+        Sigma (camera pixels) of the Gaussian window over which ``GLOW_NOISE`` pixels are decoded again;
+        0 leaves them rejected.
 
     Returns
     -------
@@ -159,10 +235,24 @@ def decode_glowing(
     have been seen); a modulation below B_min is ``GLOW_NOISE`` where the pixel glows and
     ``LOW_MODULATION`` elsewhere.
 
+    A ``GLOW_NOISE`` pixel is then decoded again from frames averaged over a Gaussian window on the
+    glowing part, fringes demodulated by their local frequency (``windowed_phase.windowed_frames``,
+    windowed Fourier filtering [2]_), and kept where that window's modulation is at least 2 B_min g, g
+    the window's noise gain (about 0.29 for sigma = 1 px: a phase noise of 0.1 rad), its decode is valid,
+    and its phase lies within 4 of the pixel's own phase-noise sigmas of the pixel's own phase (a window
+    across a depth step disagrees with its centre). Its ``modulation`` is then the window's divided by
+    g, the modulation a single pixel of that precision would have. Last, valid pixels that do not glow
+    within 2 px of a glowing pixel without a coordinate are ``EDGE`` (the part's silhouette against a
+    cooler surface, which no coordinate jump reveals when the part's side is lost).
+    ``GlowReport.lost_fraction`` counts the ``GLOW_NOISE`` pixels whose windowed pattern is at least 3
+    sigma above the glow: a part's surfaces that the projector does not light are not lost to the glow.
+
     References
     ----------
     .. [1] C. Zuo et al., "Phase shifting algorithms for fringe projection profilometry: a review",
        Optics and Lasers in Engineering 109, 2018, section 5.
+    .. [2] Q. Kemao, "Two-dimensional windowed Fourier transform for fringe pattern analysis: principles,
+       applications and implementations", Optics and Lasers in Engineering 45(2), 304-317, 2007.
     """
     frames = np.asarray(frames)
     if frames.ndim != 3 or frames.dtype not in (np.uint8, np.uint16):
@@ -174,9 +264,10 @@ def decode_glowing(
         raise ValueError("Decoding a glowing part needs phase-shifted frames to measure the noise from.")
     full_scale = float(np.iinfo(frames.dtype).max if saturation_level is None else saturation_level)
     offset = glow_offset(frames, sequence)
-    decoded = decode(frames.astype(np.float32) - offset, sequence, saturation_level=np.inf,
-                     min_intensity=-np.inf, min_modulation=0.0, min_quality=min_quality, consistency=consistency,
-                     edge_margin=0, max_jump=_JUMP_OF_PERIOD * min(group.period for group in groups))
+    clean = frames.astype(np.float32) - offset
+    max_jump = _JUMP_OF_PERIOD * min(group.period for group in groups)
+    decoded = decode(clean, sequence, saturation_level=np.inf, min_intensity=-np.inf, min_modulation=0.0,
+                     min_quality=min_quality, consistency=consistency, edge_margin=0, max_jump=max_jump)
     steps = min(len(group.frames) for group in groups)
     noise = pixel_noise(decoded.modulation, decoded.quality, steps)
 
@@ -191,7 +282,7 @@ def decode_glowing(
     codes = [
         (saturated & glowing, Rejection.GLOW_SATURATED),
         (saturated & ~glowing, Rejection.SATURATED),
-        ((decoded.intensity < dark_limit) & (2 * least_modulation < dark_limit), Rejection.DARK),
+        ((decoded.intensity < dark_limit) & (2 * least_modulation < dark_limit) & ~glowing, Rejection.DARK),
         (weak & glowing, Rejection.GLOW_NOISE),
         (weak & ~glowing, Rejection.LOW_MODULATION),
     ]
@@ -201,16 +292,24 @@ def decode_glowing(
         rejection[where] = code
         decided |= where
     rejected = rejection != Rejection.VALID
+    own = {"x": decoded.projector_x, "y": decoded.projector_y}  # before rejection, for the windowed check
     x, y = decoded.projector_x.copy(), decoded.projector_y.copy()
     x[rejected] = np.nan
     y[rejected] = np.nan
     decoded = replace(decoded, projector_x=x, projector_y=y, rejection=rejection)
+    unlit = np.zeros(rejection.shape, dtype=bool)
+    if window_sigma_px > 0 and np.any(rejection == Rejection.GLOW_NOISE):
+        decoded, unlit = _windowed_recovery(decoded, own, clean, sequence, glowing, noise, least_modulation, steps,
+                                            min_quality=min_quality, consistency=consistency, max_jump=max_jump,
+                                            sigma_px=window_sigma_px)
+    decoded = _glow_outline(decoded, glowing)
+    rejection = decoded.rejection
 
     saturated_share, lost_share, drift = 0.0, 0.0, 0.0
     if glowing.any():
         codes_glowing = rejection[glowing]
         saturated_share = float(np.mean(codes_glowing == Rejection.GLOW_SATURATED))
-        lost_share = float(np.mean(codes_glowing == Rejection.GLOW_NOISE))
+        lost_share = float(np.mean((codes_glowing == Rejection.GLOW_NOISE) & ~unlit[glowing]))
         opening = offset[sequence.black_index][glowing]
         closing = offset[sequence.closing_black_index][glowing]
         drift = float(np.median((closing - opening) / np.maximum(opening, 1.0)))

@@ -59,10 +59,10 @@ def test_automatic_exposure_keeps_glow_and_pattern_below_saturation(hot_station,
 def test_hdr_merges_a_longer_exposure_where_the_short_one_is_dim(hot_station, hot_sequence):
     simulated, station = hot_station
     sequence, patterns = hot_sequence
-    control = ExposureControl(mode="hdr", hdr_exposures=2, hdr_ratio=4.0)
+    control = ExposureControl(mode="hdr", hdr_exposures=2, hdr_ratio=4.0, hdr_repeats=2)
     capture = station.capture(sequence, patterns, exposure=control)
-    short, long = capture.exposure["exposures_us"]
-    assert long == pytest.approx(4 * short, abs=0.05)
+    short, repeat, long = capture.exposure["exposures_us"]
+    assert repeat == short and long == pytest.approx(4 * short, abs=0.05)
     assert capture.exposure["saturation_level"] == 4 * 4095
     white = capture.frames[sequence.white_index].astype(float)
     truth = simulated.view().truth
@@ -74,5 +74,7 @@ def test_hdr_merges_a_longer_exposure_where_the_short_one_is_dim(hot_station, ho
 def test_bad_exposure_controls_are_refused():
     with pytest.raises(ValueError, match="at least 2 exposures"):
         ExposureControl(mode="hdr", hdr_exposures=1)
+    with pytest.raises(ValueError, match="at least once"):
+        ExposureControl(mode="hdr", hdr_repeats=0)
     with pytest.raises(ValueError, match="fraction of saturation"):
         ExposureControl(target=1.5)

@@ -65,3 +65,21 @@ def test_without_the_gateway_extra_the_oak_driver_says_what_to_install(monkeypat
     monkeypatch.setitem(sys.modules, "depthai", None)  # as if depthai were not installed
     with pytest.raises(InputError, match=r"needs depthai.*thermofield\[gateway\]"):
         build_station(Settings(gateway_driver="oak"))
+
+
+def test_the_simulated_driver_films_the_scene_file_of_the_settings(tmp_path):
+    from services.simulation.presets import hot_optics, hot_part_scene
+
+    scene = hot_part_scene(1000.0, hot_optics("white"))
+    path = tmp_path / "hot-part.json"
+    path.write_text(scene.model_dump_json())
+    station = build_station(Settings(gateway_driver="simulated", simulated_scene=path))
+    simulated = station.board_holder  # the SimulatedStation behind the devices
+    assert simulated.hot and simulated.scene == scene and simulated.temperatures == scene.temperature
+
+
+def test_a_bad_scene_file_is_named(tmp_path):
+    path = tmp_path / "scene.json"
+    path.write_text('{"surfaces": []}')
+    with pytest.raises(InputError, match="scene.json"):
+        build_station(Settings(gateway_driver="simulated", simulated_scene=path))

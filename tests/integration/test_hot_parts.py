@@ -52,6 +52,18 @@ def test_white_projector_at_1250_c_says_why_the_part_is_missing(results):
     assert "blue projector and a band-pass filter" in glow.hint
 
 
+def test_hdr_measures_both_the_glowing_part_and_the_cool_fixture_at_1000_c():
+    # At half size (640 x 400 px), where the part's silhouette ring is a larger share than at full size.
+    case = next(case for case in hot_parts.CASES if case.name == "white, 1000 C, HDR")
+    result = hot_parts.run_case(case, 0.5)
+    short = result.exposures_us[0]
+    assert result.exposures_us == [short] * 4 + [pytest.approx(4 * short, abs=0.05)]
+    assert result.part_reconstructed >= 0.95
+    assert result.fixture_reconstructed >= 0.95
+    assert result.part_off_1mm <= 0.005
+    assert result.part_mean_error_mm <= 0.1  # 0.036 mm at full size
+
+
 def test_a_glow_drifting_5_k_costs_no_accuracy(results):
     constant, drifting = results["white, 1000 C, auto"], results["white, 1000 C, auto, drift 5 K"]
     assert constant.scan.glow.drift == pytest.approx(0.0, abs=0.002)

@@ -66,7 +66,12 @@ def test_a_pattern_lost_under_the_glow_gets_its_own_code_and_no_coordinate():
     left, right = decoded.rejection[:, : WIDTH // 2], decoded.rejection[:, WIDTH // 2:]
     assert np.all(left == Rejection.GLOW_SATURATED)
     assert np.mean(right == Rejection.GLOW_NOISE) > 0.95
-    assert np.isfinite(decoded.projector_x).mean() < 0.01  # noise that mimics a pattern: the speckle filter's job
+    alone, _, _ = decode_glowing(frames, sequence, saturation_level=SATURATION, window_sigma_px=0)
+    assert np.isfinite(alone.projector_x).mean() < 0.01  # noise that mimics a pattern: the speckle filter's job
+    windowed = np.isfinite(decoded.projector_x) & ~np.isfinite(alone.projector_x)
+    assert windowed.mean() < 0.02  # where the noise lifts the windowed modulation above 2 B_min ...
+    columns = np.broadcast_to(np.arange(WIDTH, dtype=np.float64), (HEIGHT, WIDTH))
+    assert np.all(np.abs(decoded.projector_x - columns)[windowed] < 1.0)  # ... the window's pattern is real
     assert report.saturated_fraction == pytest.approx(0.5) and report.lost_fraction > 0.45
     assert "glow" in report.hint
 
@@ -85,3 +90,50 @@ def test_refuses_a_sequence_without_closing_black():
     sequence, patterns = generate_sequence(WIDTH, HEIGHT)
     with pytest.raises(ValueError, match="no closing black frame"):
         decode_glowing(np.repeat(patterns[:, :, :], 1, axis=0).astype(np.uint16), sequence)
+
+
+def test_a_pattern_too_noisy_for_one_pixel_is_measured_over_its_window():
+    glow = np.full((HEIGHT * 4, WIDTH), 3000.0)
+    pattern = np.full(glow.shape, 100.0)  # modulation 50 against a noise of 35: 1.4 sigma, below B_min (2.0)
+    sequence, patterns = generate_sequence(WIDTH, HEIGHT * 4, closing_black=True)
+    values = glow + pattern * patterns / 255.0 + 35.0 * np.random.default_rng(2).standard_normal(patterns.shape)
+    frames = np.clip(np.rint(values), 0, SATURATION).astype(np.uint16)
+    alone, _, _ = decode_glowing(frames, sequence, saturation_level=SATURATION, window_sigma_px=0)
+    decoded, _, report = decode_glowing(frames, sequence, saturation_level=SATURATION)
+    inside = (slice(3, -3), slice(3, -3))
+    assert np.mean(alone.rejection[inside] == Rejection.GLOW_NOISE) > 0.6
+    valid = decoded.rejection[inside] == Rejection.VALID
+    assert valid.mean() > 0.9
+    recovered = valid & (alone.rejection[inside] == Rejection.GLOW_NOISE)
+    columns = np.broadcast_to(np.arange(WIDTH, dtype=np.float64), glow.shape)[inside]
+    error = np.abs(decoded.projector_x[inside] - columns)[recovered]
+    assert np.median(error) < 0.3 and error.max() < 1.5  # the phase noise of 0.1 rad is 0.25 px at period 16
+    assert report.lost_fraction < 0.1
+
+
+def test_a_glowing_surface_the_projector_does_not_light_is_not_lost_to_the_glow():
+    glow = np.full((HEIGHT * 4, WIDTH), 3000.0)
+    pattern = np.zeros(glow.shape)
+    pattern[:, WIDTH // 2:] = 25.0  # lit, but 0.4 sigma of modulation: buried even over the window
+    sequence, patterns = generate_sequence(WIDTH, HEIGHT * 4, closing_black=True)
+    values = glow + pattern * patterns / 255.0 + 35.0 * np.random.default_rng(3).standard_normal(patterns.shape)
+    frames = np.clip(np.rint(values), 0, SATURATION).astype(np.uint16)
+    decoded, _, report = decode_glowing(frames, sequence, saturation_level=SATURATION)
+    assert np.mean(decoded.rejection == Rejection.GLOW_NOISE) > 0.95
+    assert report.lost_fraction == pytest.approx(0.5, abs=0.05)  # the lit half only
+
+
+def test_a_cool_pixel_beside_a_lost_glowing_one_is_an_edge():
+    glow = np.full((HEIGHT * 4, WIDTH), 5.0)
+    glow[:, :100] = 3000.0  # the glowing part, its pattern buried; the cool fixture from column 100
+    pattern = np.full(glow.shape, 1000.0)
+    pattern[:, :100] = 25.0
+    sequence, patterns = generate_sequence(WIDTH, HEIGHT * 4, closing_black=True)
+    sigma = np.where(glow > 100, 35.0, 2.0)
+    values = glow + pattern * patterns / 255.0 + sigma * np.random.default_rng(4).standard_normal(patterns.shape)
+    frames = np.clip(np.rint(values), 0, SATURATION).astype(np.uint16)
+    decoded, _, _ = decode_glowing(frames, sequence, saturation_level=SATURATION)
+    rows = slice(3, -3)
+    assert np.all(decoded.rejection[rows, 100:102] == Rejection.EDGE)
+    assert np.all(np.isnan(decoded.projector_x[rows, 100:102]))
+    assert np.mean(decoded.rejection[rows, 103:250] == Rejection.VALID) > 0.99
