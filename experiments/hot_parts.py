@@ -1,6 +1,7 @@
 """Hot parts: a glowing billet and dome before a cool fixture plate, scanned through the simulated station.
 
 Run:  .venv/bin/python experiments/hot_parts.py [--scale 1.0] [--figure docs/figures/hot-parts.png]
+      .venv/bin/python experiments/hot_parts.py --ablation   (white 1000 C HDR: each remedy alone and both)
 
 Every case films ``presets.hot_part_scene`` with the forging rig's projector and camera through the
 simulated gateway (``SimulatedStation`` behind a ``Station``: metering, automatic exposure or HDR, the
@@ -32,7 +33,7 @@ from services.simulation.presets import HOT_STEEL_EMISSIVITY, forging_rig, hot_o
 from services.simulation.render import CameraEffects, ProjectorEffects
 from services.simulation.thermal import ThermalEffects
 from services.structured_light.patterns import generate_sequence
-from services.structured_light.reconstruct import Reconstruction, reconstruct_scan
+from services.structured_light.reconstruct import GLOW_WINDOW_SIGMA_PX, Reconstruction, reconstruct_scan
 
 PART_SURFACES = (0, 1)
 FIXTURE_SURFACE = 2
@@ -47,6 +48,8 @@ class Case:
     band_pass: tuple[float, float] | None
     exposure: str  # "auto" or "hdr"
     drift_k: float = 0.0  # cooling over the sequence's frames
+    hdr_repeats: int = ExposureControl.hdr_repeats  # films of the shortest exposure
+    window: bool = True  # pixels lost to the glow's noise decoded again over a window
 
 
 CASES = (
@@ -58,6 +61,10 @@ CASES = (
     Case("white, 1250 C, auto", 1250.0, "white", None, "auto"),
     Case("white, 1250 C, HDR", 1250.0, "white", None, "hdr"),
 )
+
+ABLATION = tuple(Case("white, 1000 C, HDR", 1000.0, "white", None, "hdr", hdr_repeats=repeats, window=window)
+                 for repeats, window in ((1, False), (1, True), (4, False), (8, False), (4, True)))
+"""What the repeated short exposure and the windowed decoding each contribute (``--ablation``)."""
 
 
 def ratio_table() -> str:
@@ -123,10 +130,12 @@ def run_case(case: Case, scale: float = 1.0, seed: int = 0) -> Result:
                                 thermal_effects=ThermalEffects(supersample=1))  # not scored here
     simulated = SimulatedStation(rig, scene, scene.temperature, options)
     station = Station(simulated.camera, simulated.thermal, simulated.projector, settle_s=0.0)
-    capture = station.capture(sequence, patterns, exposure=ExposureControl(mode=case.exposure))
+    capture = station.capture(sequence, patterns,
+                              exposure=ExposureControl(mode=case.exposure, hdr_repeats=case.hdr_repeats))
     camera, projector = rig.devices["camera"], rig.devices["projector"]
     scan = reconstruct_scan(capture.frames, sequence, camera, projector,
-                            saturation_level=capture.exposure["saturation_level"])
+                            saturation_level=capture.exposure["saturation_level"],
+                            glow_window_px=GLOW_WINDOW_SIGMA_PX if case.window else 0.0)
     truth = simulated.view().truth
     cloud = scan.cloud
     u, v = np.rint(cloud["u"]).astype(int), np.rint(cloud["v"]).astype(int)
@@ -155,17 +164,27 @@ def run_case(case: Case, scale: float = 1.0, seed: int = 0) -> Result:
     )
 
 
+def _bracket(exposures_us: list[float]) -> str:
+    """The exposures filmed, the repeated shortest one as ``N x``."""
+    repeats = exposures_us.count(exposures_us[0])
+    first = f"{repeats} x {exposures_us[0]:.0f}" if repeats > 1 else f"{exposures_us[0]:.0f}"
+    return " + ".join([first] + [f"{e:.0f}" for e in exposures_us[repeats:]])
+
+
 def _row(result: Result) -> str:
     glow = result.scan.glow
     hint = glow.hint if glow is not None and glow.hint else "-"
     lost = 0.0 if glow is None else glow.saturated_fraction + glow.lost_fraction
-    repeats = result.exposures_us.count(result.exposures_us[0])
-    first = f"{repeats} x {result.exposures_us[0]:.0f}" if repeats > 1 else f"{result.exposures_us[0]:.0f}"
-    exposures = " + ".join([first] + [f"{e:.0f}" for e in result.exposures_us[repeats:]])
-    return (f"| {result.case.name} | {exposures} | {100 * result.glow_level:.1f} % | "
+    return (f"| {result.case.name} | {_bracket(result.exposures_us)} | {100 * result.glow_level:.1f} % | "
             f"{100 * result.part_reconstructed:.2f} % | {100 * result.fixture_reconstructed:.2f} % | "
             f"{result.part_mean_error_mm:.4f} | {100 * result.part_off_1mm:.3f} % | "
             f"{100 * lost:.1f} % | {hint} |")
+
+
+def _ablation_row(result: Result) -> str:
+    return (f"| {_bracket(result.exposures_us)} | {'on' if result.case.window else 'off'} | "
+            f"{100 * result.part_reconstructed:.2f} % | {100 * result.fixture_reconstructed:.2f} % | "
+            f"{result.part_mean_error_mm:.4f} | {100 * result.part_off_1mm:.3f} % |")
 
 
 def table(results: list[Result], scale: float) -> str:
@@ -206,7 +225,15 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--scale", type=float, default=1.0)
     parser.add_argument("--figure", type=Path, default=None)
+    parser.add_argument("--ablation", action="store_true",
+                        help="only white 1000 C HDR, with 1, 4 or 8 films of the short exposure, the window on or off")
     args = parser.parse_args()
+    if args.ablation:
+        print("| HDR bracket, us | windowed decoding | part | fixture | part mean error mm | part points off > 1 mm |")
+        print("|---|---|---|---|---|---|")
+        for case in ABLATION:
+            print(_ablation_row(run_case(case, args.scale)), flush=True)
+        return
     print(ratio_table())
     results = []
     for case in CASES:

@@ -12,6 +12,7 @@ from services.geometry.camera_model import CameraModel
 from services.geometry.cloud import PointCloud
 from services.numba_options import SAFE_FASTMATH
 from services.structured_light.decode import DecodedCapture, decode
+from services.structured_light.glow import WINDOW_SIGMA_PX as GLOW_WINDOW_SIGMA_PX
 from services.structured_light.glow import GlowReport, decode_glowing
 from services.structured_light.low_snr import estimate_camera_noise, phase_noise_scale, refine_low_snr
 from services.structured_light.outline import ASSUMED_CAMERA_BLUR_PX, estimate_camera_blur, outline_corrected
@@ -297,6 +298,7 @@ def reconstruct_scan(
     saturation_level: float | None = None,
     max_indirect: float = np.inf,
     consistency: float = 0.25,
+    glow_window_px: float = GLOW_WINDOW_SIGMA_PX,
 ) -> Reconstruction:
     """Decode a capture and triangulate every valid camera pixel, reporting what a hot part's glow did.
 
@@ -328,6 +330,9 @@ def reconstruct_scan(
         fraction of the unwrapping margin. Raise it (e.g. to 0.5) for sequences unwrapped by a much
         coarser period with few steps, whose coarse phase is noisy (SLStudio's 3 steps at 16
         periods): unwrapping slips then leave islands a period off, which the speckle filter removes.
+    glow_window_px : float
+        ``decode_glowing``'s window (Gaussian sigma, px) over which pixels lost to the glow's noise
+        are decoded again; 0 turns that off.
 
     Returns
     -------
@@ -349,7 +354,7 @@ def reconstruct_scan(
     noise, report = None, None
     if sequence.closing_black_index is not None and sequence.phase_groups():
         decoded, noise, report = decode_glowing(frames, sequence, saturation_level=full_scale,
-                                                min_quality=_MIN_QUALITY)
+                                                min_quality=_MIN_QUALITY, window_sigma_px=glow_window_px)
     else:
         decoded = decode(frames, sequence, min_quality=_MIN_QUALITY, edge_margin=0, saturation_level=full_scale,
                          min_modulation=_MIN_MODULATION_OF_FULL_SCALE * full_scale, gray_boundaries=gray_boundaries,
