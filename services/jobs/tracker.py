@@ -70,7 +70,8 @@ class JobTracker:
         self._update(job_id, stage=stage, fraction=fraction)
 
     def succeed(self, job_id: str, result: dict[str, Any]) -> None:
-        """Record the result; a scan job's ``artifacts`` and ``summary`` go onto its scan in the same commit."""
+        """Record the result; a scan job's ``artifacts``, ``summary`` and (inspected) ``verdict`` and ``features``
+        go onto its scan in the same commit."""
         with self.sessions.begin() as session:
             job = session.get(Job, job_id)
             if job is None:
@@ -80,6 +81,7 @@ class JobTracker:
             scan = session.get(Scan, job.params["scan_id"]) if job.kind == "scan" and "scan_id" in job.params else None
             if scan is not None:
                 scan.artifacts, scan.summary = result.get("artifacts", {}), result.get("summary")
+                scan.verdict, scan.features = result.get("verdict"), result.get("features")
         self.announce(job)
 
     def fail(self, job_id: str, error: str, will_retry: bool) -> None:
@@ -109,15 +111,19 @@ class JobTracker:
         self.publisher.publish(job_topic(prefix, job.id), state)
         scan_id = job.params.get("scan_id")
         if scan_id is not None:
-            summary = job.result.get("summary") if job.kind == "scan" else self._scan_summary(scan_id)
-            state = {"scan_id": scan_id, **{k: v for k, v in state.items() if k != "scan_id"}, "summary": summary}
+            if job.kind == "scan":
+                outputs = {"summary": job.result.get("summary"), "verdict": job.result.get("verdict")}
+            else:
+                outputs = self._scan_outputs(scan_id)
+            state = {"scan_id": scan_id, **{k: v for k, v in state.items() if k != "scan_id"}, **outputs}
             self.publisher.publish(scan_topic(prefix, scan_id), state)
         self.publisher.publish(station_topic(prefix), state, retain=True)
 
-    def _scan_summary(self, scan_id: str) -> dict | None:
+    def _scan_outputs(self, scan_id: str) -> dict[str, Any]:
         with self.sessions() as session:
             scan = session.get(Scan, scan_id)
-            return scan.summary if scan is not None else None
+            return {"summary": None, "verdict": None} if scan is None else {"summary": scan.summary,
+                                                                            "verdict": scan.verdict}
 
     def _update(self, job_id: str, **changes: Any) -> None:
         with self.sessions.begin() as session:
