@@ -8,6 +8,8 @@ Jobs that a crash left ``queued`` or ``running`` are found by :meth:`JobTracker.
 
 from __future__ import annotations
 
+import logging
+from collections.abc import Callable
 from datetime import UTC, datetime
 from typing import Any
 
@@ -16,6 +18,8 @@ from sqlalchemy.orm import Session, sessionmaker
 
 from services.db.models import TERMINAL_STATUSES, Job, Scan
 from services.events.mqtt import EventPublisher, job_topic, scan_topic, station_topic
+
+logger = logging.getLogger(__name__)
 
 
 def job_state(job: Job) -> dict[str, Any]:
@@ -38,11 +42,13 @@ def job_state(job: Job) -> dict[str, Any]:
 
 
 class JobTracker:
-    """Records job state changes in the database and announces them."""
+    """Records job state changes in the database and announces them: over MQTT (``publisher``) and to the
+    ``listeners`` (e.g. the OPC UA server), each called with the job's state and never allowed to fail a job."""
 
     def __init__(self, sessions: sessionmaker[Session], publisher: EventPublisher | None = None) -> None:
         self.sessions = sessions
         self.publisher = publisher
+        self.listeners: list[Callable[[dict[str, Any]], None]] = []
 
     def create(self, session: Session, kind: str, params: dict[str, Any]) -> Job:
         """Add a queued job to ``session`` (the caller commits, then calls :meth:`announce`)."""
@@ -103,11 +109,16 @@ class JobTracker:
 
     def announce(self, job: Job) -> None:
         """Publish the job's state, and its scan's when it is a scan job; the latter (or the job's) is also
-        the station's state, the one retained message."""
+        the station's state, the one retained message. Then the listeners get the job's state."""
+        state = job_state(job)
+        for listener in self.listeners:
+            try:
+                listener(state)
+            except Exception:
+                logger.exception("a job-state listener failed")
         if self.publisher is None:
             return
         prefix = self.publisher.prefix
-        state = job_state(job)
         self.publisher.publish(job_topic(prefix, job.id), state)
         scan_id = job.params.get("scan_id")
         if scan_id is not None:
