@@ -45,9 +45,11 @@ ExistingPartType = Annotated[PartType, Depends(_existing_part_type)]
 
 
 def _validated(text: bytes, part_name: str | None, mesh: bytes, mesh_name: str | None) -> Part:
-    """The part file and its mesh as the inspection will load them (Open3D reads the mesh), or a 422
-    naming the field: ``part`` (JSON, material, features) or ``mesh`` (not a triangle mesh in the part
-    file's format)."""
+    """The part file and its mesh as the inspection will load and prepare them (Open3D reads the mesh, each
+    feature is fitted to it), or a 422 naming the field: ``part`` (JSON, material, features, a feature
+    whose region misses the nominal) or ``mesh`` (not a triangle mesh in the part file's format)."""
+    from services.inspection.inspect import prepare_part  # loaded on the first upload, not with the API
+
     part = parse_part_with_mesh(text.decode("utf-8", errors="replace"), mesh, f"part ({part_name})",
                                 f"mesh ({mesh_name})")
     declared = PurePath(part.definition.nominal).suffix.lower()
@@ -55,6 +57,10 @@ def _validated(text: bytes, part_name: str | None, mesh: bytes, mesh_name: str |
     if uploaded in MESH_SUFFIXES and uploaded != declared:
         raise Problem(422, "invalid-input", f"mesh: {mesh_name!r} is a {uploaded} file but the part file's nominal "
                                             f"{part.definition.nominal!r} is {declared}.")
+    try:
+        prepare_part(part)
+    except ValueError as error:
+        raise Problem(422, "invalid-input", f"part ({part_name}): {error}") from None
     return part
 
 
@@ -64,8 +70,8 @@ async def create_part_type(request: Request, session: SessionDep, runtime: Runti
                            part: Annotated[UploadFile, File(description="A part file (docs/part-file.md).")],
                            mesh: Annotated[UploadFile, File(description="Its nominal mesh: STL, PLY or OBJ, "
                                                                         "the format its 'nominal' names.")],
-                           select: Annotated[bool, Form(description="Make it the station's selected part "
-                                                                    "type (scans inspect against it).")] = False,
+                           select_: Annotated[bool, Form(alias="select", description="Make it the station's "
+                                                       "selected part type (scans inspect against it).")] = False,
                            idempotency_key: IdempotencyKeyHeader = None):
     """Store a validated part file and its nominal mesh as a part type of this station."""
     text = await read_limited(part, "part", _MAX_PART_BYTES)
@@ -78,12 +84,12 @@ async def create_part_type(request: Request, session: SessionDep, runtime: Runti
                              part_sha256=part_digest, mesh_sha256=mesh_digest)
         session.add(part_type)
         session.flush()
-        if select:
+        if select_:
             select_part_type(session, part_type)
         out = part_type_out(part_type)
         return Outcome(201, out.model_dump(mode="json"), out.links["self"])
 
-    body = json.dumps({"select": select}).encode() + hashlib.sha256(text).digest() + hashlib.sha256(mesh_bytes).digest()
+    body = json.dumps({"select": select_}).encode() + hashlib.sha256(text).digest() + hashlib.sha256(mesh_bytes).digest()
     return await run_in_threadpool(respond_once, session, key, idempotency_key, request_digest(request, body), create,
                                    runtime.settings.idempotency_ttl_s)
 

@@ -52,6 +52,7 @@ def test_part_type_upload_list_get_download_and_select(client, auth, billet):
     ("unknown material", "material"),
     ("non-monotonic table", "temperatures must increase"),
     ("feature refers to nothing", "face_z"),
+    ("feature misses the mesh", "body_diameter"),
     ("mesh does not load", "mesh (billet.stl)"),
     ("empty mesh", "mesh (billet.stl)"),
     ("mesh of another format", "mesh: 'billet.ply' is a .ply file"),
@@ -69,6 +70,9 @@ def test_bad_part_files_and_meshes_are_problems_naming_the_field(client, auth, r
         part = {**part, "features": part["features"] + [
             {"name": "length", "type": "distance", "between": ["body_diameter", "face_z"], "nominal": 200.0,
              "tolerance": [-0.5, 0.5]}]}
+    elif case == "feature misses the mesh":
+        part = {**part, "features": [{**part["features"][0], "region": {"min": [500, 500, 500],
+                                                                        "max": [600, 600, 600]}}]}
     elif case == "mesh does not load":
         mesh = b"solid nothing\nthis is not an STL file at all\n" * 10
     elif case == "empty mesh":
