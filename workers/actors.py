@@ -64,7 +64,7 @@ def scan(job_id: str) -> dict[str, Any]:
     artifacts, stream to Rerun, summarise.
 
     The result holds the artifact digests, the seconds each stage took and, when inspected, the verdict and
-    the features.
+    the features (``NotDecidable``, none and ``inspection_error`` when the part was not found in the field).
     """
     runtime = current_runtime()
     params = _job(runtime, job_id).params
@@ -88,8 +88,12 @@ def scan(job_id: str) -> dict[str, Any]:
     runtime.station_view().publish(scene, captured_at)
     clock.stop()
     # the job tracker writes the artifacts, the summary and the verdict onto the scan when it records the result
-    inspected = {} if outcome.inspection is None else {"part_type_id": params["part_type_id"],
-                                                       **report_digest(outcome.inspection.report)}
+    inspected = {}
+    if outcome.inspection is not None:
+        inspected = {"part_type_id": params["part_type_id"], **report_digest(outcome.inspection.report)}
+    elif outcome.inspection_error is not None:
+        inspected = {"part_type_id": params["part_type_id"], "verdict": "NotDecidable", "features": [],
+                     "inspection_error": outcome.inspection_error}
     return {"scan_id": params["scan_id"], "artifacts": artifacts, "summary": outcome.summary,
             "stage_seconds": clock.seconds, "glow": outcome.summary["glow"], **inspected}
 

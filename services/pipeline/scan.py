@@ -12,6 +12,7 @@ from typing import Any
 
 import numpy as np
 
+from services.errors import InputError
 from services.formats.ply import cloud_to_ply
 from services.formats.rig import Rig
 from services.formats.sequence import Sequence, sequence_to_json
@@ -54,6 +55,9 @@ class ScanOutcome:
     field: PointCloud
     summary: dict
     inspection: InspectionOutcome | None = None
+    inspection_error: str | None = None
+    """Why a scan with a part type could not be inspected (no part hot enough in the field...): the scan
+    keeps its field, the verdict is NotDecidable."""
 
 
 def process_scan(*, frames: np.ndarray, sequence: Sequence, thermal: np.ndarray, rig: Rig,
@@ -63,7 +67,8 @@ def process_scan(*, frames: np.ndarray, sequence: Sequence, thermal: np.ndarray,
     given the scan's part type, inspect the field (:func:`services.pipeline.inspect.inspect_part`).
 
     ``exposure`` is the capture's exposure record (the gateway's: mode, exposures, ``saturation_level``);
-    the summary holds the field's and what a hot part's glow did (``glow``).
+    the summary holds the field's and what a hot part's glow did (``glow``). A field the part cannot be
+    inspected in does not fail the scan: ``inspection_error`` says why.
     """
     exposure = exposure or {}
     clock = clock or StageClock()
@@ -72,13 +77,17 @@ def process_scan(*, frames: np.ndarray, sequence: Sequence, thermal: np.ndarray,
                                          saturation_level=exposure.get("saturation_level"), source="the scan")
     clock.start("fuse", 0.55)
     field_ = fuse_field(cloud=reconstruction.cloud, rig=rig, thermal=[(None, thermal)], source="the scan")
-    inspection = None
+    inspection, inspection_error = None, None
     if part is not None:
         clock.start("inspect", 0.62)
-        inspection = inspect_part(field=field_, part=part, source=f"the scan's field (part type {part.part.name!r})")
+        try:
+            inspection = inspect_part(field=field_, part=part,
+                                      source=f"the scan's field (part type {part.part.name!r})")
+        except InputError as error:
+            inspection_error = str(error)
     clock.stop()
     summary = {**field_summary(field_), "glow": glow_summary(reconstruction.glow, exposure)}
-    return ScanOutcome(reconstruction.cloud, field_, summary, inspection)
+    return ScanOutcome(reconstruction.cloud, field_, summary, inspection, inspection_error)
 
 
 def npy_bytes(stack: np.ndarray) -> bytes:
