@@ -9,7 +9,7 @@ from api.deps import KeyCache
 from api.metrics import ApiMetrics, MetricsMiddleware
 from api.problems import install_problem_handlers, problem_responses
 from api.ratelimit import RateLimiter
-from api.routers import apikeys, calibrations, devices, health, jobs, scans
+from api.routers import apikeys, calibrations, devices, health, jobs, parts, scans
 from services.jobs.queue import JobQueue
 from services.runtime import Runtime
 
@@ -24,7 +24,7 @@ def create_app(runtime: Runtime, job_queue: JobQueue) -> FastAPI:
     app = FastAPI(
         title="thermofield",
         version="1",
-        summary="3D temperature fields of hot forgings: scans, calibration sets, jobs.",
+        summary="3D temperature fields of hot forgings: scans, inspection, calibration sets, part types, jobs.",
         generate_unique_id_function=_operation_id,
     )
     app.state.runtime = runtime
@@ -36,7 +36,7 @@ def create_app(runtime: Runtime, job_queue: JobQueue) -> FastAPI:
     app.add_middleware(MetricsMiddleware, metrics=app.state.metrics)
     app.include_router(health.router)
     v1 = APIRouter(prefix="/v1", responses=problem_responses(401, 403, 422, 429, 503))
-    for module in (scans, jobs, calibrations, devices, apikeys):
+    for module in (scans, jobs, calibrations, parts, devices, apikeys):
         v1.include_router(module.router)
     app.include_router(v1)
     return app

@@ -36,6 +36,8 @@ class ScanRequest(BaseModel):
 
     part_id: str | None = Field(None, max_length=200, description="The MES's identifier of the part.")
     calibration_set_id: str | None = Field(None, description="Defaults to the station's active calibration set.")
+    part_type_id: str | None = Field(None, description="The part type to inspect the field against; default the "
+                                                       "station's selected one (none selected: no inspection).")
 
 
 class ScanJobRequest(BaseModel):
@@ -107,15 +109,48 @@ class FieldSummary(BaseModel):
     glow: GlowSummary | None = Field(None, description="What a hot part's glow did (sequences closed by a black frame).")
 
 
+Verdict = Literal["OK", "NotOK", "NotDecidable"]
+
+
+class FeatureResult(BaseModel):
+    """One feature of the inspection report (docs/inspection.md, REPORT.json): values in mm, cold at 20 degC."""
+
+    model_config = ConfigDict(extra="allow")
+
+    name: str
+    type: str
+    measure: str | None
+    hot: float | None
+    cold: float | None
+    nominal: float | None
+    deviation: float | None = Field(description="cold - nominal.")
+    tolerance: list[float]
+    uncertainty: float | None = Field(description="Expanded uncertainty (k = 2) of the cold value.")
+    verdict: Verdict
+
+
 class ScanOut(BaseModel):
     scan_id: str
     station: str
     part_id: str | None
     calibration_set_id: str
+    part_type_id: str | None = Field(description="The part type the scan is inspected against (none: not inspected).")
     job_id: str
     status: JobStatus
     created_at: datetime
     summary: FieldSummary | None
+    verdict: Verdict | None = Field(description="The inspection's overall verdict, once the job succeeded.")
+    features: list[FeatureResult] | None
+    links: dict[str, str]
+
+
+class PartTypeOut(BaseModel):
+    part_type_id: str
+    name: str = Field(description="The part file's name.")
+    station: str
+    material: str
+    selected: bool = Field(description="Scans that name no part type are inspected against the selected one.")
+    created_at: datetime
     links: dict[str, str]
 
 

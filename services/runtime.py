@@ -23,6 +23,7 @@ from services.storage.artifacts import ArtifactStore
 
 if TYPE_CHECKING:  # the science is imported by the worker's first job, never by the API process
     from services.formats.rig import Rig
+    from services.inspection.inspect import PreparedPart
     from services.pipeline.tables import TriangulationTables
     from services.streaming.recording import StationView
 
@@ -37,6 +38,7 @@ class Runtime:
     ready: threading.Event = field(default_factory=lambda: _set(threading.Event()), repr=False)
     """Cleared while the process warms up (see ``workers.actors.warm_up_runtime``); /readyz waits for it."""
     _rigs: dict[str, Rig] = field(default_factory=dict, repr=False)
+    _parts: dict[tuple[str, str], PreparedPart] = field(default_factory=dict, repr=False)
     _station_view: StationView | None = field(default=None, repr=False)
 
     @cached_property
@@ -53,6 +55,18 @@ class Runtime:
         if digest not in self._rigs:
             self._rigs[digest] = parse_rig(self.store.read_bytes(digest).decode(), source)
         return self._rigs[digest]
+
+    def part_type(self, part_sha256: str, mesh_sha256: str, source: str) -> PreparedPart:
+        """The part type stored as this part file and mesh, loaded and prepared once per process."""
+        from services.formats.part import parse_part_with_mesh
+        from services.pipeline.inspect import prepare_part_type
+
+        key = (part_sha256, mesh_sha256)
+        if key not in self._parts:
+            part = parse_part_with_mesh(self.store.read_bytes(part_sha256).decode(), self.store.read_bytes(mesh_sha256),
+                                        source, f"{source}: mesh")
+            self._parts[key] = prepare_part_type(part)
+        return self._parts[key]
 
     def station_view(self) -> StationView:
         """The station's live Rerun view (connects on its first publish)."""

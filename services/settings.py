@@ -80,6 +80,10 @@ class Settings(BaseSettings):
 
     mqtt_host: str | None = Field("127.0.0.1", description="MQTT broker host; empty disables events.")
     mqtt_port: int = Field(1883, ge=1, le=65535, description="MQTT broker port.")
+    opcua_endpoint: str | None = Field(
+        None, description="opc.tcp://host:port/path the embedded service's OPC UA server (OPC 40100-1 Machine Vision: "
+                          "state, recipes, ResultReady per scan) listens at; unset: no OPC UA server "
+                          "(docs/inspection.md).")
     site: str = Field("plant", pattern=r"^[A-Za-z0-9_-]+$", description="First level of the MQTT topic tree.")
     station: str = Field("station1", pattern=r"^[A-Za-z0-9_-]+$", description="Second level of the MQTT topic tree.")
 

@@ -6,7 +6,7 @@ return value becomes the job's ``result`` (via the JobBookkeeping middleware):
 device and network trouble is retried, bad input (``ValueError``, including
 ``InputError``) is not.
 
-- ``scan``: capture with the gateway, reconstruct, fuse, store, stream, summarise.
+- ``scan``: capture with the gateway, reconstruct, fuse, inspect (with a part type), store, stream, summarise.
 - ``reconstruct``, ``fuse``, ``register``: one step again on a stored scan, e.g. with
   another calibration set (reconstruct then fuse its cloud) or to check the thermal
   camera's alignment by mutual information (register).
@@ -26,7 +26,7 @@ from sqlalchemy import select
 
 from device_gateway.client import GatewayClient, GatewayError
 from services.db.calibrations import activate_calibration
-from services.db.models import CalibrationSet, Job, Scan
+from services.db.models import CalibrationSet, Job, PartType, Scan
 from services.formats.board import parse_board
 from services.formats.images import decode_image, png_bytes
 from services.formats.ply import cloud_from_ply, cloud_to_ply
@@ -36,6 +36,7 @@ from services.formats.sequence import Sequence, parse_sequence
 from services.intensity import percentile_stretch
 from services.pipeline.calibrate import place_device
 from services.pipeline.field import fuse_field
+from services.pipeline.inspect import report_digest
 from services.pipeline.reconstruct import reconstruct_capture
 from services.pipeline.register import register_scan
 from services.pipeline.scan import StageClock, process_scan, scan_artifacts
@@ -59,32 +60,42 @@ def _options(max_retries: int, time_limit_s: float) -> dict[str, Any]:
 
 @dramatiq.actor(actor_name="scan", **_options(max_retries=2, time_limit_s=120))
 def scan(job_id: str) -> dict[str, Any]:
-    """Capture with the gateway, reconstruct, fuse, store the artifacts, stream to Rerun, summarise.
+    """Capture with the gateway, reconstruct, fuse, inspect against the scan's part type (if any), store the
+    artifacts, stream to Rerun, summarise.
 
-    The result holds the artifact digests and the seconds each stage took.
+    The result holds the artifact digests, the seconds each stage took and, when inspected, the verdict and
+    the features (``NotDecidable``, none and ``inspection_error`` when the part was not found in the field).
     """
     runtime = current_runtime()
     params = _job(runtime, job_id).params
     rig = _calibration_rig(runtime, params["calibration_set_id"])
+    part = _part_type(runtime, params["part_type_id"]) if params.get("part_type_id") else None
     clock = StageClock(lambda stage, fraction: runtime.tracker.progress(job_id, stage, fraction))
     clock.start("capture", 0.05)
     with GatewayClient(runtime.settings.gateway_url) as gateway:
         capture = gateway.capture(thermal_frames=1, exposure=runtime.settings.camera_exposure_mode)
     outcome = process_scan(frames=capture.frames, sequence=capture.sequence, thermal=capture.thermal, rig=rig,
-                           tables=runtime.tables, exposure=capture.exposure, clock=clock)
+                           tables=runtime.tables, exposure=capture.exposure, part=part, clock=clock)
     clock.start("store", 0.7)
     files = scan_artifacts(frames=capture.frames, sequence=capture.sequence, thermal=capture.thermal,
                            exposure=capture.exposure, outcome=outcome)
     artifacts = {name: runtime.store.put_bytes(content) for name, content in files.items()}
     clock.start("stream", 0.85)
     captured_at = float(capture.frame_timestamps[0]) if len(capture.frame_timestamps) else None
-    scene = field_scene(outcome.field, rig, capture.thermal[0])
+    deviation = None if outcome.inspection is None else outcome.inspection.deviation
+    scene = field_scene(outcome.field, rig, capture.thermal[0], deviation=deviation)
     artifacts["field.rrd"] = runtime.store.put_bytes(scan_recording(params["scan_id"], scene, captured_at))
     runtime.station_view().publish(scene, captured_at)
     clock.stop()
-    # the job tracker writes the artifacts and the summary onto the scan when it records the result
+    # the job tracker writes the artifacts, the summary and the verdict onto the scan when it records the result
+    inspected = {}
+    if outcome.inspection is not None:
+        inspected = {"part_type_id": params["part_type_id"], **report_digest(outcome.inspection.report)}
+    elif outcome.inspection_error is not None:
+        inspected = {"part_type_id": params["part_type_id"], "verdict": "NotDecidable", "features": [],
+                     "inspection_error": outcome.inspection_error}
     return {"scan_id": params["scan_id"], "artifacts": artifacts, "summary": outcome.summary,
-            "stage_seconds": clock.seconds, "glow": outcome.summary["glow"]}
+            "stage_seconds": clock.seconds, "glow": outcome.summary["glow"], **inspected}
 
 
 @dramatiq.actor(actor_name="reconstruct", **_options(max_retries=1, time_limit_s=120))
@@ -216,6 +227,12 @@ def _job(runtime: Runtime, job_id: str) -> Job:
 def _scan_artifacts(runtime: Runtime, scan_id: str) -> dict[str, str]:
     with runtime.sessions() as session:
         return dict(session.get(Scan, scan_id).artifacts)
+
+
+def _part_type(runtime: Runtime, part_type_id: str):
+    with runtime.sessions() as session:
+        part_type = session.get(PartType, part_type_id)
+    return runtime.part_type(part_type.part_sha256, part_type.mesh_sha256, f"part type {part_type_id}")
 
 
 def _calibration_rig(runtime: Runtime, calibration_set_id: str) -> Rig:

@@ -19,6 +19,7 @@ from api.deps import AdminKey, JobQueueDep, ReaderKey, RuntimeDep, SessionDep
 from api.dispatch import start_job
 from api.idempotency import IdempotencyKeyHeader, Outcome, request_digest, respond_once
 from api.problems import Problem, problem_responses
+from api.uploads import read_limited
 from api.schemas import Accepted, CalibrationSetOut, StereoCaptureRequest
 from services.db.calibrations import activate_calibration
 from services.db.models import CalibrationSet
@@ -57,7 +58,7 @@ async def create_calibration_set(request: Request, session: SessionDep, runtime:
                                  activate: Annotated[bool, Form()] = False,
                                  idempotency_key: IdempotencyKeyHeader = None):
     """Store an uploaded, validated rig file as a calibration set of this station."""
-    text = await _read_limited(rig, "rig", _MAX_RIG_BYTES)
+    text = await read_limited(rig, "rig", _MAX_RIG_BYTES)
     parsed = parse_rig(text.decode("utf-8", errors="replace"), f"rig ({rig.filename})")
     rig_digest = runtime.store.put_bytes(rig_to_json(parsed).encode())
 
@@ -98,7 +99,7 @@ async def start_stereo_calibration(
     if len(reference_images) != len(device_images) or len(reference_images) < MIN_VIEWS:
         raise Problem(422, "invalid-input", f"reference_images, device_images: give the same number of images, at "
                                             f"least {MIN_VIEWS}; got {len(reference_images)} and {len(device_images)}.")
-    board_text = await _read_limited(board, "board", _MAX_RIG_BYTES)
+    board_text = await read_limited(board, "board", _MAX_RIG_BYTES)
     parse_board(board_text.decode("utf-8", errors="replace"), f"board ({board.filename})")
     hasher = hashlib.sha256(board_text)
     _, camera = rig.device(None, "camera")
@@ -112,7 +113,7 @@ async def start_stereo_calibration(
             if suffix not in FRAME_SUFFIXES:
                 raise Problem(422, "invalid-input", f"{field}: {upload.filename!r} is not one of "
                                                     f"{', '.join(FRAME_SUFFIXES)}.")
-            content = await _read_limited(upload, field, runtime.settings.max_image_bytes)
+            content = await read_limited(upload, field, runtime.settings.max_image_bytes)
             _check_image(content, field, upload.filename, sizes[field])
             hasher.update(content)
             checked[field].append((content, suffix))
@@ -147,13 +148,6 @@ async def start_stereo_capture(request: Request, key: AdminKey, calibration: Exi
     return await run_in_threadpool(respond_once, session, key, idempotency_key, digest,
                                    lambda: start_job(runtime, queue, session, "calibrate", params),
                                    runtime.settings.idempotency_ttl_s)
-
-
-async def _read_limited(upload: UploadFile, field: str, limit: int) -> bytes:
-    content = await upload.read(limit + 1)
-    if len(content) > limit:
-        raise Problem(413, "too-large", f"{field}: {upload.filename!r} is larger than {limit} bytes.")
-    return content
 
 
 def _check_image(content: bytes, field: str, filename: str | None, size: tuple[int, int]) -> None:

@@ -1,4 +1,4 @@
-"""Scans: start one (202 + job), read its metadata and summary, download its artifacts."""
+"""Scans: start one (202 + job), read its metadata, summary and verdict, download its artifacts."""
 
 from __future__ import annotations
 
@@ -16,14 +16,16 @@ from api.dispatch import start_job
 from api.idempotency import IdempotencyKeyHeader, Outcome, request_digest, respond_once
 from api.problems import Problem, problem_responses
 from api.schemas import Accepted, ScanJobRequest, ScanOut, ScanRequest
-from services.db.models import CalibrationSet, Job, Scan, new_id
+from services.db.models import CalibrationSet, Job, PartType, Scan, new_id
+from services.db.parts import selected_part_type
 from services.formats.images import encode_frame
 
 router = APIRouter(prefix="/scans", tags=["scans"])
 
 ARTIFACT_MEDIA_TYPES = {"cloud.ply": "application/octet-stream", "field.ply": "application/octet-stream",
                         "field.rrd": "application/octet-stream", "frames.npy": "application/octet-stream",
-                        "thermal.npy": "application/octet-stream"}
+                        "thermal.npy": "application/octet-stream", "report.json": "application/json",
+                        "deviation.ply": "application/octet-stream"}
 ARTIFACT_NAME_PATTERN = "^(" + "|".join(re.escape(name) for name in ARTIFACT_MEDIA_TYPES) + ")$"
 FRAME_KINDS = {"frames": ("image/png", "png"), "thermal": ("image/tiff", "tiff")}
 
@@ -31,6 +33,8 @@ FRAME_KINDS = {"frames": ("image/png", "png"), "thermal": ("image/tiff", "tiff")
 def scan_links(scan: Scan) -> dict[str, str]:
     links = {"self": f"/v1/scans/{scan.id}", "job": f"/v1/jobs/{scan.job_id}",
              "calibration_set": f"/v1/calibration-sets/{scan.calibration_set_id}"}
+    if scan.part_type_id is not None:
+        links["part_type"] = f"/v1/part-types/{scan.part_type_id}"
     for name in ARTIFACT_MEDIA_TYPES:
         if name in scan.artifacts:
             links[name] = f"/v1/scans/{scan.id}/{name}"
@@ -52,23 +56,28 @@ ExistingScan = Annotated[Scan, Depends(_existing_scan)]
 
 def scan_out(scan: Scan, job: Job) -> ScanOut:
     return ScanOut(scan_id=scan.id, station=scan.station, part_id=scan.part_id,
-                   calibration_set_id=scan.calibration_set_id, job_id=scan.job_id, status=job.status,
-                   created_at=scan.created_at, summary=scan.summary, links=scan_links(scan))
+                   calibration_set_id=scan.calibration_set_id, part_type_id=scan.part_type_id, job_id=scan.job_id,
+                   status=job.status, created_at=scan.created_at, summary=scan.summary, verdict=scan.verdict,
+                   features=scan.features, links=scan_links(scan))
 
 
 @router.post("", name="create_scan", status_code=202, response_model=Accepted,
              responses={202: {"headers": {"Location": {"description": "The scan's job."}}}, **problem_responses(409)})
 async def create_scan(request: Request, session: SessionDep, runtime: RuntimeDep, queue: JobQueueDep,
                       key: OperatorKey, idempotency_key: IdempotencyKeyHeader = None, body: ScanRequest | None = None):
-    """Scan the part in the station: capture, reconstruct, fuse, store and stream, as a background job."""
+    """Scan the part in the station: capture, reconstruct, fuse, inspect (against the part type named or the
+    station's selected one), store and stream, as a background job."""
     body = body or ScanRequest()
     station = runtime.settings.station
 
     def start() -> Outcome:
         calibration = _calibration_for(session, station, body.calibration_set_id)
-        scan = Scan(id=new_id(), station=station, calibration_set_id=calibration.id, part_id=body.part_id)
-        return start_job(runtime, queue, session, "scan", {"scan_id": scan.id, "calibration_set_id": calibration.id},
-                         scan)
+        part_type = _part_type_for(session, station, body.part_type_id)
+        part_type_id = None if part_type is None else part_type.id
+        scan = Scan(id=new_id(), station=station, calibration_set_id=calibration.id, part_id=body.part_id,
+                    part_type_id=part_type_id)
+        return start_job(runtime, queue, session, "scan", {"scan_id": scan.id, "calibration_set_id": calibration.id,
+                                                           "part_type_id": part_type_id}, scan)
 
     digest = request_digest(request, await request.body())
     return await run_in_threadpool(respond_once, session, key, idempotency_key, digest, start,
@@ -89,6 +98,16 @@ def _calibration_for(session, station: str, calibration_set_id: str | None) -> C
         raise Problem(409, "no-active-calibration", f"Station {station!r} has no active calibration set; "
                                                     "activate one or pass calibration_set_id.")
     return calibration
+
+
+def _part_type_for(session, station: str, part_type_id: str | None) -> PartType | None:
+    if part_type_id is None:
+        return selected_part_type(session, station)
+    part_type = session.get(PartType, part_type_id)
+    if part_type is None or part_type.station != station:
+        raise Problem(422, "invalid-input", f"part_type_id: there is no part type {part_type_id!r} for station "
+                                            f"{station!r} (see GET /v1/part-types).")
+    return part_type
 
 
 @router.post("/{scan_id}/jobs", name="create_scan_job", status_code=202, response_model=Accepted,
@@ -135,7 +154,8 @@ def list_scans(session: SessionDep, _: ReaderKey) -> list[ScanOut]:
 
 @router.get("/{scan_id}", name="get_scan", responses=problem_responses(404))
 def get_scan(scan: ExistingScan, session: SessionDep) -> ScanOut:
-    """Metadata, links to the artifacts and the field's summary (point count, bounding box, temperatures)."""
+    """Metadata, links to the artifacts, the field's summary (point count, bounding box, temperatures) and,
+    when inspected, the verdict and the features."""
     return scan_out(scan, session.get(Job, scan.job_id))
 
 
@@ -144,8 +164,9 @@ def get_scan(scan: ExistingScan, session: SessionDep) -> ScanOut:
 def download_scan_artifact(scan: ExistingScan, runtime: RuntimeDep,
                            artifact: Annotated[str, Path(pattern=ARTIFACT_NAME_PATTERN)]):
     """The point cloud (``cloud.ply``), the temperature field (``field.ply``), its Rerun recording
-    (``field.rrd``), or all raw frames as one NumPy array (``frames.npy`` uint8/uint16, ``thermal.npy``
-    float32 degrees C)."""
+    (``field.rrd``), all raw frames as one NumPy array (``frames.npy`` uint8/uint16, ``thermal.npy``
+    float32 degrees C) or, when inspected, the report (``report.json``) and the cold-equivalent cloud with
+    the per-point ``deviation`` (``deviation.ply``)."""
     return _artifact_file(runtime, scan, scan.artifacts.get(artifact), f"{scan.id}-{artifact}",
                           ARTIFACT_MEDIA_TYPES[artifact])
 

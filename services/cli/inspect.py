@@ -5,7 +5,6 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from services.errors import InputError
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -30,24 +29,19 @@ def _run(args: argparse.Namespace) -> int:
     from services.formats.json_files import write_text_atomically
     from services.formats.part import load_part
     from services.formats.ply import read_cloud, write_cloud
-    from services.inspection.inspect import cold_cloud, deviation_cloud, inspect_field, prepare_part, report_json
+    from services.inspection.inspect import report_json
     from services.inspection.picture import deviation_picture
+    from services.pipeline.inspect import inspect_part
 
     part = load_part(args.part)
     field = read_cloud(args.field)
-    try:
-        prepared = prepare_part(part)
-    except ValueError as error:
-        raise InputError(f"{args.part}: {error}") from None
-    try:
-        inspection = inspect_field(field=field, part=prepared)
-    except ValueError as error:
-        raise InputError(f"{args.field}: {error}") from None
+    outcome = inspect_part(field=field, part=part, source=str(args.field))
+    inspection = outcome.inspection
     write_text_atomically(args.out, report_json(inspection.report))
     if args.deviation:
-        write_cloud(args.deviation, deviation_cloud(field, inspection, part))
+        write_cloud(args.deviation, outcome.deviation)
     if args.cold_cloud:
-        write_cloud(args.cold_cloud, cold_cloud(field, inspection, part))
+        write_cloud(args.cold_cloud, outcome.cold)
     if args.picture:
         deviation_picture(inspection.alignment.to_part(inspection.cold_points), inspection.deviation,
                           tuple(part.definition.surface_tolerance), args.picture,

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
 import os
 import signal
 import subprocess
@@ -81,7 +82,8 @@ def _serve(args: argparse.Namespace) -> int:
     jobs = JobQueue(broker, settings.job_queue)
     worker = dramatiq.Worker(broker, worker_threads=settings.worker_threads)
     with (_GatewayProcess(settings.gateway_port) as gateway,
-          RerunProxy(settings.rerun_host, settings.rerun_port) as proxy, _maintenance_thread(runtime)):
+          RerunProxy(settings.rerun_host, settings.rerun_port) as proxy, _maintenance_thread(runtime),
+          _opcua_server(runtime)):
         gateway.wait_until_healthy()
         worker.start()
         for job in runtime.tracker.recover():
@@ -95,6 +97,23 @@ def _serve(args: argparse.Namespace) -> int:
             worker.stop()
             runtime.close_station_view()
     return 0
+
+
+@contextlib.contextmanager
+def _opcua_server(runtime):
+    """The OPC UA server when ``THERMOFIELD_OPCUA_ENDPOINT`` is set, fed by this process's job tracker."""
+    if not runtime.settings.opcua_endpoint:
+        yield None
+        return
+    from services.events.opcua import OpcUaServer
+
+    with OpcUaServer(runtime.settings.opcua_endpoint, runtime.sessions, runtime.settings.station) as server:
+        runtime.tracker.listeners.append(server.notify)
+        print(f"thermofield: OPC UA on {server.endpoint}", flush=True)
+        try:
+            yield server
+        finally:
+            runtime.tracker.listeners.remove(server.notify)
 
 
 def _run_uvicorn(app, settings: Settings) -> None:

@@ -69,6 +69,22 @@ class CalibrationSet(Base):
     created_at: Mapped[datetime] = mapped_column(default=utc_now)
 
 
+class PartType(Base):
+    """A part type (the recipe of OPC 40100-1): a part file and its nominal mesh (artifacts); at most one is
+    selected per station, which scans inspect against unless they name another."""
+
+    __tablename__ = "part_types"
+
+    id: Mapped[str] = mapped_column(String(32), primary_key=True, default=new_id)
+    name: Mapped[str] = mapped_column(String(200), doc="The part file's name.")
+    station: Mapped[str] = mapped_column(String(100), index=True)
+    material: Mapped[str] = mapped_column(String(200), doc="Built-in material name, or a custom table's name.")
+    part_sha256: Mapped[str] = mapped_column(String(64), doc="The part file as uploaded.")
+    mesh_sha256: Mapped[str] = mapped_column(String(64), doc="The nominal mesh as uploaded.")
+    selected: Mapped[bool] = mapped_column(Boolean, default=False)
+    created_at: Mapped[datetime] = mapped_column(default=utc_now)
+
+
 class Job(Base):
     """One unit of background work; the source of truth for its status and progress."""
 
@@ -91,7 +107,8 @@ class Job(Base):
 
 
 class Scan(Base):
-    """A scanned part: its job, the calibration used, artifact digests and the field summary."""
+    """A scanned part: its job, the calibration used, artifact digests, the field summary and, when it was
+    inspected, its part type, verdict and features (the report is an artifact)."""
 
     __tablename__ = "scans"
 
@@ -100,6 +117,10 @@ class Scan(Base):
     job_id: Mapped[str] = mapped_column(ForeignKey("jobs.id"))
     calibration_set_id: Mapped[str] = mapped_column(ForeignKey("calibration_sets.id"))
     part_id: Mapped[str | None] = mapped_column(String(200), default=None)
+    part_type_id: Mapped[str | None] = mapped_column(ForeignKey("part_types.id"), default=None,
+                                                     doc="The part type the scan is inspected against.")
+    verdict: Mapped[str | None] = mapped_column(String(20), default=None, doc="OK, NotOK or NotDecidable.")
+    features: Mapped[list[Any] | None] = mapped_column(JSON, default=None, doc="The report's features.")
     artifacts: Mapped[dict[str, Any]] = mapped_column(default=dict, doc="Artifact name -> SHA-256 digest.")
     summary: Mapped[dict[str, Any] | None] = mapped_column(JSON, default=None)
     created_at: Mapped[datetime] = mapped_column(default=utc_now)

@@ -18,6 +18,7 @@ relative to the part file. Unknown fields are refused. See docs/part-file.md.
 
 from __future__ import annotations
 
+import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Annotated, Literal
@@ -230,19 +231,21 @@ def _material(definition: PartFile, source: str) -> Material:
         raise InputError(f"{source}: material: {error}") from None
 
 
-def read_mesh(path: Path, field: str) -> tuple[np.ndarray, np.ndarray]:
-    """Vertices (V, 3) and triangles (T, 3) of an STL, PLY or OBJ mesh, via Open3D."""
+def read_mesh(path: Path, field: str, shown: str | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Vertices (V, 3) and triangles (T, 3) of an STL, PLY or OBJ mesh, via Open3D; errors call the file
+    ``shown`` (default its path)."""
     o3d = open3d()
 
+    shown = shown or str(path)
     if not path.is_file():
-        raise InputError(f"{field}: mesh file {path} is missing")
+        raise InputError(f"{field}: mesh file {shown} is missing")
     mesh = o3d.io.read_triangle_mesh(str(path))
     vertices = np.asarray(mesh.vertices, dtype=np.float64)
     triangles = np.asarray(mesh.triangles, dtype=np.int32)
     if len(vertices) < 3 or len(triangles) == 0:
-        raise InputError(f"{field}: {path} is not a readable triangle mesh (STL, PLY or OBJ with faces)")
+        raise InputError(f"{field}: {shown} is not a readable triangle mesh (STL, PLY or OBJ with faces)")
     if not np.isfinite(vertices).all():
-        raise InputError(f"{field}: {path} has non-finite vertex coordinates")
+        raise InputError(f"{field}: {shown} has non-finite vertex coordinates")
     return vertices, triangles
 
 
@@ -251,6 +254,19 @@ def parse_part(text: str, source: str = "part", base_directory: str | Path = "."
     definition = validate_json(PartFile, text, source, tags=frozenset(MEASURES))
     material = _material(definition, source)
     vertices, triangles = read_mesh(Path(base_directory) / definition.nominal, f"{source}: nominal")
+    return Part(definition, material, vertices, triangles, source)
+
+
+def parse_part_with_mesh(text: str, mesh: bytes, source: str = "part", mesh_source: str = "mesh") -> Part:
+    """Validate part-file JSON whose nominal mesh is given as bytes (an upload, a stored artifact) in the
+    format the part file's ``nominal`` names by its suffix; a bad mesh is an ``InputError`` naming
+    ``mesh_source``."""
+    definition = validate_json(PartFile, text, source, tags=frozenset(MEASURES))
+    material = _material(definition, source)
+    with tempfile.TemporaryDirectory(prefix="thermofield-mesh-") as directory:
+        path = Path(directory) / f"nominal{Path(definition.nominal).suffix.lower()}"
+        path.write_bytes(mesh)
+        vertices, triangles = read_mesh(path, mesh_source, f"the {path.suffix[1:].upper()} mesh")
     return Part(definition, material, vertices, triangles, source)
 
 

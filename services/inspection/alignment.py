@@ -160,10 +160,13 @@ def align_nominal(points: np.ndarray, nominal: NominalSurface, max_distance_mm: 
     Correspondences run from each measured point to its nearest nominal surface sample, never the
     other way, so the part's unseen side does not pull on the fit: the view may be one-sided.
     Each start R0 = E_n P E_m^T, t0 = c_n - R0 c_m (principal axes E and centroids c of the nominal
-    samples and the measured points, P one of the 24 signed permutations with det +1) is refined by
-    point-to-plane ICP [1]_ with Tukey weights [2]_ on 300 points against 3000 nominal samples, the
-    weights' cut-off shrinking from a quarter to a thirtieth of the part's size over 10 iterations
-    (after 3, only the 6 starts with most points near the nominal go on); the three starts with most
+    samples and the measured points, P one of the 24 signed permutations with det +1; for the 8 that
+    match the first axes, also t0 shifted along the nominal's first axis so that the measured points'
+    lower or upper end (0.5 and 99.5 percentiles) meets the nominal's: a one-sided view's centroid lies
+    off the part's, and along a cylinder ICP cannot tell a shift from a fit until a face pins it) is
+    refined by point-to-plane ICP [1]_ with Tukey weights [2]_ on 300 points against 3000 nominal
+    samples, the weights' cut-off shrinking from a quarter to a thirtieth of the part's size over 10
+    iterations (after 3, only the 6 starts with most points near the nominal go on); the three starts with most
     points near the nominal are refined on 3000 points down to ``max_distance_mm``; the one with most
     points within that distance of the nominal surface (then the lowest residual) wins and is
     polished by 5 iterations on 10 000 points. Symmetries of the part (a cylinder's rotation about its axis) leave
@@ -189,11 +192,19 @@ def align_nominal(points: np.ndarray, nominal: NominalSurface, max_distance_mm: 
         measured_centre, measured_axes = _principal_frame(fine)
         nominal_centre, nominal_axes = _principal_frame(nominal.samples)
         starts = []
+        axis = nominal_axes[:, 0]
+        nominal_extent = np.percentile(nominal.samples @ axis, [0.5, 99.5])
         for permutation in _start_rotations():
             rotation = nominal_axes @ permutation @ measured_axes.T
-            guess = np.eye(4)
-            guess[:3, :3], guess[:3, 3] = rotation, nominal_centre - rotation @ measured_centre
-            starts.append(guess)
+            translation = nominal_centre - rotation @ measured_centre
+            shifts = [0.0]
+            if permutation[0, 0] != 0:  # first axes matched: a one-sided view's centroid lies off the part's
+                measured_extent = np.percentile((fine @ rotation.T + translation) @ axis, [0.5, 99.5])
+                shifts += list(nominal_extent - measured_extent)  # so also try the view's ends on the part's
+            for shift in shifts:
+                guess = np.eye(4)
+                guess[:3, :3], guess[:3, 3] = rotation, translation + shift * axis
+                starts.append(guess)
         schedule = np.geomspace(size / 4, size / 30, 10)
         for distances, keep in ((schedule[:3], _PRUNED_STARTS), (schedule[3:], _COARSE_KEEP)):
             refined = [_icp(coarse, nominal, start, distances, coarse=True) for start in starts]

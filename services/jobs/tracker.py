@@ -8,6 +8,8 @@ Jobs that a crash left ``queued`` or ``running`` are found by :meth:`JobTracker.
 
 from __future__ import annotations
 
+import logging
+from collections.abc import Callable
 from datetime import UTC, datetime
 from typing import Any
 
@@ -16,6 +18,8 @@ from sqlalchemy.orm import Session, sessionmaker
 
 from services.db.models import TERMINAL_STATUSES, Job, Scan
 from services.events.mqtt import EventPublisher, job_topic, scan_topic, station_topic
+
+logger = logging.getLogger(__name__)
 
 
 def job_state(job: Job) -> dict[str, Any]:
@@ -38,11 +42,13 @@ def job_state(job: Job) -> dict[str, Any]:
 
 
 class JobTracker:
-    """Records job state changes in the database and announces them."""
+    """Records job state changes in the database and announces them: over MQTT (``publisher``) and to the
+    ``listeners`` (e.g. the OPC UA server), each called with the job's state and never allowed to fail a job."""
 
     def __init__(self, sessions: sessionmaker[Session], publisher: EventPublisher | None = None) -> None:
         self.sessions = sessions
         self.publisher = publisher
+        self.listeners: list[Callable[[dict[str, Any]], None]] = []
 
     def create(self, session: Session, kind: str, params: dict[str, Any]) -> Job:
         """Add a queued job to ``session`` (the caller commits, then calls :meth:`announce`)."""
@@ -70,7 +76,8 @@ class JobTracker:
         self._update(job_id, stage=stage, fraction=fraction)
 
     def succeed(self, job_id: str, result: dict[str, Any]) -> None:
-        """Record the result; a scan job's ``artifacts`` and ``summary`` go onto its scan in the same commit."""
+        """Record the result; a scan job's ``artifacts``, ``summary`` and (inspected) ``verdict`` and ``features``
+        go onto its scan in the same commit."""
         with self.sessions.begin() as session:
             job = session.get(Job, job_id)
             if job is None:
@@ -80,6 +87,7 @@ class JobTracker:
             scan = session.get(Scan, job.params["scan_id"]) if job.kind == "scan" and "scan_id" in job.params else None
             if scan is not None:
                 scan.artifacts, scan.summary = result.get("artifacts", {}), result.get("summary")
+                scan.verdict, scan.features = result.get("verdict"), result.get("features")
         self.announce(job)
 
     def fail(self, job_id: str, error: str, will_retry: bool) -> None:
@@ -101,23 +109,32 @@ class JobTracker:
 
     def announce(self, job: Job) -> None:
         """Publish the job's state, and its scan's when it is a scan job; the latter (or the job's) is also
-        the station's state, the one retained message."""
+        the station's state, the one retained message. Then the listeners get the job's state."""
+        state = job_state(job)
+        for listener in self.listeners:
+            try:
+                listener(state)
+            except Exception:
+                logger.exception("a job-state listener failed")
         if self.publisher is None:
             return
         prefix = self.publisher.prefix
-        state = job_state(job)
         self.publisher.publish(job_topic(prefix, job.id), state)
         scan_id = job.params.get("scan_id")
         if scan_id is not None:
-            summary = job.result.get("summary") if job.kind == "scan" else self._scan_summary(scan_id)
-            state = {"scan_id": scan_id, **{k: v for k, v in state.items() if k != "scan_id"}, "summary": summary}
+            if job.kind == "scan":
+                outputs = {"summary": job.result.get("summary"), "verdict": job.result.get("verdict")}
+            else:
+                outputs = self._scan_outputs(scan_id)
+            state = {"scan_id": scan_id, **{k: v for k, v in state.items() if k != "scan_id"}, **outputs}
             self.publisher.publish(scan_topic(prefix, scan_id), state)
         self.publisher.publish(station_topic(prefix), state, retain=True)
 
-    def _scan_summary(self, scan_id: str) -> dict | None:
+    def _scan_outputs(self, scan_id: str) -> dict[str, Any]:
         with self.sessions() as session:
             scan = session.get(Scan, scan_id)
-            return scan.summary if scan is not None else None
+            return {"summary": None, "verdict": None} if scan is None else {"summary": scan.summary,
+                                                                            "verdict": scan.verdict}
 
     def _update(self, job_id: str, **changes: Any) -> None:
         with self.sessions.begin() as session:

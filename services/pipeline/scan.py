@@ -1,4 +1,5 @@
-"""Use case: one scan's captured frames to its cloud, field, summary and stored artifacts (as bytes)."""
+"""Use case: one scan's captured frames to its cloud, field, summary, inspection (when it has a part type) and
+stored artifacts (as bytes)."""
 
 from __future__ import annotations
 
@@ -11,11 +12,14 @@ from typing import Any
 
 import numpy as np
 
+from services.errors import InputError
 from services.formats.ply import cloud_to_ply
 from services.formats.rig import Rig
 from services.formats.sequence import Sequence, sequence_to_json
 from services.geometry.cloud import PointCloud
+from services.inspection.inspect import PreparedPart
 from services.pipeline.field import fuse_field
+from services.pipeline.inspect import InspectionOutcome, inspect_part, inspection_artifacts
 from services.pipeline.reconstruct import reconstruct_capture
 from services.pipeline.summary import field_summary, glow_summary
 from services.pipeline.tables import TriangulationTables
@@ -50,15 +54,21 @@ class ScanOutcome:
     cloud: PointCloud
     field: PointCloud
     summary: dict
+    inspection: InspectionOutcome | None = None
+    inspection_error: str | None = None
+    """Why a scan with a part type could not be inspected (no part hot enough in the field...): the scan
+    keeps its field, the verdict is NotDecidable."""
 
 
 def process_scan(*, frames: np.ndarray, sequence: Sequence, thermal: np.ndarray, rig: Rig,
                  tables: TriangulationTables, exposure: dict[str, Any] | None = None,
-                 clock: StageClock | None = None) -> ScanOutcome:
-    """Reconstruct the capture, fuse the thermal frames (F, h, w) of the rig's thermal camera, summarise.
+                 part: PreparedPart | None = None, clock: StageClock | None = None) -> ScanOutcome:
+    """Reconstruct the capture, fuse the thermal frames (F, h, w) of the rig's thermal camera, summarise and,
+    given the scan's part type, inspect the field (:func:`services.pipeline.inspect.inspect_part`).
 
     ``exposure`` is the capture's exposure record (the gateway's: mode, exposures, ``saturation_level``);
-    the summary holds the field's and what a hot part's glow did (``glow``).
+    the summary holds the field's and what a hot part's glow did (``glow``). A field the part cannot be
+    inspected in does not fail the scan: ``inspection_error`` says why.
     """
     exposure = exposure or {}
     clock = clock or StageClock()
@@ -67,9 +77,17 @@ def process_scan(*, frames: np.ndarray, sequence: Sequence, thermal: np.ndarray,
                                          saturation_level=exposure.get("saturation_level"), source="the scan")
     clock.start("fuse", 0.55)
     field_ = fuse_field(cloud=reconstruction.cloud, rig=rig, thermal=[(None, thermal)], source="the scan")
+    inspection, inspection_error = None, None
+    if part is not None:
+        clock.start("inspect", 0.62)
+        try:
+            inspection = inspect_part(field=field_, part=part,
+                                      source=f"the scan's field (part type {part.part.name!r})")
+        except InputError as error:
+            inspection_error = str(error)
     clock.stop()
     summary = {**field_summary(field_), "glow": glow_summary(reconstruction.glow, exposure)}
-    return ScanOutcome(reconstruction.cloud, field_, summary)
+    return ScanOutcome(reconstruction.cloud, field_, summary, inspection, inspection_error)
 
 
 def npy_bytes(stack: np.ndarray) -> bytes:
@@ -82,7 +100,8 @@ def npy_bytes(stack: np.ndarray) -> bytes:
 def scan_artifacts(*, frames: np.ndarray, sequence: Sequence, thermal: np.ndarray, outcome: ScanOutcome,
                    exposure: dict[str, Any] | None = None) -> dict[str, bytes]:
     """The files a scan keeps: ``cloud.ply``, ``field.ply``, ``frames.npy``, ``thermal.npy`` (float32 degrees C),
-    ``sequence.json`` and ``exposure.json``."""
+    ``sequence.json``, ``exposure.json`` and, when inspected, ``report.json`` and ``deviation.ply``."""
+    inspected = {} if outcome.inspection is None else inspection_artifacts(outcome.inspection)
     return {
         "cloud.ply": cloud_to_ply(outcome.cloud),
         "field.ply": cloud_to_ply(outcome.field),
@@ -90,4 +109,5 @@ def scan_artifacts(*, frames: np.ndarray, sequence: Sequence, thermal: np.ndarra
         "thermal.npy": npy_bytes(thermal.astype(np.float32)),
         "sequence.json": sequence_to_json(sequence).encode(),
         "exposure.json": json.dumps(exposure or {}).encode(),
+        **inspected,
     }

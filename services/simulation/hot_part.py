@@ -312,3 +312,72 @@ def write_billet_part(directory, diameter: float = 90.0, length: float = 200.0, 
     path = directory / "part.json"
     path.write_text(json.dumps(part, indent=2))
     return path
+
+
+def revolved_mesh(profile: list[tuple[float, float]], segments: int = 180,
+                  max_edge_mm: float = 5.0) -> tuple[np.ndarray, np.ndarray]:
+    """A closed mesh of revolution about x: ``profile`` is (x, r) from the axis (r = 0) around to the axis
+    again; vertices (V, 3), outward triangles (T, 3). Profile edges longer than ``max_edge_mm`` are split."""
+    points = [np.asarray(profile[0], dtype=np.float64)]
+    for a, b in zip(profile[:-1], profile[1:]):
+        pieces = max(1, int(np.ceil(np.hypot(b[0] - a[0], b[1] - a[1]) / max_edge_mm)))
+        points.extend(np.linspace(a, b, pieces + 1)[1:])
+    profile_points = np.array(points)
+    if profile_points[0, 1] != 0 or profile_points[-1, 1] != 0:
+        raise ValueError("a profile of revolution starts and ends on the axis (r = 0)")
+    angles = np.arange(segments) * 2 * np.pi / segments
+    inner = profile_points[1:-1]
+    rings = np.stack([np.column_stack([np.full(segments, x), r * np.cos(angles), r * np.sin(angles)])
+                      for x, r in inner])  # (rings, segments, 3)
+    vertices = np.concatenate([rings.reshape(-1, 3), [[profile_points[0, 0], 0, 0], [profile_points[-1, 0], 0, 0]]])
+    first_pole, last_pole = len(vertices) - 2, len(vertices) - 1
+    j = np.arange(segments)
+    k = (j + 1) % segments
+    triangles = [np.column_stack([np.full(segments, first_pole), k, j])]
+    for ring in range(len(inner) - 1):
+        a, b = ring * segments + j, ring * segments + k
+        c, d = (ring + 1) * segments + j, (ring + 1) * segments + k
+        triangles += [np.column_stack([a, b, d]), np.column_stack([a, d, c])]
+    last = (len(inner) - 1) * segments
+    triangles.append(np.column_stack([np.full(segments, last_pole), last + j, last + k]))
+    triangles = np.concatenate(triangles).astype(np.int32)
+    corners = vertices[triangles]
+    if np.einsum("ij,ij->i", corners[:, 0], np.cross(corners[:, 1], corners[:, 2])).sum() < 0:
+        triangles = triangles[:, ::-1].copy()  # the profile ran the other way round: turn the faces outward
+    return vertices, triangles
+
+
+def write_forging_part(directory, segments: int = 180) -> Path:
+    """Write the part file (``part.json``) and nominal mesh (``forging.stl``) of ``presets.forging_scene``'s part,
+    the simulated station's billet with its flange, into ``directory``.
+
+    The scene is the part as it is hot; the nominal is its cold shape: the billet (radius 55 mm, 220 mm
+    long, axis x) and the coaxial flange (radius 80 mm, 24 mm long, 95 mm from the billet's centre toward
+    -x) shrunk about the billet's centre by 1 + eps(1040 degC) of carbon steel (the billet's core
+    temperature in ``thermal.forging_temperatures``). The flange is cooler (about 960 degC), so its cold
+    equivalent lies about 0.15 mm inside this nominal. Features: ``body_diameter`` over the billet between
+    the flange and the +x end, whose nominal is the shrunk diameter rounded to 0.01 mm (tolerance
+    +-0.5 mm); surface tolerance +-1 mm.
+    """
+    from services.inspection.materials import builtin_material
+
+    o3d = open3d()
+    directory = Path(directory)
+    directory.mkdir(parents=True, exist_ok=True)
+    scale = 1.0 / (1.0 + float(builtin_material("carbon-steel").strain(np.array([1040.0]))[0]))
+    profile = [(110.0, 0.0), (110.0, 55.0), (-83.0, 55.0), (-83.0, 80.0), (-107.0, 80.0), (-107.0, 55.0),
+               (-110.0, 55.0), (-110.0, 0.0)]
+    vertices, triangles = revolved_mesh([(x * scale, r * scale) for x, r in profile], segments)
+    mesh = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(vertices), o3d.utility.Vector3iVector(triangles))
+    mesh.compute_triangle_normals()
+    o3d.io.write_triangle_mesh(str(directory / "forging.stl"), mesh)
+    r = 55.0 * scale
+    part = {"version": 1, "name": "forging-station-billet", "material": "carbon-steel", "nominal": "forging.stl",
+            "features": [
+                {"name": "body_diameter", "type": "cylinder", "measure": "diameter",
+                 "region": {"min": [-60.0, -r - 5, -r - 5], "max": [95.0, r + 5, r + 5]},
+                 "nominal": round(2 * r, 2), "tolerance": [-0.5, 0.5]}],
+            "surface_tolerance": [-1.0, 1.0]}
+    path = directory / "part.json"
+    path.write_text(json.dumps(part, indent=2))
+    return path

@@ -26,7 +26,7 @@ from typing import Any
 from sqlalchemy import delete, select
 from sqlalchemy.orm import Session, sessionmaker
 
-from services.db.models import CalibrationSet, IdempotencyRecord, Job, Scan
+from services.db.models import CalibrationSet, IdempotencyRecord, Job, PartType, Scan
 from services.storage.artifacts import ArtifactStore
 
 logger = logging.getLogger(__name__)
@@ -126,6 +126,8 @@ def referenced_digests(session: Session) -> set[str]:
         referenced.update(_digests(params))
         referenced.update(_digests(result))
     referenced.update(digest for digest in session.scalars(select(CalibrationSet.rig_sha256)) if digest)
+    for part_sha256, mesh_sha256 in session.execute(select(PartType.part_sha256, PartType.mesh_sha256)):
+        referenced.update((part_sha256, mesh_sha256))  # part types keep their files whatever their age
     return referenced
 
 

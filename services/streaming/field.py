@@ -5,6 +5,9 @@ Entity tree (world frame = the rig's world frame, OpenCV axes, millimetres):
 - ``world``: view coordinates RDF (x right, y down, z forward), static.
 - ``world/field``: ``Points3D`` coloured by temperature, with the per-point
   ``temperature`` (degrees Celsius, NaN unseen) alongside as a component.
+- ``world/deviation``: the inspected part's points (as measured, beside the field) coloured by their
+  deviation from the nominal part (diverging map over the surface tolerance: blue missing material,
+  red excess), with the per-point ``deviation`` (mm) alongside; cleared for a scan not inspected.
 - ``world/devices/<name>``: ``Transform3D`` of the device pose; our poses map world
   to device (x_dev = R x_world + t), Rerun's child-from-parent relation.
 - ``world/devices/<name>/image``: ``Pinhole`` (K, resolution; lens distortion is
@@ -24,6 +27,7 @@ from services.fusion.colormap import temperature_colors
 from services.geometry.cloud import PointCloud
 
 FIELD_ENTITY = "world/field"
+DEVIATION_ENTITY = "world/deviation"
 DEVICES_ENTITY = "world/devices"
 _DEVICE_COLORS = {"camera": (80, 160, 255), "projector": (255, 220, 80), "thermal": (255, 90, 60)}
 
@@ -54,6 +58,7 @@ def field_scene(
     rig: Rig,
     thermal_image: np.ndarray | None = None,
     thermal_device: str | None = None,
+    deviation: Mapping[str, np.ndarray] | None = None,
 ) -> FieldScene:
     """The field with the rig's device frusta and, optionally, the thermal frame it was fused from.
 
@@ -69,6 +74,9 @@ def field_scene(
         The thermal frame in degrees Celsius.
     thermal_device : str, optional
         The rig's thermal camera that took ``thermal_image``; default its only one.
+    deviation : mapping of 1-D arrays, optional
+        The inspection's deviation cloud (``services.pipeline.inspect.InspectionOutcome.deviation``): the
+        field's points with ``deviation`` (mm, NaN off the part) and its colours ``red, green, blue``.
 
     Notes
     -----
@@ -88,7 +96,8 @@ def field_scene(
     else:
         colours = temperature_colors(temperature, low, high)
     entities = [*_rig_entities(rig),
-                (FIELD_ENTITY, (rr.Points3D(positions, colors=colours), rr.AnyValues(temperature=temperature)))]
+                (FIELD_ENTITY, (rr.Points3D(positions, colors=colours), rr.AnyValues(temperature=temperature))),
+                (DEVIATION_ENTITY, _deviation_layer(deviation))]
     if thermal_image is not None:
         name, device = rig.device(thermal_device, "thermal")
         thermal_image = np.asarray(thermal_image, dtype=np.float32)
@@ -99,6 +108,18 @@ def field_scene(
             )
         entities.append((f"{DEVICES_ENTITY}/{name}/image", (rr.Image(temperature_colors(thermal_image, low, high)),)))
     return FieldScene(tuple(entities))
+
+
+def _deviation_layer(deviation: Mapping[str, np.ndarray] | None) -> tuple:
+    """The part's points coloured by deviation, or a clear (a scan without inspection must not keep showing
+    the previous part's map in the live view)."""
+    if deviation is None:
+        return (rr.Clear(recursive=False),)
+    values = np.asarray(deviation["deviation"], dtype=np.float32)
+    part = np.isfinite(values)
+    positions = np.column_stack([deviation["x"], deviation["y"], deviation["z"]]).astype(np.float32)[part]
+    colours = np.column_stack([deviation["red"], deviation["green"], deviation["blue"]]).astype(np.uint8)[part]
+    return rr.Points3D(positions, colors=colours), rr.AnyValues(deviation=values[part])
 
 
 def log_field(recording: rr.RecordingStream, scene: FieldScene) -> None:

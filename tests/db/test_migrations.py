@@ -77,5 +77,36 @@ def test_an_upgrade_with_data_in_every_table_keeps_it(empty_engine):
         assert rows("SELECT id, scopes FROM api_keys") == [("k1", "operate")]
         assert rows("SELECT id, status, attempts, worker FROM jobs") == [("j1", "succeeded", 1, None)]
         assert rows("SELECT id, station, active FROM calibration_sets") == [("c1", "station1", True)]
-        assert rows("SELECT id, part_id, job_id FROM scans") == [("s1", "part-7", "j1")]
+        assert rows("SELECT id, part_id, job_id, part_type_id, verdict FROM scans") == [("s1", "part-7", "j1", None,
+                                                                                        None)]
         assert rows("SELECT key, status_code, location FROM idempotency_records") == [("retry-1", 202, "/v1/jobs/j1")]
+
+
+def test_part_types_down_to_0003_keeps_the_scans_and_up_again_takes_new_ones(empty_engine):
+    """0004 adds the part types and the scans' inspection; going down keeps every scan, without those."""
+    _alembic(empty_engine, "upgrade", "head")
+    stamp = "'2026-01-01 00:00:00+00'"
+    with empty_engine.begin() as connection:
+        for statement in (
+            "INSERT INTO jobs (id, kind, status, stage, fraction, attempts, params, result, created_at, updated_at) "
+            f"VALUES ('j1', 'scan', 'succeeded', 'done', 1, 1, '{{}}', '{{}}', {stamp}, {stamp})",
+            "INSERT INTO calibration_sets (id, name, station, rig_sha256, active, source, created_at) "
+            f"VALUES ('c1', 'rig', 'station1', '{'b' * 64}', true, 'upload', {stamp})",
+            "INSERT INTO part_types (id, name, station, material, part_sha256, mesh_sha256, selected, created_at) "
+            f"VALUES ('p1', 'billet-90', 'station1', 'carbon-steel', '{'d' * 64}', '{'e' * 64}', true, {stamp})",
+            "INSERT INTO scans (id, station, job_id, calibration_set_id, part_id, part_type_id, verdict, features, "
+            f"artifacts, created_at) VALUES ('s1', 'station1', 'j1', 'c1', 'part-7', 'p1', 'NotOK', "
+            f"'[{{\"name\": \"body_diameter\"}}]', '{{}}', {stamp})",
+        ):
+            connection.execute(text(statement))
+    with pytest.raises(Exception):  # the scan's part type must exist
+        with empty_engine.begin() as connection:
+            connection.execute(text("UPDATE scans SET part_type_id = 'nowhere'"))
+    _alembic(empty_engine, "downgrade", "0003")
+    assert "part_types" not in _tables(empty_engine)
+    with empty_engine.connect() as connection:
+        assert [tuple(row) for row in connection.execute(text("SELECT id, part_id FROM scans"))] == [("s1", "part-7")]
+        assert "verdict" not in {column["name"] for column in inspect(connection).get_columns("scans")}
+    _alembic(empty_engine, "upgrade", "head")
+    with empty_engine.connect() as connection:
+        assert [tuple(row) for row in connection.execute(text("SELECT id, verdict FROM scans"))] == [("s1", None)]

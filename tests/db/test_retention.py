@@ -5,7 +5,7 @@ import time
 from datetime import UTC, datetime, timedelta
 
 from services.db.engine import make_sessions
-from services.db.models import ApiKey, CalibrationSet, IdempotencyRecord, Job, Scan
+from services.db.models import ApiKey, CalibrationSet, IdempotencyRecord, Job, PartType, Scan
 from services.storage.artifacts import ArtifactStore
 from services.storage.retention import RetentionPolicy, run_maintenance
 
@@ -39,6 +39,9 @@ def test_retention_keeps_the_newest_scans_or_days_and_raw_frames_shorter(engine,
         rerun = Job(kind="reconstruct", status="succeeded", params={"scan_id": "old"},
                     result={"artifacts": {"cloud.ply": store.put_bytes(b"rerun cloud")}})
         session.add(rerun)
+        part_files = (store.put_bytes(b"part file"), store.put_bytes(b"nominal mesh"))
+        session.add(PartType(name="billet", station="s1", material="carbon-steel", part_sha256=part_files[0],
+                             mesh_sha256=part_files[1]))
         key = ApiKey(name="k", secret_sha256="0" * 64, scopes="operate")
         session.add(key)
         session.flush()
@@ -74,6 +77,7 @@ def test_retention_keeps_the_newest_scans_or_days_and_raw_frames_shorter(engine,
     assert not any(blobs["two-days"][name] in remaining for name in RAW)
     with sessions() as session:
         assert store.exists(session.scalar(session.query(CalibrationSet.rig_sha256).statement))
+    assert all(store.exists(digest) for digest in part_files)  # a part type keeps its files, however old
     after = sum(path.stat().st_size for _, path in store.blobs())
     assert report.bytes_freed == before - after > 0
     assert run_maintenance(sessions, store, policy, now=NOW).blobs_deleted == 0  # idempotent

@@ -1,9 +1,11 @@
 """End to end over HTTP, embedded: `thermofield serve` (SQLite, in-process worker, simulated gateway,
-Rerun proxy) as one process; keys from `thermofield apikey create`; events over SSE and MQTT; recovery
-of the job a crash interrupted."""
+Rerun proxy, optionally the OPC UA server) as one process; keys from `thermofield apikey create`; events over
+SSE, MQTT and OPC UA; recovery of the job a crash interrupted; a scan inspected against its part type."""
 
+import asyncio
 import io
 import signal
+import threading
 import time
 import uuid
 
@@ -11,8 +13,12 @@ import cv2
 import httpx
 import numpy as np
 import tifffile
+from asyncua import Client
 
+from services.events.opcua import NAMESPACE
+from services.formats.ply import read_cloud
 from services.formats.rig import rig_to_json
+from services.simulation.hot_part import write_forging_part
 from services.simulation.presets import forging_rig
 
 
@@ -99,3 +105,78 @@ def test_embedded_scan_from_http_to_an_accurate_field(e2e, tmp_path):
     assert scan_states[-1]["status"] == "succeeded"
     assert scan_states[-1]["summary"]["point_count"] == summary["point_count"]
     assert [state["status"] for state in events.states(f"{site}/station1/jobs/{job_id}")][0] == "queued"
+
+
+def test_embedded_scan_with_a_part_type_is_inspected_over_http_mqtt_and_opcua(e2e, tmp_path):
+    """The simulated station's part (presets.forging_scene) against its part file: the scan returns a verdict
+    on GET, in report.json and deviation.ply, on MQTT and as an OPC UA ResultReady event."""
+    site = f"it-{uuid.uuid4().hex[:8]}"
+    endpoint = f"opc.tcp://127.0.0.1:{e2e.free_port()}/thermofield"
+    env = {"THERMOFIELD_DATA_DIR": str(tmp_path / "data"), "THERMOFIELD_SITE": site,
+           "THERMOFIELD_OPCUA_ENDPOINT": endpoint}
+    port = e2e.free_port()
+    e2e.processes.start("serve", ["serve", "--port", str(port), "--gateway-port", str(e2e.free_port()),
+                                  "--rerun-port", str(e2e.free_port())], env)
+    e2e.processes.wait_until_healthy(f"http://127.0.0.1:{port}/readyz", "serve")
+    assert f"OPC UA on {endpoint}" in e2e.processes.log("serve")
+    admin = e2e.create_key(env, ["admin"])
+    mqtt_events = e2e.mqtt(f"{site}/station1")
+    part_file = write_forging_part(tmp_path / "part")
+
+    received, subscribed, done = [], threading.Event(), threading.Event()
+
+    class Handler:
+        def event_notification(self, event):
+            received.append({name: getattr(event, name) for name in ("ResultId", "PartId", "ResultState", "Verdict")})
+
+    async def listen():
+        async with Client(endpoint) as client:
+            namespace = await client.get_namespace_index(NAMESPACE)
+            vision = await client.nodes.objects.get_child(f"{namespace}:VisionSystem")
+            event_type = await client.nodes.base_event_type.get_child(f"{namespace}:ResultReadyEventType")
+            subscription = await client.create_subscription(100, Handler())
+            await subscription.subscribe_events(vision, event_type)
+            subscribed.set()
+            while not done.is_set() and not received:
+                await asyncio.sleep(0.1)
+            recipes = await vision.get_child([f"{namespace}:RecipeManagement", f"{namespace}:Recipes"])
+            received.append({"recipes": [(await child.read_browse_name()).Name for child in await recipes.get_children()]})
+
+    listener = threading.Thread(target=lambda: asyncio.run(listen()), daemon=True)
+    listener.start()
+    assert subscribed.wait(30)
+    with httpx.Client(base_url=f"http://127.0.0.1:{port}", headers={"Authorization": f"Bearer {admin}"},
+                      timeout=60) as client:
+        created = client.post("/v1/part-types", data={"select": "true"},
+                              files={"part": ("part.json", part_file.read_bytes()),
+                                     "mesh": ("forging.stl", (part_file.parent / "forging.stl").read_bytes())})
+        assert created.status_code == 201, created.text
+        part_type = created.json()
+        accepted = client.post("/v1/scans", json={"part_id": "forging-7"})
+        assert accepted.status_code == 202, accepted.text
+        scan_id, job_id = accepted.json()["scan_id"], accepted.json()["job_id"]
+        progress = e2e.follow_events(client, job_id)
+        assert progress[-1][1]["status"] == "succeeded", progress[-1]
+        assert "inspect" in [state["stage"] for _, state in progress]
+        scan = client.get(f"/v1/scans/{scan_id}").json()
+        report = client.get(scan["links"]["report.json"]).json()
+        (tmp_path / "deviation.ply").write_bytes(client.get(scan["links"]["deviation.ply"]).content)
+    done.set()
+    listener.join(30)
+
+    assert scan["part_type_id"] == part_type["part_type_id"] and report["part"] == "forging-station-billet"
+    (feature,) = scan["features"]
+    # The scene's billet is 110 mm across as measured (hot); its temperatures (950..1090 C) put the cold
+    # diameter within 0.25 mm of the nominal (110 mm shrunk at 1040 C), inside the +-0.5 mm tolerance.
+    assert abs(feature["hot"] - 110.0) < 0.1, feature
+    assert abs(feature["deviation"]) < 0.25 and feature["uncertainty"] < 0.25, feature
+    assert scan["verdict"] == report["verdict"] == "OK", report["surface"]
+    assert report["alignment"]["inlier_fraction"] > 0.98 and report["alignment"]["rms_mm"] < 0.1
+    cold = read_cloud(tmp_path / "deviation.ply")
+    assert len(cold) > 50_000 and np.percentile(np.abs(cold["deviation"]), 95) < 0.2
+
+    scan_states = mqtt_events.states(f"{site}/station1/scans/{scan_id}")
+    assert scan_states[-1]["status"] == "succeeded" and scan_states[-1]["verdict"] == "OK"
+    assert scan_states[-1]["result"]["features"][0]["name"] == "body_diameter"
+    assert received[0] == {"ResultId": scan_id, "PartId": "forging-7", "ResultState": 1, "Verdict": "OK"}
+    assert received[-1] == {"recipes": ["forging-station-billet"]}

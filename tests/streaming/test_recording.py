@@ -121,6 +121,34 @@ def test_the_fields_own_colours_are_logged_not_recomputed(tmp_path, rig, field):
     assert (colours == (10 << 24 | 20 << 16 | 30 << 8 | 0xFF)).all()
 
 
+def test_the_deviation_layer_holds_the_parts_points_deviations_and_colours(tmp_path, rig, field):
+    """Beside the field, the inspected part's points with their deviation and the deviation colour map."""
+    from services.inspection.deviation import deviation_colors
+
+    deviation = np.linspace(-1.5, 1.5, 500).astype(np.float32)
+    deviation[:100] = np.nan  # not the part's (the wall)
+    rgb = deviation_colors(deviation, (-1.0, 1.0))
+    layer = {**field, "deviation": deviation, "red": rgb[:, 0], "green": rgb[:, 1], "blue": rgb[:, 2]}
+    path = tmp_path / "field.rrd"
+    path.write_bytes(scan_recording("scan-1", field_scene(field, rig, deviation=layer)))
+    logged = _read_rrd(path)["/world/deviation"]
+    positions = np.array(logged["Points3D:positions"][0])
+    np.testing.assert_array_equal(positions, np.column_stack([field["x"], field["y"], field["z"]])[100:])
+    np.testing.assert_array_equal(np.array(logged["deviation"][0], dtype=np.float32), deviation[100:])
+    colours = np.array(logged["Points3D:colors"][0], dtype=np.uint32)
+    expected = rgb[100:].astype(np.uint32)
+    np.testing.assert_array_equal(colours, (expected[:, 0] << 24) | (expected[:, 1] << 16) | (expected[:, 2] << 8) | 0xFF)
+    assert tuple(rgb[-1]) != tuple(rgb[100])  # excess and missing material differ in colour
+    assert len(_read_rrd(path)["/world/field"]["Points3D:positions"][0]) == 500  # the field stays whole
+
+
+def test_a_scan_not_inspected_clears_the_deviation_layer(tmp_path, rig, field):
+    path = tmp_path / "field.rrd"
+    path.write_bytes(scan_recording("scan-1", field_scene(field, rig)))
+    logged = _read_rrd(path)["/world/deviation"]
+    assert "Points3D:positions" not in logged and logged  # only the clear
+
+
 def test_field_without_temperature_is_refused(rig, field):
     del field["temperature"]
     with pytest.raises(ValueError, match="temperature"):
