@@ -135,12 +135,15 @@ def find_defects(cells: CellMeans, threshold_mm: float, min_cells: int = 10) -> 
         beyond = sign * cells.mean > threshold_mm
         if not beyond.any():
             continue
-        grid = np.zeros(np.prod(cells.shape), dtype=bool)
-        grid[cells.keys[beyond]] = True
+        # labelled in the box of the cells beyond, with a cell of margin for the dilation
+        index = np.column_stack(np.unravel_index(cells.keys[beyond], cells.shape))
+        index -= index.min(axis=0) - 1
+        grid = np.zeros(tuple(index.max(axis=0) + 2), dtype=bool)
+        grid[tuple(index.T)] = True
         # cells one empty cell apart belong together: a cloud sparser than the cells leaves such gaps
-        bridged = ndimage.binary_dilation(grid.reshape(cells.shape), structure=np.ones((3, 3, 3)))
+        bridged = ndimage.binary_dilation(grid, structure=np.ones((3, 3, 3)))
         labels, _ = ndimage.label(bridged, structure=np.ones((3, 3, 3)))
-        cell_labels = labels.ravel()[cells.keys[beyond]]
+        cell_labels = labels[tuple(index.T)]
         beyond_index = np.flatnonzero(beyond)
         for label in np.unique(cell_labels):
             members = beyond_index[cell_labels == label]

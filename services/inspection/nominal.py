@@ -46,6 +46,7 @@ class NominalSurface:
     coarse_samples: np.ndarray = field(init=False, repr=False)
     coarse_normals: np.ndarray = field(init=False, repr=False)
     coarse_tree: cKDTree = field(init=False, repr=False)
+    coarse_spacing: float = field(init=False, repr=False)
     triangle_normals: np.ndarray = field(init=False, repr=False)
     grid: DistanceGrid = field(init=False, repr=False)
 
@@ -72,6 +73,7 @@ class NominalSurface:
         with np.errstate(invalid="ignore", divide="ignore"):
             self.triangle_normals = normals / np.linalg.norm(normals, axis=1, keepdims=True)
         area = np.linalg.norm(normals, axis=1).sum() / 2
+        self.coarse_spacing = float(np.sqrt(area / len(self.coarse_samples)))
         dense, _ = _area_samples(vertices, triangles, int(np.ceil(8 * area / GRID_SPACING_MM**2)) + 1)
         self.grid = build_distance_grid(dense, self._exact, GRID_BAND_MM, GRID_SPACING_MM)
 
