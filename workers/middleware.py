@@ -46,14 +46,17 @@ class JobBookkeeping(Middleware):
     Each message carries a job id as its first argument. Before the actor runs the
     job becomes ``running`` (a new attempt); afterwards ``succeeded`` with the
     actor's result, or ``queued`` again when the Retries middleware will retry, or
-    ``failed`` when it will not. A message whose job already finished (a duplicate
-    delivery after a crash) is skipped.
+    ``failed`` when it will not. A message whose job already finished, or runs elsewhere
+    and that is not the broker's redelivery of a dead worker's message (a duplicate), is
+    skipped (:meth:`services.jobs.tracker.JobTracker.start`).
     """
 
     def before_process_message(self, broker, message) -> None:
         job_id = message.args[0]
-        if current_runtime().tracker.start(job_id, f"{socket.gethostname()}:{os.getpid()}") is None:
-            logger.info("Skipping message %s: job %s is unknown or already finished.", message.message_id, job_id)
+        redelivered = bool(getattr(message, "redelivered", False))  # RabbitMQ's flag; the stub broker has none
+        if current_runtime().tracker.start(job_id, f"{socket.gethostname()}:{os.getpid()}", redelivered) is None:
+            logger.info("Skipping message %s: job %s is unknown, finished or running elsewhere.",
+                        message.message_id, job_id)
             raise SkipMessage()
 
     def after_process_message(self, broker, message, *, result=None, exception=None) -> None:

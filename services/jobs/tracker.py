@@ -51,11 +51,18 @@ class JobTracker:
         session.flush()
         return job
 
-    def start(self, job_id: str, worker: str | None = None) -> Job | None:
-        """Mark an attempt as running (by ``worker``, host:pid); None when the job is unknown or already finished."""
+    def start(self, job_id: str, worker: str | None = None, redelivered: bool = False) -> Job | None:
+        """Mark an attempt as running (by ``worker``, host:pid); None when the job is unknown, already
+        finished, or running and this message is not a redelivery.
+
+        A job is ``running`` when a message arrives in two cases: the broker redelivers the
+        message of a worker that died (``redelivered``: run it again), or the message is a
+        second copy (an outbox crash between sending and recording it) while the first copy
+        runs (skip it: should that worker die, its own copy is redelivered).
+        """
         with self.sessions.begin() as session:
             job = session.get(Job, job_id, with_for_update=True)
-            if job is None or job.status in TERMINAL_STATUSES:
+            if job is None or job.status in TERMINAL_STATUSES or (job.status == "running" and not redelivered):
                 return None
             job.status, job.stage, job.fraction = "running", "starting", 0.0
             job.attempts += 1
@@ -89,10 +96,12 @@ class JobTracker:
             self._update(job_id, status="failed", stage="failed", error=error, finished_at=datetime.now(UTC))
 
     def recover(self) -> list[Job]:
-        """Jobs a crash left unfinished, put back to ``queued`` so they can be sent again."""
+        """Jobs a crash of the embedded service left unfinished (their messages died with its in-memory
+        broker), put back to ``queued`` and into the outbox to be sent again."""
         with self.sessions.begin() as session:
             jobs = list(session.scalars(select(Job).where(Job.status.in_(("queued", "running")))))
             for job in jobs:
+                job.dispatched_at = None
                 if job.status == "running":
                     job.status, job.stage, job.error = "queued", "recovered", "interrupted by a restart"
         for job in jobs:
