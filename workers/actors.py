@@ -4,7 +4,7 @@ Each actor takes a job id; its parameters are the job row's ``params`` and its
 return value becomes the job's ``result`` (via the JobBookkeeping middleware):
 ``{"artifacts": {name: digest}, ...}``. Retries and time limits are set per actor:
 device and network trouble is retried, bad input (``ValueError``, including
-``InputError``) is not.
+``InputError``) and a full artifact store (``StorageFull``) are not.
 
 - ``scan``: capture with the gateway, reconstruct, fuse, store, stream, summarise.
 - ``reconstruct``, ``fuse``, ``register``: one step again on a stored scan, e.g. with
@@ -43,13 +43,13 @@ from services.pipeline.summary import field_summary, glow_summary
 from services.pipeline.warmup import warm_up
 from services.runtime import Runtime, current_runtime
 from services.simulation.presets import forging_rig
-from services.storage.artifacts import ArtifactStore
+from services.storage.artifacts import ArtifactStore, StorageFull
 from services.streaming.field import field_scene
 from services.streaming.recording import scan_recording
 from services.structured_light.patterns import generate_sequence
 
 logger = logging.getLogger(__name__)
-_NOT_RETRIED = (ValueError,)
+_NOT_RETRIED = (ValueError, StorageFull)  # bad input; a full artifact disk (retrying at once cannot help)
 
 
 def _options(max_retries: int, time_limit_s: float) -> dict[str, Any]:
