@@ -68,8 +68,11 @@ def scan(job_id: str) -> dict[str, Any]:
     rig = _calibration_rig(runtime, params["calibration_set_id"])
     clock = StageClock(lambda stage, fraction: runtime.tracker.progress(job_id, stage, fraction))
     clock.start("capture", 0.05)
-    with GatewayClient(runtime.settings.gateway_url) as gateway:
-        capture = gateway.capture(thermal_frames=1, exposure=runtime.settings.camera_exposure_mode)
+    try:
+        with GatewayClient(runtime.settings.gateway_url) as gateway:
+            capture = gateway.capture(thermal_frames=1, exposure=runtime.settings.camera_exposure_mode)
+    except GatewayError as error:  # the job's error says which stage lost the devices
+        raise GatewayError(f"capture failed: {error}", error.status) from None
     outcome = process_scan(frames=capture.frames, sequence=capture.sequence, thermal=capture.thermal, rig=rig,
                            tables=runtime.tables, exposure=capture.exposure, clock=clock)
     clock.start("store", 0.7)
