@@ -54,10 +54,15 @@ def _assert_whole(client: httpx.Client, scan_id: str, directory: Path) -> None:
         assert len(read_cloud(directory / name)["x"]) == scan["summary"]["point_count"]
 
 
+def _stored_bytes(artifact_dir: Path) -> int:
+    return sum(path.stat().st_size for path in (artifact_dir / "sha256").glob("*/*"))
+
+
 def _store_is_clean(artifact_dir: Path) -> None:
     assert not list((artifact_dir / "incoming").glob("*.part")), "a half-written blob is left in incoming/"
 
 
+@pytest.mark.reliability  # minutes: five scans and three failing attempts (make test-reliability)
 def test_a_lost_device_and_a_full_disk_fail_their_scan_cleanly_and_the_next_scan_works(small_disk, e2e, deployment,
                                                                                       tmp_path):
     artifact_dir = small_disk(1 << 30)
@@ -82,7 +87,10 @@ def test_a_lost_device_and_a_full_disk_fail_their_scan_cleanly_and_the_next_scan
         _wait_for(client, lost["job_id"], lambda state: state["stage"] == "capture")
         time.sleep(1.5)  # well inside the capture (the gateway is filming its patterns)
         e2e.processes.stop(gateway, signal.SIGKILL)
+        killed_at = time.monotonic()
         failed = _wait_for(client, lost["job_id"], _finished, timeout_s=120)
+        print(f"\ngateway killed mid-capture: failed {time.monotonic() - killed_at:.1f} s later after "
+              f"{failed['attempts']} attempts: {failed['error']}")
         assert failed["status"] == "failed", failed
         assert failed["error"].startswith("GatewayError: capture failed: gateway http://127.0.0.1:"), failed
         assert failed["attempts"] == 3, failed  # tried again twice (a device may come back), then failed
@@ -104,14 +112,17 @@ def test_a_lost_device_and_a_full_disk_fail_their_scan_cleanly_and_the_next_scan
         with open(filler, "wb") as handle:  # another tenant of the disk leaves 16 MB more than /readyz wants
             os.posix_fallocate(handle.fileno(), 0, psutil.disk_usage(str(artifact_dir)).free - min_free - (16 << 20))
         assert client.get("/readyz").status_code == 200
+        stored_before = _stored_bytes(artifact_dir)
         full = client.post("/v1/scans", json={"part_id": "full"}).json()
         failed = _wait_for(client, full["job_id"], _finished)
         assert failed["status"] == "failed" and failed["attempts"] == 1, failed  # no retry: it cannot help
+        print(f"disk full while storing: {failed['error']}; readyz: {client.get('/readyz').json()['detail']}")
         assert failed["error"].startswith("StorageFull: [Errno 28] the artifact store at"), failed
         scan = client.get(f"/v1/scans/{full['scan_id']}").json()
         assert not any(name in scan["links"] for name in SCAN_ARTIFACTS), scan["links"]
         assert client.get(f"/v1/scans/{full['scan_id']}/field.ply").status_code == 404
         _store_is_clean(artifact_dir)
+        orphaned = _stored_bytes(artifact_dir) - stored_before
         ready = client.get("/readyz")
         assert ready.status_code == 503 and "MB free" in ready.json()["detail"], ready.text
         assert int(ready.headers["retry-after"]) > 0
@@ -121,6 +132,7 @@ def test_a_lost_device_and_a_full_disk_fail_their_scan_cleanly_and_the_next_scan
         assert client.get("/readyz").status_code == 200
         state = _wait_for(client, client.post("/v1/scans").json()["job_id"], _finished)
         assert (state["status"], state["attempts"]) == ("succeeded", 1), state
+        print(f"the failed scan left {orphaned / 1e6:.0f} MB of whole, unreferenced blobs (retention sweeps them)")
 
 
 def _multipart_body(boundary: str, images: list[bytes]) -> list[bytes]:
