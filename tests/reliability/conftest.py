@@ -154,6 +154,17 @@ class PrivateRabbitmq:
             self.process.wait(60)
         wait_for_port(self.port, up=False)
 
+    def kill(self) -> None:
+        """Crash the node: SIGKILL to its processes (never to the machine's shared ``epmd``)."""
+        import psutil
+
+        root = psutil.Process(self.process.pid)
+        for process in [*root.children(recursive=True), root]:
+            if process.name() != "epmd":
+                process.kill()
+        self.process.wait(60)
+        wait_for_port(self.port, up=False)
+
 
 @pytest.fixture
 def private_rabbitmq(tmp_path):

@@ -1,5 +1,6 @@
 """Faults against real servers of the test's own: PostgreSQL stopped and restarted under the API, Mosquitto
-stopped while jobs change state, the artifact store's disk full under uploads."""
+stopped while jobs change state, RabbitMQ stopped or killed while scans are requested (the outbox), the
+artifact store's disk full under uploads."""
 
 from __future__ import annotations
 
@@ -174,7 +175,8 @@ def test_disk_full_while_storing_uploads(small_disk, tmp_path):
                            data={"name": "recalibrated"}).status_code == 202
 
 
-def test_rabbitmq_stopped_jobs_wait_in_the_outbox_and_run_once_when_it_returns(private_rabbitmq, tmp_path):
+@pytest.mark.parametrize("stop", ["stop", "kill"])
+def test_rabbitmq_stopped_jobs_wait_in_the_outbox_and_run_once_when_it_returns(private_rabbitmq, tmp_path, stop):
     import dramatiq
     import pika
 
@@ -192,8 +194,8 @@ def test_rabbitmq_stopped_jobs_wait_in_the_outbox_and_run_once_when_it_returns(p
                                   files={"rig": ("rig.json", rig_to_json(forging_rig()))},
                                   data={"name": "rig", "activate": "true"})
             assert created.status_code == 201, created.text
-            first = client.post("/v1/scans", headers=headers).json()["job_id"]  # sent at once
-            private_rabbitmq.stop()
+            first = client.post("/v1/scans", headers=headers).json()["job_id"]  # sent at once (and confirmed)
+            getattr(private_rabbitmq, stop)()  # `rabbitmqctl stop`, or SIGKILL: the confirmed message survives
             started = time.monotonic()
             waiting = [client.post("/v1/scans", headers={**headers, "Idempotency-Key": f"k{i}"}) for i in range(4)]
             assert [response.status_code for response in waiting] == [202] * 4, [r.text for r in waiting]
@@ -249,7 +251,7 @@ def test_rabbitmq_stopped_jobs_wait_in_the_outbox_and_run_once_when_it_returns(p
         connection = pika.BlockingConnection(pika.URLParameters(private_rabbitmq.url))
         assert connection.channel().queue_declare(queue_name, passive=True).method.message_count == 0
         connection.close()
-        print(f"\nRabbitMQ down {down_s:.1f} s: 4 jobs waited, {seconds_per_post * 1000:.0f} ms per POST; "
+        print(f"\nRabbitMQ {stop}: down {down_s:.1f} s (with its restart): 4 jobs waited, {seconds_per_post * 1000:.0f} ms per POST; "
               f"outbox empty {sent_after_s:.1f} s after the broker was back; {len(runs)} runs of {len(jobs)} jobs")
     finally:
         runtime.engine.dispose()
