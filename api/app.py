@@ -44,7 +44,7 @@ def create_app(runtime: Runtime, job_queue: JobQueue) -> FastAPI:
     app.state.jobs = outbox
     app.state.key_cache = KeyCache()
     app.state.rate_limiter = RateLimiter(runtime.settings.rate_limit_per_s, runtime.settings.rate_limit_burst)
-    app.state.metrics = ApiMetrics(runtime)
+    app.state.metrics = ApiMetrics(runtime, outbox.pending)
     install_problem_handlers(app)
     app.add_middleware(MetricsMiddleware, metrics=app.state.metrics)
     app.include_router(health.router)

@@ -203,7 +203,8 @@ def test_rabbitmq_stopped_jobs_wait_in_the_outbox_and_run_once_when_it_returns(p
             replay = client.post("/v1/scans", headers={**headers, "Idempotency-Key": "k0"})  # the MES retries
             assert replay.json() == waiting[0].json() and replay.headers["idempotent-replayed"] == "true"
             outbox = client.app.state.jobs
-            assert outbox.pending() == 4  # committed, waiting for the broker
+            assert outbox.pending() == 4  # committed, waiting for the broker; operators see it:
+            assert "thermofield_jobs_undispatched 4.0" in client.get("/metrics").text
             assert client.post("/v1/scans", headers=headers).status_code == 202  # the 6th waiting job: the bound
             refused = client.post("/v1/scans", headers=headers)
             assert refused.status_code == 503 and refused.headers["content-type"] == PROBLEM
