@@ -43,7 +43,8 @@ RELIABILITY_OUT ?= reliability-output
 test-reliability: install-test
 	THERMOFIELD_RELIABILITY_OUT=$(abspath $(RELIABILITY_OUT)) THERMOFIELD_SCHEMATHESIS_EXAMPLES=100 \
 		$(BIN)/python -m pytest -m 'reliability or schemathesis' -k 'not soak' -p no:cacheprovider -s \
-		tests/api/test_schemathesis.py tests/integration/test_load.py tests/integration/test_station_faults.py
+		tests/api/test_schemathesis.py tests/integration/test_load.py tests/integration/test_station_faults.py \
+		tests/reliability/test_faults.py
 
 test-soak: install-test
 	THERMOFIELD_RELIABILITY_OUT=$(abspath $(RELIABILITY_OUT)) THERMOFIELD_SOAK_SECONDS=600 \

@@ -175,7 +175,7 @@ def test_disk_full_while_storing_uploads(small_disk, tmp_path):
                            data={"name": "recalibrated"}).status_code == 202
 
 
-@pytest.mark.parametrize("stop", ["stop", "kill"])
+@pytest.mark.parametrize("stop", ["stop", pytest.param("kill", marks=pytest.mark.reliability)])  # kill: 1 min more
 def test_rabbitmq_stopped_jobs_wait_in_the_outbox_and_run_once_when_it_returns(private_rabbitmq, tmp_path, stop):
     import dramatiq
     import pika
