@@ -1,6 +1,6 @@
 """Property-based tests (Hypothesis) of the public file parsers (rig, board, manifest, part, PLY, thermal
-frames): whatever the bytes, a parser either
-returns its object or raises the documented ``InputError`` -- never another exception."""
+frames): whatever the bytes, a parser either returns its object or raises the documented ``InputError`` --
+never another exception."""
 
 from __future__ import annotations
 

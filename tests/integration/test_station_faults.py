@@ -88,9 +88,11 @@ def test_a_lost_device_and_a_full_disk_fail_their_scan_cleanly_and_the_next_scan
         time.sleep(1.5)  # well inside the capture (the gateway is filming its patterns)
         e2e.processes.stop(gateway, signal.SIGKILL)
         killed_at = time.monotonic()
+        retrying = _wait_for(client, lost["job_id"], lambda state: state["stage"] == "retrying" or _finished(state))
+        assert "capture failed: gateway" in retrying["error"] and "stopped answering during POST /v1/captures"             in retrying["error"], retrying  # the first attempt's error: lost in the middle of the capture
         failed = _wait_for(client, lost["job_id"], _finished, timeout_s=120)
-        print(f"\ngateway killed mid-capture: failed {time.monotonic() - killed_at:.1f} s later after "
-              f"{failed['attempts']} attempts: {failed['error']}")
+        print(f"\ngateway killed mid-capture: attempt 1: {retrying['error']}; failed "
+              f"{time.monotonic() - killed_at:.1f} s after the kill, after {failed['attempts']} attempts: {failed['error']}")
         assert failed["status"] == "failed", failed
         assert failed["error"].startswith("GatewayError: capture failed: gateway http://127.0.0.1:"), failed
         assert failed["attempts"] == 3, failed  # tried again twice (a device may come back), then failed
