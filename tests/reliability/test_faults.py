@@ -258,3 +258,67 @@ def test_rabbitmq_stopped_jobs_wait_in_the_outbox_and_run_once_when_it_returns(p
         runtime.engine.dispose()
         with make_engine(POSTGRES_URL).begin() as connection:
             connection.execute(text(f"DROP SCHEMA IF EXISTS {schema} CASCADE"))
+
+
+@pytest.mark.reliability  # a minute: a RabbitMQ restart under a running job (make test-reliability)
+def test_rabbitmq_restarted_under_a_running_job_does_not_run_it_twice(private_rabbitmq, tmp_path, caplog):
+    import logging
+    import threading
+
+    import dramatiq
+
+    from services.jobs.outbox import Outbox
+    from services.runtime import use_runtime
+    from workers.middleware import JobBookkeeping
+
+    queue_name = f"tf-lease-{uuid.uuid4().hex[:8]}"
+    runtime = _runtime(f"sqlite:///{tmp_path / 'service.db'}", tmp_path, broker_url=private_rabbitmq.url,
+                       job_queue=queue_name)
+    use_runtime(runtime)
+    with runtime.sessions.begin() as session:
+        job_id = runtime.tracker.create(session, "scan", {}).id
+    assert Outbox(runtime.sessions, JobQueue(job_broker(runtime.settings), queue_name)).send(job_id)
+    broker = job_broker(runtime.settings)
+    broker.add_middleware(JobBookkeeping())
+    runs: list[str] = []
+    release = threading.Event()
+
+    @dramatiq.actor(broker=broker, actor_name="scan", queue_name=queue_name, max_retries=0)
+    def scan(job_id):  # stands in for a long scan: runs until the test has seen the redelivery wait
+        runs.append(job_id)
+        release.wait(120)
+
+    caplog.set_level(logging.INFO, logger="workers.middleware")
+    worker = dramatiq.Worker(broker, worker_threads=2, worker_timeout=100)  # a free thread takes the redelivery
+    worker.start()
+    try:
+        deadline = time.monotonic() + 60
+        while not runs and time.monotonic() < deadline:
+            time.sleep(0.1)
+        assert runs == [job_id]
+        private_rabbitmq.stop()  # the worker's connection drops; the unacknowledged message goes back
+        private_rabbitmq.start()
+        deadline = time.monotonic() + 120
+        while not any("waits" in record.getMessage() for record in caplog.records) and time.monotonic() < deadline:
+            time.sleep(0.2)
+        waited = [record.getMessage() for record in caplog.records if "waits" in record.getMessage()]
+        assert waited and job_id in waited[0], caplog.text  # redelivered, but the job's lease was live
+        release.set()
+        deadline = time.monotonic() + 60
+        while time.monotonic() < deadline:
+            with runtime.sessions() as session:
+                if session.get(Job, job_id).status == "succeeded":
+                    break
+            time.sleep(0.2)
+        time.sleep(8.0)  # the waiting copy comes back (after half a lease) and finds the job finished
+    finally:
+        release.set()
+        worker.stop()
+    assert runs == [job_id], runs  # ran once, though RabbitMQ delivered its message again
+    with runtime.sessions() as session:
+        job = session.get(Job, job_id)
+        assert (job.status, job.attempts) == ("succeeded", 1)
+    skipped = [record.getMessage() for record in caplog.records if "Skipping" in record.getMessage()]
+    assert skipped, caplog.text
+    print(f"\nRabbitMQ restarted under a running job: the redelivery waited {len(waited)} time(s), then was "
+          f"skipped as finished; 1 run, attempts {job.attempts}")
