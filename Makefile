@@ -36,13 +36,15 @@ test: install-test docker-compose
 system-libraries:
 	ldconfig -p | grep -q 'libusb-1.0.so.0' && ldconfig -p | grep -q 'libEGL.so.1' || { apt-get update -qq && apt-get install -y -qq --no-install-recommends libusb-1.0-0 libegl1 libgl1 libx11-6; }
 
-# The load and the long Schemathesis run (docs/reliability.md); figures go to reliability-output/.
+# The load, the long Schemathesis run and the long fault tests (docs/reliability.md); figures go to
+# reliability-output/.
 # The 10-minute soak is `make test-soak`, not yet in CI: it fails today (docs/reliability.md).
 RELIABILITY_OUT ?= reliability-output
 test-reliability: install-test
 	THERMOFIELD_RELIABILITY_OUT=$(abspath $(RELIABILITY_OUT)) THERMOFIELD_SCHEMATHESIS_EXAMPLES=100 \
 		$(BIN)/python -m pytest -m 'reliability or schemathesis' -k 'not soak' -p no:cacheprovider -s \
-		tests/api/test_schemathesis.py tests/integration/test_load.py
+		tests/api/test_schemathesis.py tests/integration/test_load.py tests/integration/test_station_faults.py \
+		tests/reliability/test_faults.py
 
 test-soak: install-test
 	THERMOFIELD_RELIABILITY_OUT=$(abspath $(RELIABILITY_OUT)) THERMOFIELD_SOAK_SECONDS=600 \

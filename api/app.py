@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+from collections.abc import AsyncIterator
+from contextlib import asynccontextmanager
+
 from fastapi import APIRouter, FastAPI
 from fastapi.routing import APIRoute
 
@@ -10,6 +13,7 @@ from api.metrics import ApiMetrics, MetricsMiddleware
 from api.problems import install_problem_handlers, problem_responses
 from api.ratelimit import RateLimiter
 from api.routers import apikeys, calibrations, devices, health, jobs, parts, scans
+from services.jobs.outbox import Outbox
 from services.jobs.queue import JobQueue
 from services.runtime import Runtime
 
@@ -20,18 +24,27 @@ def _operation_id(route: APIRoute) -> str:
 
 
 def create_app(runtime: Runtime, job_queue: JobQueue) -> FastAPI:
-    """The API serving ``runtime``'s database and artifact store; jobs go to ``job_queue`` (by actor name)."""
+    """The API serving ``runtime``'s database and artifact store; jobs go to ``job_queue`` (by actor name)
+    through the outbox, whose thread runs while the app does (its lifespan)."""
+    outbox = Outbox(runtime.sessions, job_queue)
+
+    @asynccontextmanager
+    async def lifespan(app: FastAPI) -> AsyncIterator[None]:
+        with outbox:
+            yield
+
     app = FastAPI(
+        lifespan=lifespan,
         title="thermofield",
         version="1",
         summary="3D temperature fields of hot forgings: scans, inspection, calibration sets, part types, jobs.",
         generate_unique_id_function=_operation_id,
     )
     app.state.runtime = runtime
-    app.state.jobs = job_queue
+    app.state.jobs = outbox
     app.state.key_cache = KeyCache()
     app.state.rate_limiter = RateLimiter(runtime.settings.rate_limit_per_s, runtime.settings.rate_limit_burst)
-    app.state.metrics = ApiMetrics(runtime)
+    app.state.metrics = ApiMetrics(runtime, outbox.pending)
     install_problem_handlers(app)
     app.add_middleware(MetricsMiddleware, metrics=app.state.metrics)
     app.include_router(health.router)

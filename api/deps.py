@@ -20,7 +20,7 @@ from sqlalchemy.orm import Session
 from api.problems import Problem
 from services.db.apikeys import find_api_key, grants, secret_digest
 from services.db.models import ApiKey
-from services.jobs.queue import JobQueue
+from services.jobs.outbox import Outbox
 from services.runtime import Runtime
 
 KEY_CACHE_SECONDS = 5.0
@@ -34,11 +34,12 @@ async def get_runtime(request: Request) -> Runtime:
 RuntimeDep = Annotated[Runtime, Depends(get_runtime)]
 
 
-async def get_job_queue(request: Request) -> JobQueue:
+async def get_job_queue(request: Request) -> Outbox:
     return request.app.state.jobs
 
 
-JobQueueDep = Annotated[JobQueue, Depends(get_job_queue)]
+JobQueueDep = Annotated[Outbox, Depends(get_job_queue)]
+"""The job queue as the routes see it: the outbox in front of the broker."""
 
 
 async def get_session(runtime: RuntimeDep) -> AsyncIterator[Session]:

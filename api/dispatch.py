@@ -1,22 +1,39 @@
-"""Starting a job from a request: its row (and its scan's), the 202 answer, and the message after commit."""
+"""Starting a job from a request: its row (and its scan's), the 202 answer, and the message after commit.
+
+The job is committed into the outbox (:mod:`services.jobs.outbox`) with the request's other rows; its
+message is sent once the commit succeeded, now or, while the broker is down, by the outbox's thread. No
+more than ``THERMOFIELD_JOB_QUEUE_BOUND`` jobs wait at once: beyond it a new job is refused with 503.
+"""
 
 from __future__ import annotations
 
 from typing import Any
 
+from sqlalchemy import func, select
 from sqlalchemy.orm import Session
 
 from api.idempotency import Outcome
+from api.problems import RETRY_AFTER_S, Problem
 from api.schemas import Accepted
-from services.db.models import Scan
-from services.jobs.queue import JobQueue
+from services.db.models import Job, Scan
+from services.jobs.outbox import Outbox
 from services.runtime import Runtime
 
 
-def start_job(runtime: Runtime, queue: JobQueue, session: Session, kind: str, params: dict[str, Any],
+def start_job(runtime: Runtime, queue: Outbox, session: Session, kind: str, params: dict[str, Any],
               scan: Scan | None = None) -> Outcome:
     """Add a queued ``kind`` job (and ``scan``, which it produces) to ``session``; the outcome answers 202
-    with the links to follow it, and once committed announces the job and sends it to its actor."""
+    with the links to follow it, and once committed announces the job and sends it to its actor.
+
+    Raises
+    ------
+    Problem
+        503 ``queue-full`` (with ``Retry-After``) when ``THERMOFIELD_JOB_QUEUE_BOUND`` jobs already wait.
+    """
+    bound = runtime.settings.job_queue_bound
+    if bound and session.scalar(select(func.count()).select_from(Job).where(Job.status == "queued")) >= bound:
+        raise Problem(503, "queue-full", f"{bound} jobs are already waiting, the most the station queues; "
+                                         "retry later.", {"Retry-After": str(RETRY_AFTER_S)})
     job = runtime.tracker.create(session, kind, params)
     links = {"job": f"/v1/jobs/{job.id}", "events": f"/v1/jobs/{job.id}/events"}
     if scan is not None:
@@ -26,7 +43,7 @@ def start_job(runtime: Runtime, queue: JobQueue, session: Session, kind: str, pa
 
     def dispatch() -> None:
         runtime.tracker.announce(job)
-        queue.send(kind, job.id)
+        queue.send(job.id)
 
     accepted = Accepted(job_id=job.id, scan_id=params.get("scan_id"), status="queued", links=links)
     return Outcome(202, accepted.model_dump(mode="json"), links["job"], dispatch)

@@ -1,9 +1,10 @@
-"""Prometheus metrics of one API process: requests and latencies per operation, jobs by status."""
+"""Prometheus metrics of one API process: requests and latencies per operation, jobs by status, jobs waiting in
+the outbox."""
 
 from __future__ import annotations
 
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 
 from prometheus_client import CollectorRegistry, Counter, Histogram
 from prometheus_client.core import GaugeMetricFamily
@@ -18,8 +19,8 @@ from services.runtime import Runtime
 class _JobsByStatus(Collector):
     """Counts the jobs table at scrape time, so every API replica reports the same truth."""
 
-    def __init__(self, runtime: Runtime) -> None:
-        self.runtime = runtime
+    def __init__(self, runtime: Runtime, outbox_pending: Callable[[], int]) -> None:
+        self.runtime, self.outbox_pending = runtime, outbox_pending
 
     def collect(self) -> Iterator[GaugeMetricFamily]:
         family = GaugeMetricFamily("thermofield_jobs", "Jobs in the database by status.", labels=["status"])
@@ -28,17 +29,19 @@ class _JobsByStatus(Collector):
         for status in JOB_STATUSES:
             family.add_metric([status], counts.get(status, 0))
         yield family
+        yield GaugeMetricFamily("thermofield_jobs_undispatched", "Jobs whose message waits in the outbox (the broker "
+                                "is down or refused it).", value=self.outbox_pending())
 
 
 class ApiMetrics:
-    def __init__(self, runtime: Runtime) -> None:
+    def __init__(self, runtime: Runtime, outbox_pending: Callable[[], int]) -> None:
         self.registry = CollectorRegistry()
         self.requests = Counter("thermofield_http_requests", "HTTP requests answered.",
                                 ["method", "operation", "status"], registry=self.registry)
         self.latency = Histogram("thermofield_http_request_duration_seconds", "Time to answer an HTTP request.",
                                  ["method", "operation"], registry=self.registry,
                                  buckets=(0.001, 0.0025, 0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1, 2.5, 10))
-        self.registry.register(_JobsByStatus(runtime))
+        self.registry.register(_JobsByStatus(runtime, outbox_pending))
 
 
 class MetricsMiddleware:

@@ -73,6 +73,12 @@ class GatewayClient:
     def _request(self, method: str, path: str, accept: tuple[int, ...] = (200,), **kwargs: Any) -> httpx.Response:
         try:
             response = self._http.request(method, path, **kwargs)
+        except (httpx.RemoteProtocolError, httpx.ReadError, httpx.WriteError) as error:
+            raise GatewayError(f"gateway {self.base_url} stopped answering during {method} {path} (the gateway "
+                               f"or a device was lost): {error}") from None
+        except httpx.TimeoutException:
+            raise GatewayError(f"gateway {self.base_url} did not answer {method} {path} within "
+                               f"{self._http.timeout.read} s") from None
         except httpx.HTTPError as error:
             raise GatewayError(f"gateway {self.base_url} unreachable: {error}") from None
         if response.status_code not in accept:

@@ -96,6 +96,9 @@ class Settings(BaseSettings):
     min_free_bytes: int = Field(
         1 << 30, ge=0, description="Free space the artifact store needs for /readyz to say ready (a scan takes ~100 MB)."
     )
+    job_queue_bound: int = Field(
+        100, ge=0, description="Jobs that may wait to run at once; a new one beyond is refused with 503 and "
+                               "Retry-After (0: no bound).")
     idempotency_ttl_s: float = Field(86400.0, gt=0, description="How long an Idempotency-Key's answer is replayed.")
     retention_keep_scans: int = Field(100, ge=0, description="Scans per station that keep their artifacts, newest first.")
     retention_keep_days: float = Field(7.0, ge=0, description="Days a scan keeps its artifacts (whatever its rank).")

@@ -83,7 +83,8 @@ def pytest_collection_modifyitems(config, items):
     for item in items:
         path = item.path.as_posix().split("/tests/", 1)[-1]
         callspec = getattr(item, "callspec", None)
-        if (callspec is not None and callspec.params.get("engine") == "postgresql") or "test_scaled_out" in path:
+        if (callspec is not None and callspec.params.get("engine") == "postgresql") or "test_scaled_out" in path \
+                or "test_station_faults" in path:
             item.add_marker(pytest.mark.postgres)
         if not item.get_closest_marker("integration"):
             if any(part in path for part in _INTEGRATION_FILES):

@@ -4,7 +4,7 @@ Each actor takes a job id; its parameters are the job row's ``params`` and its
 return value becomes the job's ``result`` (via the JobBookkeeping middleware):
 ``{"artifacts": {name: digest}, ...}``. Retries and time limits are set per actor:
 device and network trouble is retried, bad input (``ValueError``, including
-``InputError``) is not.
+``InputError``) and a full artifact store (``StorageFull``) are not.
 
 - ``scan``: capture with the gateway, reconstruct, fuse, inspect (with a part type), store, stream, summarise.
 - ``reconstruct``, ``fuse``, ``register``: one step again on a stored scan, e.g. with
@@ -44,13 +44,13 @@ from services.pipeline.summary import field_summary, glow_summary
 from services.pipeline.warmup import warm_up
 from services.runtime import Runtime, current_runtime
 from services.simulation.presets import forging_rig
-from services.storage.artifacts import ArtifactStore
+from services.storage.artifacts import ArtifactStore, StorageFull
 from services.streaming.field import field_scene
 from services.streaming.recording import scan_recording
 from services.structured_light.patterns import generate_sequence
 
 logger = logging.getLogger(__name__)
-_NOT_RETRIED = (ValueError,)
+_NOT_RETRIED = (ValueError, StorageFull)  # bad input; a full artifact disk (retrying at once cannot help)
 
 
 def _options(max_retries: int, time_limit_s: float) -> dict[str, Any]:
@@ -72,8 +72,11 @@ def scan(job_id: str) -> dict[str, Any]:
     part = _part_type(runtime, params["part_type_id"]) if params.get("part_type_id") else None
     clock = StageClock(lambda stage, fraction: runtime.tracker.progress(job_id, stage, fraction))
     clock.start("capture", 0.05)
-    with GatewayClient(runtime.settings.gateway_url) as gateway:
-        capture = gateway.capture(thermal_frames=1, exposure=runtime.settings.camera_exposure_mode)
+    try:
+        with GatewayClient(runtime.settings.gateway_url) as gateway:
+            capture = gateway.capture(thermal_frames=1, exposure=runtime.settings.camera_exposure_mode)
+    except GatewayError as error:  # the job's error says which stage lost the devices
+        raise GatewayError(f"capture failed: {error}", error.status) from None
     outcome = process_scan(frames=capture.frames, sequence=capture.sequence, thermal=capture.thermal, rig=rig,
                            tables=runtime.tables, exposure=capture.exposure, part=part, clock=clock)
     clock.start("store", 0.7)

@@ -12,6 +12,7 @@ import dramatiq
 import numba
 from dramatiq.middleware import Middleware, SkipMessage
 
+from services.jobs.tracker import LEASE_S, JobBusy
 from services.runtime import current_runtime
 
 logger = logging.getLogger(__name__)
@@ -46,23 +47,58 @@ class JobBookkeeping(Middleware):
     Each message carries a job id as its first argument. Before the actor runs the
     job becomes ``running`` (a new attempt); afterwards ``succeeded`` with the
     actor's result, or ``queued`` again when the Retries middleware will retry, or
-    ``failed`` when it will not. A message whose job already finished (a duplicate
-    delivery after a crash) is skipped.
+    ``failed`` when it will not. While it runs, a thread renews the job's lease. A
+    message whose job already finished, or runs elsewhere and that is not the broker's
+    redelivery (a duplicate), is skipped; a redelivery while the job's lease is live (the
+    broker lost its connection to a worker that still runs it) is sent again after a
+    while, and runs only once the lease has run out
+    (:meth:`services.jobs.tracker.JobTracker.start`).
     """
 
+    def __init__(self) -> None:
+        self._leases: dict[str, threading.Event] = {}
+        self._lock = threading.Lock()
+
     def before_process_message(self, broker, message) -> None:
-        job_id = message.args[0]
-        if current_runtime().tracker.start(job_id, f"{socket.gethostname()}:{os.getpid()}") is None:
-            logger.info("Skipping message %s: job %s is unknown or already finished.", message.message_id, job_id)
+        job_id, worker = message.args[0], f"{socket.gethostname()}:{os.getpid()}"
+        # RabbitMQ's redelivery flag (the stub broker has none), kept on the copies sent while the job was busy.
+        redelivered = bool(getattr(message, "redelivered", False) or message.options.get("redelivered"))
+        tracker = current_runtime().tracker
+        try:
+            job = tracker.start(job_id, worker, redelivered)
+        except JobBusy as busy:
+            logger.info("Message %s waits: %s.", message.message_id, busy)
+            broker.enqueue(message.copy(options={"redelivered": True}), delay=int(LEASE_S * 500))
+            raise SkipMessage() from None
+        if job is None:
+            logger.info("Skipping message %s: job %s is unknown, finished or running elsewhere.",
+                        message.message_id, job_id)
             raise SkipMessage()
+        stop = threading.Event()
+        with self._lock:
+            self._leases[message.message_id] = stop
+        threading.Thread(target=_renew_lease, args=(tracker, job_id, worker, stop), name=f"lease-{job_id}",
+                         daemon=True).start()
 
     def after_process_message(self, broker, message, *, result=None, exception=None) -> None:
+        with self._lock:
+            lease = self._leases.pop(message.message_id, None)
+        if lease is not None:
+            lease.set()
         tracker = current_runtime().tracker
         job_id = message.args[0]
         if exception is None:
             tracker.succeed(job_id, result or {})
             return
         tracker.fail(job_id, _describe(exception), will_retry=_will_retry(broker, message, exception))
+
+
+def _renew_lease(tracker, job_id: str, worker: str, stop: threading.Event) -> None:
+    while not stop.wait(LEASE_S / 5):
+        try:
+            tracker.beat(job_id, worker)
+        except Exception:  # the database is away for a moment: the next beat may reach it
+            logger.warning("could not renew the lease of job %s", job_id, exc_info=True)
 
 
 def _will_retry(broker: dramatiq.Broker, message: dramatiq.Message, exception: BaseException) -> bool:

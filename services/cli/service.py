@@ -86,8 +86,7 @@ def _serve(args: argparse.Namespace) -> int:
           _opcua_server(runtime)):
         gateway.wait_until_healthy()
         worker.start()
-        for job in runtime.tracker.recover():
-            jobs.send(job.kind, job.id)
+        runtime.tracker.recover()  # into the outbox: the API's outbox thread sends them when it starts
         print(f"thermofield: API on http://{settings.api_host}:{settings.api_port} "
               f"(docs at /docs), data in {settings.data_dir.resolve()}", flush=True)
         print(f"thermofield: Rerun: rerun --connect {proxy.url}", flush=True)

@@ -103,6 +103,10 @@ class Job(Base):
     created_at: Mapped[datetime] = mapped_column(default=utc_now)
     started_at: Mapped[datetime | None] = mapped_column(default=None)
     finished_at: Mapped[datetime | None] = mapped_column(default=None)
+    dispatched_at: Mapped[datetime | None] = mapped_column(
+        default=None, index=True, doc="When its message reached the broker; None while it waits in the outbox.")
+    heartbeat_at: Mapped[datetime | None] = mapped_column(
+        default=None, doc="Renewed every few seconds by the worker running it: its lease on the job.")
     updated_at: Mapped[datetime] = mapped_column(default=utc_now, onupdate=utc_now)
 
 

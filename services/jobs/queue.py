@@ -16,8 +16,9 @@ from services.settings import Settings
 
 def job_broker(settings: Settings) -> dramatiq.Broker:
     """The transport: RabbitMQ when ``settings.broker_url`` is set, else an in-memory broker for the
-    embedded in-process worker. Made the global broker."""
-    broker = RabbitmqBroker(url=settings.broker_url) if settings.broker_url else StubBroker()
+    embedded in-process worker. Made the global broker. RabbitMQ confirms every message it takes
+    (publisher confirms), so a message sent as the broker goes down raises instead of vanishing."""
+    broker = RabbitmqBroker(url=settings.broker_url, confirm_delivery=True) if settings.broker_url else StubBroker()
     dramatiq.set_broker(broker)
     return broker
 

@@ -10,16 +10,25 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Callable
-from datetime import UTC, datetime
+from datetime import UTC, datetime, timedelta
 from typing import Any
 
-from sqlalchemy import select
+from sqlalchemy import select, update
 from sqlalchemy.orm import Session, sessionmaker
 
 from services.db.models import TERMINAL_STATUSES, Job, Scan
 from services.events.mqtt import EventPublisher, job_topic, scan_topic, station_topic
 
 logger = logging.getLogger(__name__)
+
+LEASE_S = 10.0
+"""A running job whose worker has not renewed its heartbeat for this long is taken to have lost it (the
+worker renews it every ``LEASE_S / 5``; the hosts' clocks must agree to well within it)."""
+
+
+class JobBusy(Exception):
+    """The job runs elsewhere under a live lease: a redelivered message must wait (the broker's connection to
+    that worker dropped, the worker did not)."""
 
 
 def job_state(job: Job) -> dict[str, Any]:
@@ -57,18 +66,41 @@ class JobTracker:
         session.flush()
         return job
 
-    def start(self, job_id: str, worker: str | None = None) -> Job | None:
-        """Mark an attempt as running (by ``worker``, host:pid); None when the job is unknown or already finished."""
+    def start(self, job_id: str, worker: str | None = None, redelivered: bool = False) -> Job | None:
+        """Mark an attempt as running (by ``worker``, host:pid) and take its lease; None when the job is
+        unknown, already finished, or running and this message is not a redelivery.
+
+        A job is ``running`` when a message arrives in three cases: the broker redelivers the
+        message of a worker that died (``redelivered``, the lease ran out: run it again); it
+        redelivers the message of a worker whose connection dropped but which still runs the
+        job (``redelivered``, the lease is live: :class:`JobBusy`, try again later); or the
+        message is a second copy (an outbox crash between sending and recording it) while the
+        first runs (skip it: should that worker die, its own copy is redelivered).
+
+        Raises
+        ------
+        JobBusy
+            For a redelivery while the job's lease is live.
+        """
         with self.sessions.begin() as session:
             job = session.get(Job, job_id, with_for_update=True)
-            if job is None or job.status in TERMINAL_STATUSES:
+            if job is None or job.status in TERMINAL_STATUSES or (job.status == "running" and not redelivered):
                 return None
+            now = datetime.now(UTC)
+            if job.status == "running" and job.heartbeat_at and job.heartbeat_at > now - timedelta(seconds=LEASE_S):
+                raise JobBusy(f"job {job_id} runs on {job.worker} (heartbeat {job.heartbeat_at.isoformat()})")
             job.status, job.stage, job.fraction = "running", "starting", 0.0
             job.attempts += 1
-            job.started_at = datetime.now(UTC)
+            job.started_at = job.heartbeat_at = now
             job.worker = worker
         self.announce(job)
         return job
+
+    def beat(self, job_id: str, worker: str | None) -> None:
+        """Renew the lease of ``worker``'s running attempt (nothing if the job moved on meanwhile)."""
+        with self.sessions.begin() as session:
+            session.execute(update(Job).where(Job.id == job_id, Job.status == "running", Job.worker == worker)
+                            .values(heartbeat_at=datetime.now(UTC)))
 
     def progress(self, job_id: str, stage: str, fraction: float) -> None:
         if not 0.0 <= fraction <= 1.0:
@@ -97,10 +129,12 @@ class JobTracker:
             self._update(job_id, status="failed", stage="failed", error=error, finished_at=datetime.now(UTC))
 
     def recover(self) -> list[Job]:
-        """Jobs a crash left unfinished, put back to ``queued`` so they can be sent again."""
+        """Jobs a crash of the embedded service left unfinished (their messages died with its in-memory
+        broker), put back to ``queued`` and into the outbox to be sent again."""
         with self.sessions.begin() as session:
             jobs = list(session.scalars(select(Job).where(Job.status.in_(("queued", "running")))))
             for job in jobs:
+                job.dispatched_at = None
                 if job.status == "running":
                     job.status, job.stage, job.error = "queued", "recovered", "interrupted by a restart"
         for job in jobs:

@@ -8,16 +8,24 @@ crash never corrupts a stored one.
 
 from __future__ import annotations
 
+import errno
 import hashlib
 import os
 import re
 import shutil
 import tempfile
 from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 _DIGEST = re.compile(r"^[0-9a-f]{64}$")
 _CHUNK = 1 << 20
+_FULL = (errno.ENOSPC, errno.EDQUOT, errno.EROFS)
+
+
+class StorageFull(OSError):
+    """The store's disk is full or read-only: the blob was not stored (and no part of it is visible); retrying
+    helps only once space is freed."""
 
 
 class ArtifactStore:
@@ -47,19 +55,21 @@ class ArtifactStore:
         return True
 
     def put_bytes(self, data: bytes) -> str:
-        """Store ``data``; return its digest."""
-        with self._temporary() as (handle, temporary):
-            handle.write(data)
-        return self._commit(temporary, hashlib.sha256(data).hexdigest())
+        """Store ``data``; return its digest. :class:`StorageFull` when the disk cannot take it."""
+        with self._storing():
+            with self._temporary() as (handle, temporary):
+                handle.write(data)
+            return self._commit(temporary, hashlib.sha256(data).hexdigest())
 
     def put_file(self, source: str | Path) -> str:
         """Copy the file ``source`` into the store (streaming); return its digest."""
         hasher = hashlib.sha256()
-        with open(source, "rb") as reader, self._temporary() as (handle, temporary):
-            while chunk := reader.read(_CHUNK):
-                hasher.update(chunk)
-                handle.write(chunk)
-        return self._commit(temporary, hasher.hexdigest())
+        with self._storing():
+            with open(source, "rb") as reader, self._temporary() as (handle, temporary):
+                while chunk := reader.read(_CHUNK):
+                    hasher.update(chunk)
+                    handle.write(chunk)
+            return self._commit(temporary, hasher.hexdigest())
 
     def free_bytes(self) -> int:
         """Space left for new blobs on the store's file system."""
@@ -90,13 +100,29 @@ class ArtifactStore:
     def _temporary(self):
         return _TemporaryFile(self._incoming)
 
+    @contextmanager
+    def _storing(self) -> Iterator[None]:
+        try:
+            yield
+        except StorageFull:
+            raise
+        except OSError as error:
+            if error.errno not in _FULL:
+                raise
+            raise StorageFull(error.errno, f"the artifact store at {self.root} cannot take more data "
+                                           f"({error.strerror})") from None
+
     def _commit(self, temporary: Path, digest: str) -> str:
         target = self._objects / digest[:2] / digest
-        if target.is_file():
-            temporary.unlink()
-        else:
-            target.parent.mkdir(exist_ok=True)
-            temporary.replace(target)
+        try:
+            if target.is_file():
+                temporary.unlink()
+            else:
+                target.parent.mkdir(exist_ok=True)  # may fail on a full disk too: then no .part is left behind
+                temporary.replace(target)
+        except BaseException:
+            temporary.unlink(missing_ok=True)
+            raise
         return digest
 
 

@@ -62,3 +62,22 @@ def test_oversized_uploads_are_refused_before_anything_is_stored(client, auth, r
     assert huge_rig.status_code == 413 and huge_rig.headers["content-type"] == PROBLEM
     assert "rig" in huge_rig.json()["detail"]
     assert sum(1 for _ in runtime.store.blobs()) == stored
+
+
+def test_the_job_queue_has_a_bound_beyond_which_new_jobs_get_503(client, auth, runtime, active_calibration):
+    runtime.settings = runtime.settings.model_copy(update={"job_queue_bound": 3})
+    accepted = [client.post("/v1/scans", headers=auth["operate"]) for _ in range(3)]
+    assert [response.status_code for response in accepted] == [202] * 3
+    refused = client.post("/v1/scans", headers={**auth["operate"], "Idempotency-Key": "full"})
+    assert refused.status_code == 503 and refused.headers["content-type"] == PROBLEM
+    assert refused.json()["type"].endswith("/queue-full") and "3 jobs" in refused.json()["detail"]
+    assert int(refused.headers["retry-after"]) > 0
+    with runtime.sessions.begin() as session:  # one job starts running: there is room again
+        session.get(Job, accepted[0].json()["job_id"]).status = "running"
+    retried = client.post("/v1/scans", headers={**auth["operate"], "Idempotency-Key": "full"})
+    assert retried.status_code == 202  # the refusal was not stored as the key's answer
+    with runtime.sessions() as session:
+        assert session.query(Job).filter(Job.status == "queued").count() == 3 and session.query(Job).count() == 4
+    operation = client.get("/openapi.json").json()["paths"]["/v1/scans"]["post"]
+    assert "application/problem+json" in operation["responses"]["503"]["content"]
+    assert "queue is full" in operation["responses"]["503"]["description"]

@@ -1,5 +1,6 @@
 import hashlib
 
+import numpy as np
 import pytest
 
 from services.storage.artifacts import ArtifactStore
@@ -37,3 +38,17 @@ def test_failed_write_leaves_no_partial_blob(tmp_path):
         store.put_file(tmp_path / "absent")
     assert not list((tmp_path / "incoming").iterdir())
     assert not list((tmp_path / "sha256").iterdir())
+
+
+def test_a_full_disk_is_storage_full_and_leaves_nothing_behind(small_disk):
+    import errno
+
+    from services.storage.artifacts import StorageFull
+
+    store = ArtifactStore(small_disk(1 << 20))
+    kept = store.put_bytes(b"kept")
+    with pytest.raises(StorageFull) as raised:
+        store.put_bytes(np.random.default_rng(0).bytes(2 << 20))
+    assert raised.value.errno == errno.ENOSPC and str(store.root) in str(raised.value)
+    assert not list((store.root / "incoming").iterdir())
+    assert [digest for digest, _ in store.blobs()] == [kept]

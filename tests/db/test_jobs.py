@@ -113,3 +113,29 @@ def test_states_are_published_live_and_only_the_stations_latest_is_retained(engi
     late = [message for message in late if message[1] is not None]  # not the clearing of the test's retained one
     assert [(topic, retained) for topic, _, retained in late] == [(station_topic(prefix), True)]
     assert late[0][1]["scan_id"] == "s9" and late[0][1]["status"] == "succeeded" and late[0][1]["job_id"] == job_ids[1]
+
+
+def test_a_second_message_for_a_running_job_is_refused_unless_redelivered_after_its_lease(engine):
+    from datetime import UTC, datetime, timedelta
+
+    from services.jobs.tracker import LEASE_S, JobBusy
+
+    tracker = JobTracker(make_sessions(engine))
+    with tracker.sessions.begin() as session:
+        job_id = tracker.create(session, "scan", {}).id
+    assert tracker.start(job_id, "host:1").attempts == 1
+    assert tracker.start(job_id, "host:2") is None  # a duplicate copy while the first runs: skipped
+    with pytest.raises(JobBusy, match="host:1"):  # redelivered, but host:1 holds the lease: not yet
+        tracker.start(job_id, "host:2", redelivered=True)
+    with tracker.sessions.begin() as session:  # host:1 died: its last heartbeat grows old
+        session.get(Job, job_id).heartbeat_at = datetime.now(UTC) - timedelta(seconds=LEASE_S + 1)
+    tracker.beat(job_id, "host:2")  # not its attempt: renews nothing
+    rerun = tracker.start(job_id, "host:2", redelivered=True)
+    assert (rerun.attempts, rerun.worker) == (2, "host:2")
+    with tracker.sessions.begin() as session:
+        session.get(Job, job_id).heartbeat_at = datetime.now(UTC) - timedelta(seconds=LEASE_S + 1)
+    tracker.beat(job_id, "host:2")  # host:2 renews its lease
+    with pytest.raises(JobBusy):
+        tracker.start(job_id, "host:3", redelivered=True)
+    tracker.succeed(job_id, {})
+    assert tracker.start(job_id, "host:3", redelivered=True) is None  # finished: never again

@@ -76,6 +76,8 @@ def test_an_upgrade_with_data_in_every_table_keeps_it(empty_engine):
 
         assert rows("SELECT id, scopes FROM api_keys") == [("k1", "operate")]
         assert rows("SELECT id, status, attempts, worker FROM jobs") == [("j1", "succeeded", 1, None)]
+        # 0005 (the outbox): a job from before it had been sent when it was created, so it is not sent again
+        assert rows("SELECT count(*) FROM jobs WHERE dispatched_at = created_at") == [(1,)]
         assert rows("SELECT id, station, active FROM calibration_sets") == [("c1", "station1", True)]
         assert rows("SELECT id, part_id, job_id, part_type_id, verdict FROM scans") == [("s1", "part-7", "j1", None,
                                                                                         None)]

@@ -99,3 +99,22 @@ def test_unreachable_gateway_is_a_gateway_error(free_port):
     with GatewayClient(f"http://127.0.0.1:{free_port}", timeout_s=2) as client:
         with pytest.raises(GatewayError, match="unreachable"):
             client.health()
+
+
+def test_a_gateway_that_dies_during_a_request_is_a_gateway_error_that_says_so(free_port):
+    import socket
+
+    with socket.socket() as server:  # what a gateway process killed mid-capture looks like to its client
+        server.bind(("127.0.0.1", free_port))
+        server.listen()
+
+        def accept_then_die() -> None:
+            connection, _ = server.accept()
+            connection.recv(65536)
+            connection.close()
+
+        threading.Thread(target=accept_then_die, daemon=True).start()
+        with GatewayClient(f"http://127.0.0.1:{free_port}", timeout_s=10) as client:
+            with pytest.raises(GatewayError, match=r"stopped answering during POST /v1/captures \(the gateway or "
+                                                   r"a device was lost\)"):
+                client.capture()

@@ -1,5 +1,6 @@
-"""Property-based tests (Hypothesis) of the public file parsers: whatever the bytes, a parser either
-returns its object or raises the documented ``InputError`` -- never another exception."""
+"""Property-based tests (Hypothesis) of the public file parsers (rig, board, manifest, part, PLY, thermal
+frames): whatever the bytes, a parser either returns its object or raises the documented ``InputError`` --
+never another exception."""
 
 from __future__ import annotations
 
@@ -14,10 +15,12 @@ from hypothesis import strategies as st
 
 from services.errors import InputError
 from services.formats.board import parse_board
+from services.formats.part import parse_part
 from services.formats.ply import read_cloud, write_cloud
 from services.formats.rig import parse_rig, rig_to_json
 from services.formats.sequence import parse_sequence, sequence_to_json
 from services.formats.thermal import read_thermal_frame
+from services.simulation.hot_part import write_billet_part
 from services.simulation.presets import forging_rig
 from services.structured_light.patterns import generate_sequence
 
@@ -198,3 +201,67 @@ def test_thermal_frame_reader_takes_any_npy_array(dtype, shape, value):
             assert str(path) in str(error)
             return
     assert temperature.ndim == 2 and np.isfinite(temperature).any()
+
+
+def _part_directory() -> Path:
+    """A billet's part file with every kind of feature, a custom material and both optional sections, beside
+    its nominal mesh: the seed of the part-file mutations (kept for the session)."""
+    directory = Path(tempfile.mkdtemp(prefix="thermofield-part-"))
+    path = write_billet_part(directory, segments=24)
+    part = json.loads(path.read_text())
+    part["features"] += [
+        {"name": "face_a", "type": "plane", "region": {"min": [-101, -50, -50], "max": [-99, 50, 50]}},
+        {"name": "face_b", "type": "plane", "measure": "flatness", "region": {"min": [99, -50, -50],
+                                                                             "max": [101, 50, 50]},
+         "nominal": 0.0, "tolerance": [0.0, 0.2]},
+        {"name": "length", "type": "distance", "between": ["face_a", "face_b"], "nominal": 200.0,
+         "tolerance": [-0.5, 0.5]}]
+    part["material"] = {"name": "c45", "elongation": [[0, -2e-4], [20, 0], [1100, 0.015]]}
+    part["uncertainty"] = {"emissivity": 0.8, "netd_k": 0.1}
+    part["segmentation"] = {"min_temperature_c": 250.0, "max_distance_mm": 4.0}
+    path.write_text(json.dumps(part))
+    return directory
+
+
+PART_DIRECTORY = _part_directory()
+VALID_PART = VALID_DOCUMENTS["part"] = json.loads((PART_DIRECTORY / "part.json").read_text())
+
+
+def _part_parses_or_input_error(text: str) -> None:
+    try:
+        part = parse_part(text, "the file", PART_DIRECTORY)
+    except InputError as error:
+        assert str(error).startswith("the file"), str(error)
+        return
+    assert len(part.triangles) > 0 and part.material.name
+
+
+@PROPERTY_SETTINGS
+@given(text=st.text(max_size=200) | JSON_VALUES.map(json.dumps))
+def test_part_parser_takes_any_text_and_any_json(text):
+    _part_parses_or_input_error(text)
+
+
+@PROPERTY_SETTINGS
+@given(data=st.data())
+def test_part_parser_takes_nearly_valid_part_files(data):
+    _part_parses_or_input_error(data.draw(mutated_documents("part")))
+
+
+@PROPERTY_SETTINGS
+@given(content=st.binary(max_size=300) | damaged((PART_DIRECTORY / "billet.stl").read_bytes()),
+       suffix=st.sampled_from([".stl", ".ply", ".obj"]))
+def test_part_parser_takes_any_nominal_mesh_bytes(content, suffix):
+    with tempfile.TemporaryDirectory() as directory:
+        (Path(directory) / f"mesh{suffix}").write_bytes(content)
+        try:
+            part = parse_part(json.dumps({**VALID_PART, "nominal": f"mesh{suffix}"}), "the file", directory)
+        except InputError as error:
+            assert str(error).startswith("the file: nominal") and f"mesh{suffix}" in str(error), str(error)
+            return
+    assert np.isfinite(part.vertices).all() and part.triangles.min() >= 0
+
+
+def test_the_valid_part_file_parses():
+    part = parse_part(json.dumps(VALID_PART), "the file", PART_DIRECTORY)
+    assert [feature.name for feature in part.definition.features] == ["body_diameter", "face_a", "face_b", "length"]

@@ -1,13 +1,18 @@
 """End to end over HTTP, scaled out: `thermofield api`, `thermofield worker` (two spawned processes),
 `thermofield gateway` as separate processes on PostgreSQL, RabbitMQ and Mosquitto, a shared artifact
-directory, as in docker/ (configured only by environment variables)."""
+directory, as in docker/ (configured only by environment variables). A worker SIGKILLed in the middle of
+a scan: the scan is finished exactly once by a restarted worker, its artifacts whole, its MQTT states in
+order."""
 
+import hashlib
 import signal
 import subprocess
 import time
 
 import httpx
+import numpy as np
 
+from services.formats.ply import read_cloud
 from services.formats.rig import rig_to_json
 from services.simulation.presets import forging_rig
 
@@ -49,6 +54,22 @@ def test_scaled_out_scans_with_two_workers_and_survive_a_worker_crash(e2e, deplo
         final = e2e.follow_events(client, accepted["job_id"])[-1][1]
         assert final["status"] == "succeeded" and final["attempts"] == 2, final
         assert client.post("/v1/scans", headers={"Idempotency-Key": "crash-1"}).json() == accepted
+        # Finished exactly once: one set of artifacts, the scan's and the job's, each whole.
+        crashed = client.get(f"/v1/scans/{accepted['scan_id']}").json()
+        artifacts = final["result"]["artifacts"]
+        assert {name for name in crashed["links"] if name.endswith((".ply", ".rrd", ".npy"))} <= set(artifacts)
+        for name in ("cloud.ply", "field.ply", "field.rrd", "frames.npy", "thermal.npy"):
+            content = client.get(f"/v1/scans/{accepted['scan_id']}/{name}").content
+            assert hashlib.sha256(content).hexdigest() == artifacts[name], name
+            (tmp_path / f"crashed-{name}").write_bytes(content)
+        for name in ("cloud.ply", "field.ply"):
+            assert len(read_cloud(tmp_path / f"crashed-{name}")["x"]) == crashed["summary"]["point_count"]
+        assert np.load(tmp_path / "crashed-frames.npy", allow_pickle=False).ndim == 3
+        time.sleep(1.0)  # the last MQTT messages arrive
+        states = events.states(f"{env['THERMOFIELD_SITE']}/station1/jobs/{accepted['job_id']}")
+        _assert_in_order(states)
+        assert [state["status"] for state in states].count("succeeded") == 1, states
+        assert {state["attempts"] for state in states} == {0, 1, 2}, states  # queued, the killed run, the rerun
 
     # Every port is on loopback unless configured otherwise; no secret in any log of the full scans.
     for name, process in e2e.processes.running:
@@ -58,6 +79,16 @@ def test_scaled_out_scans_with_two_workers_and_survive_a_worker_crash(e2e, deplo
     assert errors["median_distance_mm"] < 0.5, errors
     assert errors["median_temperature_error_k"] < 1.0, errors
     assert events.states(f"{env['THERMOFIELD_SITE']}/station1/scans/{jobs[1]['scan_id']}")[-1]["status"] == "succeeded"
+
+
+def _assert_in_order(states: list[dict]) -> None:
+    """A job's MQTT states arrive in the order they happened: queued first, succeeded last, attempts never
+    going back and, within an attempt, the fraction never going back."""
+    assert states and states[0]["status"] == "queued" and states[-1]["status"] == "succeeded", states
+    for before, after in zip(states, states[1:]):
+        assert after["attempts"] >= before["attempts"], (before, after)
+        if after["attempts"] == before["attempts"] and after["status"] == before["status"] == "running":
+            assert after["fraction"] >= before["fraction"], (before, after)
 
 
 def _wait_for_stage(client: httpx.Client, job_id: str, reached, timeout_s: float = 120.0) -> None:

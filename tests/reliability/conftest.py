@@ -1,10 +1,12 @@
-"""Private instances of the machine's servers for fault tests: a PostgreSQL cluster and a Mosquitto
-broker of the test's own, on free ports, which the test may stop and start without disturbing the
+"""Private instances of the machine's servers for fault tests: a PostgreSQL cluster, a Mosquitto broker
+and a RabbitMQ node of the test's own, on free ports, which the test may stop and start without disturbing the
 shared servers that other tests use."""
 
 from __future__ import annotations
 
+import os
 import shutil
+import signal
 import socket
 import subprocess
 import tempfile
@@ -104,3 +106,75 @@ def private_mosquitto(tmp_path):
         yield broker
     finally:
         broker.stop()
+
+
+RABBITMQ_BIN = Path("/usr/lib/rabbitmq/bin")
+
+
+class PrivateRabbitmq:
+    """A RabbitMQ node of the test's own: its own node name, AMQP and distribution ports, database, logs,
+    configuration and Erlang cookie (HOME) in a temporary directory. Its database survives a stop, so
+    durable queues and persistent messages are there again after a restart, as on a real server."""
+
+    def __init__(self, directory: Path) -> None:
+        self.directory, self.port = directory, free_port()
+        directory.mkdir(parents=True, exist_ok=True)
+        self.node = f"tf{self.port}@localhost"
+        (directory / "rabbitmq.conf").write_text(f"listeners.tcp.local = 127.0.0.1:{self.port}\n")
+        (directory / "enabled_plugins").write_text("[].\n")
+        (directory / "rabbitmq-env.conf").write_text("")
+        self.env = {"PATH": f"{RABBITMQ_BIN}:/usr/sbin:/usr/bin:/bin", "HOME": str(directory),
+                    "RABBITMQ_NODENAME": self.node, "RABBITMQ_NODE_PORT": str(self.port),
+                    "RABBITMQ_DIST_PORT": str(free_port()), "RABBITMQ_MNESIA_BASE": str(directory / "mnesia"),
+                    "RABBITMQ_LOG_BASE": str(directory / "log"),
+                    "RABBITMQ_ENABLED_PLUGINS_FILE": str(directory / "enabled_plugins"),
+                    "RABBITMQ_CONFIG_FILE": str(directory / "rabbitmq.conf"),
+                    "RABBITMQ_CONF_ENV_FILE": str(directory / "rabbitmq-env.conf"),
+                    "RABBITMQ_ADVANCED_CONFIG_FILE": str(directory / "advanced.config"),
+                    "RABBITMQ_PID_FILE": str(directory / "rabbitmq.pid"), "ERL_EPMD_ADDRESS": "127.0.0.1"}
+        self.url = f"amqp://guest:guest@127.0.0.1:{self.port}"
+        self.process: subprocess.Popen | None = None
+
+    def _ctl(self, *arguments: str) -> None:
+        subprocess.run([str(RABBITMQ_BIN / "rabbitmqctl"), "-n", self.node, *arguments], env=self.env, check=True,
+                       capture_output=True, timeout=120)
+
+    def start(self) -> None:
+        with open(self.directory / "server.log", "ab") as log:
+            self.process = subprocess.Popen([str(RABBITMQ_BIN / "rabbitmq-server")], env=self.env, stdout=log,
+                                            stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
+                                            start_new_session=True)
+        self._ctl("wait", str(self.directory / "rabbitmq.pid"), "--timeout", "90")
+        wait_for_port(self.port)
+
+    def stop(self) -> None:
+        """Stop the node as its service would (``rabbitmqctl stop``): every connection to it drops."""
+        if self.process is not None and self.process.poll() is None:
+            self._ctl("stop")
+            self.process.wait(60)
+        wait_for_port(self.port, up=False)
+
+    def kill(self) -> None:
+        """Crash the node: SIGKILL to its processes (never to the machine's shared ``epmd``)."""
+        import psutil
+
+        root = psutil.Process(self.process.pid)
+        for process in [*root.children(recursive=True), root]:
+            if process.name() != "epmd":
+                process.kill()
+        self.process.wait(60)
+        wait_for_port(self.port, up=False)
+
+
+@pytest.fixture
+def private_rabbitmq(tmp_path):
+    node = PrivateRabbitmq(tmp_path / "rabbitmq")
+    node.start()
+    try:
+        yield node
+    finally:
+        if node.process is not None and node.process.poll() is None:
+            try:
+                node.stop()
+            except (subprocess.SubprocessError, AssertionError):
+                os.killpg(node.process.pid, signal.SIGKILL)

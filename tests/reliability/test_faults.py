@@ -1,13 +1,16 @@
 """Faults against real servers of the test's own: PostgreSQL stopped and restarted under the API, Mosquitto
-stopped while jobs change state, the artifact store's disk full under uploads."""
+stopped while jobs change state, RabbitMQ stopped or killed while scans are requested (the outbox), the
+artifact store's disk full under uploads."""
 
 from __future__ import annotations
 
 import json
 import time
+import uuid
 
 import paho.mqtt.client as mqtt
 import pytest
+from sqlalchemy import text
 
 from services.db.apikeys import create_api_key
 from services.db.engine import make_engine, make_sessions, migrate
@@ -22,6 +25,7 @@ from services.jobs.queue import JobQueue, job_broker
 from services.runtime import Runtime
 
 PROBLEM = "application/problem+json"
+POSTGRES_URL = "postgresql+psycopg://postgres@127.0.0.1:5432/test"
 
 
 def _client(runtime):
@@ -29,17 +33,15 @@ def _client(runtime):
 
     from api.app import create_app
 
-
-
     return TestClient(create_app(runtime, JobQueue(job_broker(runtime.settings), runtime.settings.job_queue)),
                       raise_server_exceptions=False)
 
 
-def _runtime(url: str, tmp_path, **settings) -> Runtime:
-    engine = make_engine(url)
+def _runtime(url: str, tmp_path, schema: str | None = None, **settings) -> Runtime:
+    engine = make_engine(url, schema)
     migrate(engine)
     sessions = make_sessions(engine)
-    config = Settings(data_dir=tmp_path, broker_url="", mqtt_host="", **settings)
+    config = Settings(data_dir=tmp_path, **{"broker_url": "", "mqtt_host": "", **settings})
     return Runtime(config, engine, sessions, ArtifactStore(config.resolved_artifact_dir), JobTracker(sessions))
 
 
@@ -171,3 +173,152 @@ def test_disk_full_while_storing_uploads(small_disk, tmp_path):
         assert client.get("/readyz").status_code == 200
         assert client.post(f"/v1/calibration-sets/{calibration_id}/stereo", headers=headers, files=files,
                            data={"name": "recalibrated"}).status_code == 202
+
+
+@pytest.mark.parametrize("stop", ["stop", pytest.param("kill", marks=pytest.mark.reliability)])  # kill: 1 min more
+def test_rabbitmq_stopped_jobs_wait_in_the_outbox_and_run_once_when_it_returns(private_rabbitmq, tmp_path, stop):
+    import dramatiq
+    import pika
+
+    from services.runtime import use_runtime
+    from workers.middleware import JobBookkeeping
+
+    schema = f"tf_outbox_{uuid.uuid4().hex[:10]}"
+    queue_name = f"tf-outbox-{uuid.uuid4().hex[:8]}"
+    runtime = _runtime(POSTGRES_URL, tmp_path, schema=schema, broker_url=private_rabbitmq.url, job_queue=queue_name,
+                       min_free_bytes=0, job_queue_bound=6)
+    headers = _key(runtime)
+    try:
+        with _client(runtime) as client:
+            created = client.post("/v1/calibration-sets", headers=headers,
+                                  files={"rig": ("rig.json", rig_to_json(forging_rig()))},
+                                  data={"name": "rig", "activate": "true"})
+            assert created.status_code == 201, created.text
+            first = client.post("/v1/scans", headers=headers).json()["job_id"]  # sent at once (and confirmed)
+            getattr(private_rabbitmq, stop)()  # `rabbitmqctl stop`, or SIGKILL: the confirmed message survives
+            started = time.monotonic()
+            waiting = [client.post("/v1/scans", headers={**headers, "Idempotency-Key": f"k{i}"}) for i in range(4)]
+            assert [response.status_code for response in waiting] == [202] * 4, [r.text for r in waiting]
+            seconds_per_post = (time.monotonic() - started) / 4
+            replay = client.post("/v1/scans", headers={**headers, "Idempotency-Key": "k0"})  # the MES retries
+            assert replay.json() == waiting[0].json() and replay.headers["idempotent-replayed"] == "true"
+            outbox = client.app.state.jobs
+            assert outbox.pending() == 4  # committed, waiting for the broker; operators see it:
+            assert "thermofield_jobs_undispatched 4.0" in client.get("/metrics").text
+            assert client.post("/v1/scans", headers=headers).status_code == 202  # the 6th waiting job: the bound
+            refused = client.post("/v1/scans", headers=headers)
+            assert refused.status_code == 503 and refused.headers["content-type"] == PROBLEM
+            assert refused.json()["type"].endswith("/queue-full") and int(refused.headers["retry-after"]) > 0
+            private_rabbitmq.start()
+            down_s = time.monotonic() - started
+            deadline = time.monotonic() + 60  # the outbox's thread retries with backoff until the broker is back
+            while outbox.pending() and time.monotonic() < deadline:
+                time.sleep(0.2)
+            assert outbox.pending() == 0
+            sent_after_s = time.monotonic() - started - down_s
+        with runtime.sessions() as session:
+            jobs = {job.id: job for job in session.query(Job)}
+        assert len(jobs) == 6 and first in jobs
+        # A second copy of one message, as an outbox crash between sending and recording would leave.
+        duplicated = waiting[1].json()["job_id"]
+        JobQueue(job_broker(runtime.settings), queue_name).send("scan", duplicated)
+
+        # A worker with the service's bookkeeping; its actor stands in for the scan's science.
+        use_runtime(runtime)
+        broker = job_broker(runtime.settings)
+        broker.add_middleware(JobBookkeeping())
+        runs: list[str] = []
+
+        @dramatiq.actor(broker=broker, actor_name="scan", queue_name=queue_name, max_retries=0)
+        def scan(job_id):
+            runs.append(job_id)
+            time.sleep(0.3)
+
+        worker = dramatiq.Worker(broker, worker_threads=2, worker_timeout=100)
+        worker.start()
+        try:
+            deadline = time.monotonic() + 60
+            while time.monotonic() < deadline:
+                with runtime.sessions() as session:
+                    if session.query(Job).filter(Job.status == "succeeded").count() == len(jobs):
+                        break
+                time.sleep(0.2)
+            time.sleep(1.0)  # the duplicate, if it were run, would run by now
+        finally:
+            worker.stop()
+        assert sorted(runs) == sorted(jobs), runs  # every job ran, none twice
+        with runtime.sessions() as session:
+            assert {(job.status, job.attempts) for job in session.query(Job)} == {("succeeded", 1)}
+        connection = pika.BlockingConnection(pika.URLParameters(private_rabbitmq.url))
+        assert connection.channel().queue_declare(queue_name, passive=True).method.message_count == 0
+        connection.close()
+        print(f"\nRabbitMQ {stop}: down {down_s:.1f} s (with its restart): 4 jobs waited, {seconds_per_post * 1000:.0f} ms per POST; "
+              f"outbox empty {sent_after_s:.1f} s after the broker was back; {len(runs)} runs of {len(jobs)} jobs")
+    finally:
+        runtime.engine.dispose()
+        with make_engine(POSTGRES_URL).begin() as connection:
+            connection.execute(text(f"DROP SCHEMA IF EXISTS {schema} CASCADE"))
+
+
+@pytest.mark.reliability  # a minute: a RabbitMQ restart under a running job (make test-reliability)
+def test_rabbitmq_restarted_under_a_running_job_does_not_run_it_twice(private_rabbitmq, tmp_path, caplog):
+    import logging
+    import threading
+
+    import dramatiq
+
+    from services.jobs.outbox import Outbox
+    from services.runtime import use_runtime
+    from workers.middleware import JobBookkeeping
+
+    queue_name = f"tf-lease-{uuid.uuid4().hex[:8]}"
+    runtime = _runtime(f"sqlite:///{tmp_path / 'service.db'}", tmp_path, broker_url=private_rabbitmq.url,
+                       job_queue=queue_name)
+    use_runtime(runtime)
+    with runtime.sessions.begin() as session:
+        job_id = runtime.tracker.create(session, "scan", {}).id
+    assert Outbox(runtime.sessions, JobQueue(job_broker(runtime.settings), queue_name)).send(job_id)
+    broker = job_broker(runtime.settings)
+    broker.add_middleware(JobBookkeeping())
+    runs: list[str] = []
+    release = threading.Event()
+
+    @dramatiq.actor(broker=broker, actor_name="scan", queue_name=queue_name, max_retries=0)
+    def scan(job_id):  # stands in for a long scan: runs until the test has seen the redelivery wait
+        runs.append(job_id)
+        release.wait(120)
+
+    caplog.set_level(logging.INFO, logger="workers.middleware")
+    worker = dramatiq.Worker(broker, worker_threads=2, worker_timeout=100)  # a free thread takes the redelivery
+    worker.start()
+    try:
+        deadline = time.monotonic() + 60
+        while not runs and time.monotonic() < deadline:
+            time.sleep(0.1)
+        assert runs == [job_id]
+        private_rabbitmq.stop()  # the worker's connection drops; the unacknowledged message goes back
+        private_rabbitmq.start()
+        deadline = time.monotonic() + 120
+        while not any("waits" in record.getMessage() for record in caplog.records) and time.monotonic() < deadline:
+            time.sleep(0.2)
+        waited = [record.getMessage() for record in caplog.records if "waits" in record.getMessage()]
+        assert waited and job_id in waited[0], caplog.text  # redelivered, but the job's lease was live
+        release.set()
+        deadline = time.monotonic() + 60
+        while time.monotonic() < deadline:
+            with runtime.sessions() as session:
+                if session.get(Job, job_id).status == "succeeded":
+                    break
+            time.sleep(0.2)
+        time.sleep(8.0)  # the waiting copy comes back (after half a lease) and finds the job finished
+    finally:
+        release.set()
+        worker.stop()
+    assert runs == [job_id], runs  # ran once, though RabbitMQ delivered its message again
+    with runtime.sessions() as session:
+        job = session.get(Job, job_id)
+        assert (job.status, job.attempts) == ("succeeded", 1)
+    skipped = [record.getMessage() for record in caplog.records if "Skipping" in record.getMessage()]
+    assert skipped, caplog.text
+    print(f"\nRabbitMQ restarted under a running job: the redelivery waited {len(waited)} time(s), then was "
+          f"skipped as finished; 1 run, attempts {job.attempts}")
