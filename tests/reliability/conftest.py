@@ -13,9 +13,19 @@ import tempfile
 import time
 from pathlib import Path
 
+import dramatiq
 import pytest
 
 PG_BIN = Path("/usr/lib/postgresql") / sorted(p.name for p in Path("/usr/lib/postgresql").iterdir())[-1] / "bin"
+
+
+@pytest.fixture(autouse=True)
+def restore_dramatiq_broker():
+    """Put back dramatiq's global broker: the fault tests make their own, and declare stand-in actors on it
+    under the service's actor names, which ``workers.actors`` would collide with when imported later."""
+    previous = dramatiq.broker.global_broker
+    yield
+    dramatiq.broker.global_broker = previous
 
 
 def free_port() -> int:
