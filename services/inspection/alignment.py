@@ -89,14 +89,12 @@ def _icp(points: np.ndarray, nominal: NominalSurface, transform: np.ndarray, dis
     """Point-to-plane ICP with Tukey weights, one iteration per entry of ``distances`` (the Tukey cut-off, mm).
 
     ``transform`` maps measured points to the part frame; ``coarse`` matches against the nominal's
-    sparse samples, as do the iterations whose cut-off exceeds four times their spacing (their
-    planes are as good there, and far queries in the dense tree are slow). Hand-written on the
-    nominal's prepared cKDTrees: Open3D's ``registration_icp`` searches its own tree by radius on
-    every call, which made the 24 starts take seconds.
+    sparse samples. Hand-written on the nominal's prepared cKDTrees: Open3D's ``registration_icp``
+    searches its own tree by radius on every call, which made the 24 starts take seconds.
     """
+    tree, samples, sample_normals = _samples(nominal, coarse)
     rotation, translation = transform[:3, :3].copy(), transform[:3, 3].copy()
     for cut_off in distances:
-        tree, samples, sample_normals = _samples(nominal, coarse or cut_off > 4 * nominal.coarse_spacing)
         moved = points @ rotation.T + translation
         # bounded: a far query visits much of the tree, and beyond the cut-off its weight is 0 anyway
         distance, index = tree.query(moved, distance_upper_bound=cut_off)

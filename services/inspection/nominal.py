@@ -34,7 +34,8 @@ class NominalSurface:
     Triangles are turned outward if the mesh's signed volume is negative, so a positive signed
     distance means material outside the nominal surface and a negative one material missing.
     The signed distance within ``GRID_BAND_MM`` of the surface is also tabulated on a 1 mm grid
-    (``build_distance_grid``), which ``signed_distance`` reads instead of querying the mesh.
+    (``build_distance_grid``, built on the first ``signed_distance``), which ``signed_distance`` reads
+    instead of querying the mesh.
     """
 
     vertices: np.ndarray
@@ -46,9 +47,8 @@ class NominalSurface:
     coarse_samples: np.ndarray = field(init=False, repr=False)
     coarse_normals: np.ndarray = field(init=False, repr=False)
     coarse_tree: cKDTree = field(init=False, repr=False)
-    coarse_spacing: float = field(init=False, repr=False)
+    area: float = field(init=False, repr=False)
     triangle_normals: np.ndarray = field(init=False, repr=False)
-    grid: DistanceGrid = field(init=False, repr=False)
 
     def __post_init__(self) -> None:
         o3d = open3d()
@@ -72,10 +72,15 @@ class NominalSurface:
         normals = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
         with np.errstate(invalid="ignore", divide="ignore"):
             self.triangle_normals = normals / np.linalg.norm(normals, axis=1, keepdims=True)
-        area = np.linalg.norm(normals, axis=1).sum() / 2
-        self.coarse_spacing = float(np.sqrt(area / len(self.coarse_samples)))
-        dense, _ = _area_samples(vertices, triangles, int(np.ceil(8 * area / GRID_SPACING_MM**2)) + 1)
-        self.grid = build_distance_grid(dense, self._exact, GRID_BAND_MM, GRID_SPACING_MM)
+        self.area = float(np.linalg.norm(normals, axis=1).sum() / 2)
+
+    @cached_property
+    def grid(self) -> DistanceGrid:
+        """The tabulated signed distance (a few seconds for a fine mesh: built when first needed, so that
+        checking a part file, which only fits its features, does not pay for it)."""
+        count = int(np.ceil(8 * self.area / GRID_SPACING_MM**2)) + 1
+        dense, _ = _area_samples(self.vertices, self.triangles, count)
+        return build_distance_grid(dense, self._exact, GRID_BAND_MM, GRID_SPACING_MM)
 
     @cached_property
     def centroid(self) -> np.ndarray:
