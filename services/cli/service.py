@@ -100,15 +100,25 @@ def _serve(args: argparse.Namespace) -> int:
 
 @contextlib.contextmanager
 def _opcua_server(runtime):
-    """The OPC UA server when ``THERMOFIELD_OPCUA_ENDPOINT`` is set, fed by this process's job tracker."""
-    if not runtime.settings.opcua_endpoint:
+    """The OPC UA server when ``THERMOFIELD_OPCUA_ENDPOINT`` is set, fed by this process's job tracker when it runs
+    the jobs (``serve``), else by the workers' job states over MQTT (``api``, scaled out)."""
+    settings = runtime.settings
+    if not settings.opcua_endpoint:
         yield None
         return
+    if settings.broker_url and not settings.mqtt_host:
+        raise InputError("THERMOFIELD_OPCUA_ENDPOINT: the scaled-out API hears of the workers' results over MQTT; "
+                         "set THERMOFIELD_MQTT_HOST too")
+    from services.events.job_states import JobStateSubscriber
     from services.events.opcua import OpcUaServer
 
-    with OpcUaServer(runtime.settings.opcua_endpoint, runtime.sessions, runtime.settings.station) as server:
-        runtime.tracker.listeners.append(server.notify)
+    with OpcUaServer(settings.opcua_endpoint, runtime.sessions, settings.station) as server:
         print(f"thermofield: OPC UA on {server.endpoint}", flush=True)
+        if settings.broker_url:
+            with JobStateSubscriber(settings.mqtt_host, settings.mqtt_port, settings.topic_prefix, server.notify):
+                yield server
+            return
+        runtime.tracker.listeners.append(server.notify)
         try:
             yield server
         finally:
@@ -187,7 +197,7 @@ def _api(args: argparse.Namespace) -> int:
     runtime = build_runtime(settings)
     jobs = JobQueue(job_broker(settings), settings.job_queue)
     print(f"thermofield: API on http://{settings.api_host}:{settings.api_port}", flush=True)
-    with _maintenance_thread(runtime):
+    with _maintenance_thread(runtime), _opcua_server(runtime):
         _run_uvicorn(create_app(runtime, jobs), settings)
     return 0
 

@@ -4,6 +4,7 @@ client: the vision system's state, recipes from the part types, a ResultReady ev
 import asyncio
 import socket
 import time
+import uuid
 
 import pytest
 from asyncua import Client, ua
@@ -12,6 +13,8 @@ from services.db.engine import make_sessions
 from services.db.models import CalibrationSet, PartType, Scan
 from services.db.parts import select_part_type
 from services.errors import InputError
+from services.events.job_states import JobStateSubscriber
+from services.events.mqtt import EventPublisher
 from services.events.opcua import NAMESPACE, RECIPE_REFRESH_S, OpcUaServer, result_state
 from services.jobs.tracker import JobTracker
 
@@ -157,3 +160,33 @@ def test_a_bad_endpoint_or_a_taken_port_is_a_clear_error(engine):
         with pytest.raises(InputError, match="cannot listen"):
             with OpcUaServer(endpoint, sessions, "station1"):
                 pass
+
+
+def test_scaled_out_the_workers_results_reach_opc_ua_over_mqtt(engine):
+    """``thermofield api`` runs no jobs: a worker's tracker publishes the states on MQTT, the API's subscriber
+    feeds its OPC UA server, which fires ResultReady as in the embedded mode."""
+    sessions = make_sessions(engine)
+    prefix = f"test-{uuid.uuid4().hex[:8]}/station1"
+    worker_tracker = JobTracker(sessions, EventPublisher("127.0.0.1", 1883, prefix))
+    endpoint = f"opc.tcp://127.0.0.1:{_free_port()}/thermofield"
+
+    async def client_side(subscriber: JobStateSubscriber) -> None:
+        async with Client(endpoint) as client:
+            namespace = await client.get_namespace_index(NAMESPACE)
+            vision = await client.nodes.objects.get_child(f"{namespace}:VisionSystem")
+            event_type = await client.nodes.base_event_type.get_child(f"{namespace}:ResultReadyEventType")
+            events = _Events()
+            subscription = await client.create_subscription(50, events)
+            await subscription.subscribe_events(vision, event_type)
+            assert await asyncio.to_thread(subscriber.subscribed.wait, 20)
+            job, scan = _scan_job(worker_tracker, None, "billet-21")
+            worker_tracker.start(job, "worker-host:7")
+            worker_tracker.succeed(job, {})
+            await _wait_for(lambda: len(events.received) >= 1)
+            await asyncio.sleep(0.5)  # no second event for the same result
+            assert [(e["ResultId"], e["PartId"], e["JobId"]) for e in events.received] == [(scan, "billet-21", job)]
+
+    with OpcUaServer(endpoint, sessions, "station1") as server, \
+            JobStateSubscriber("127.0.0.1", 1883, prefix, server.notify) as subscriber:
+        asyncio.run(client_side(subscriber))
+    worker_tracker.publisher.close()

@@ -2,15 +2,20 @@
 `thermofield gateway` as separate processes on PostgreSQL, RabbitMQ and Mosquitto, a shared artifact
 directory, as in docker/ (configured only by environment variables). A worker SIGKILLed in the middle of
 a scan: the scan is finished exactly once by a restarted worker, its artifacts whole, its MQTT states in
-order."""
+order. The API's OPC UA server hears of the workers' results over MQTT."""
 
+import asyncio
 import hashlib
 import signal
 import subprocess
+import threading
 import time
 
 import httpx
 import numpy as np
+from asyncua import Client
+
+from services.events.opcua import NAMESPACE
 
 from services.formats.ply import read_cloud
 from services.formats.rig import rig_to_json
@@ -20,13 +25,15 @@ from services.simulation.presets import forging_rig
 def test_scaled_out_scans_with_two_workers_and_survive_a_worker_crash(e2e, deployment, tmp_path):
     env = deployment
     api_url = f"http://127.0.0.1:{env['THERMOFIELD_API_PORT']}"
+    opcua = f"opc.tcp://127.0.0.1:{e2e.free_port()}/thermofield"
     e2e.processes.start("gateway", ["gateway"], env)
-    e2e.processes.start("api", ["api"], env)
+    e2e.processes.start("api", ["api"], env | {"THERMOFIELD_OPCUA_ENDPOINT": opcua})
     worker = e2e.processes.start("worker", ["worker"], env)
     e2e.processes.wait_until_healthy(f"{env['THERMOFIELD_GATEWAY_URL']}/healthz", "gateway")
     e2e.processes.wait_until_healthy(f"{api_url}/readyz", "api")
     admin = e2e.create_key(env, ["admin"])
     events = e2e.mqtt(f"{env['THERMOFIELD_SITE']}/station1")
+    results = _ResultReadyListener(opcua)
 
     with httpx.Client(base_url=api_url, headers={"Authorization": f"Bearer {admin}"}, timeout=30) as client:
         assert client.post("/v1/scans").status_code == 409  # nothing is active before a calibration set exists
@@ -41,6 +48,10 @@ def test_scaled_out_scans_with_two_workers_and_survive_a_worker_crash(e2e, deplo
             assert final[0] == "done" and final[1]["status"] == "succeeded", (final, e2e.processes.log("worker"))
             workers.add(final[1]["worker"])
         assert len(workers) == 2, workers  # the two scans ran at once, one in each spawned worker process
+        assert results.wait_for(2), results.received
+        assert sorted((r["ResultId"], r["PartId"], r["ResultState"]) for r in results.received[:2]) == sorted(
+            (job["scan_id"], f"part-{i}", 0) for i, job in enumerate(jobs))  # 0: not inspected (no part type)
+        results.close()
         scan = client.get(f"/v1/scans/{jobs[0]['scan_id']}").json()
         (tmp_path / "field.ply").write_bytes(client.get(scan["links"]["field.ply"]).content)
         assert scan["summary"]["temperature"]["max"] > 900
@@ -91,6 +102,41 @@ def _assert_in_order(states: list[dict]) -> None:
             assert after["fraction"] >= before["fraction"], (before, after)
 
 
+class _ResultReadyListener:
+    """An asyncua client, on a thread of its own, collecting the OPC UA server's ResultReady events."""
+
+    def __init__(self, endpoint: str) -> None:
+        self.endpoint, self.received = endpoint, []
+        self._subscribed, self._stop = threading.Event(), threading.Event()
+        self._thread = threading.Thread(target=lambda: asyncio.run(self._listen()), daemon=True)
+        self._thread.start()
+        assert self._subscribed.wait(30), f"no OPC UA server at {endpoint}"
+
+    def close(self) -> None:
+        self._stop.set()
+        self._thread.join(10)
+
+    def event_notification(self, event) -> None:
+        self.received.append({name: getattr(event, name) for name in ("ResultId", "PartId", "ResultState")})
+
+    def wait_for(self, count: int, timeout_s: float = 30) -> bool:
+        deadline = time.monotonic() + timeout_s
+        while len(self.received) < count and time.monotonic() < deadline:
+            time.sleep(0.1)
+        return len(self.received) >= count
+
+    async def _listen(self) -> None:
+        async with Client(self.endpoint) as client:
+            namespace = await client.get_namespace_index(NAMESPACE)
+            vision = await client.nodes.objects.get_child(f"{namespace}:VisionSystem")
+            event_type = await client.nodes.base_event_type.get_child(f"{namespace}:ResultReadyEventType")
+            subscription = await client.create_subscription(100, self)
+            await subscription.subscribe_events(vision, event_type)
+            self._subscribed.set()
+            while not self._stop.is_set():
+                await asyncio.sleep(0.1)
+
+
 def _wait_for_stage(client: httpx.Client, job_id: str, reached, timeout_s: float = 120.0) -> None:
     deadline = time.monotonic() + timeout_s
     while time.monotonic() < deadline:
@@ -110,3 +156,15 @@ def test_api_and_worker_refuse_to_start_without_a_broker(tmp_path):
                                 text=True, timeout=120)
         assert result.returncode == 2
         assert "THERMOFIELD_BROKER_URL" in result.stderr and "Traceback" not in result.stderr
+
+
+def test_the_scaled_out_api_refuses_opc_ua_without_mqtt(deployment, tmp_path):
+    import os
+    import sys
+
+    env = os.environ | deployment | {"THERMOFIELD_OPCUA_ENDPOINT": "opc.tcp://127.0.0.1:4840/thermofield",
+                                     "THERMOFIELD_MQTT_HOST": ""}
+    result = subprocess.run([sys.executable, "-m", "services.cli.main", "api"], env=env, capture_output=True,
+                            text=True, timeout=120)
+    assert result.returncode == 2, result.stderr
+    assert "THERMOFIELD_MQTT_HOST" in result.stderr and "Traceback" not in result.stderr
