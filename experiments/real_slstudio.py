@@ -121,31 +121,6 @@ def board_geometry_errors(rig: tuple[CameraModel, CameraModel], corners: tuple[n
     return float(np.sqrt(np.mean(np.sum(residual ** 2, axis=1)))), scale - 1.0
 
 
-def window_sensitivity(sequences: list[int], fractions=(0.15, 0.2, 0.25, 0.3)) -> list[tuple[float, float]]:
-    """Camera RMS against the saddle-point window (fraction of the corner spacing; the project's rule is
-    0.25): how much of the gap to SLStudio's camera RMS the corner refinement explains."""
-    from services.calibration import corners as corner_module
-    from services.calibration.camera import calibrate_camera
-
-    board = ChessboardSpec(**BOARD)
-    images = []
-    for n in sequences:
-        sequence, frames = read_capture(CALIBRATION / f"calseq{n}", CALIBRATION_MANIFEST)
-        images.append(np.clip(np.round(decode(frames, sequence, edge_margin=0).intensity), 0, 255).astype(np.uint8))
-    rule = corner_module._WINDOW_FRACTION
-    results = []
-    try:
-        for fraction in fractions:
-            corner_module._WINDOW_FRACTION = fraction
-            found = [detect_board(image, board) for image in images]
-            result = calibrate_camera([board.object_points()[d.ids] for d in found], [d.image_points for d in found],
-                                      (images[0].shape[1], images[0].shape[0]))
-            results.append((fraction, result.rms))
-    finally:
-        corner_module._WINDOW_FRACTION = rule
-    return results
-
-
 def devices(rig) -> tuple[CameraModel, CameraModel]:
     return rig.device(None, "camera")[1], rig.device(None, "projector")[1]
 
@@ -291,9 +266,12 @@ def main() -> None:
         rows.append(row)
     print(_markdown(["sequence", *[f"{label}: RMS from the board, scale error" for label in rigs]], rows))
 
-    print("\n## Camera RMS against the corner window (SLStudio's five)\n")
-    print(_markdown(["half window / corner spacing", "camera RMS (px)"],
-                    [[f"{fraction:.2f}", f"{rms:.3f}"] for fraction, rms in window_sensitivity([1, 3, 4, 5, 6])]))
+    for label, run in runs.items():
+        window = run["camera"]["corner_window"]
+        print(f"\n## The corner window, chosen by cross-validation ({label})\n")
+        print(_markdown(["half window / corner spacing", "held-out RMS (px)"],
+                        [[f"{c['fraction']:.3f}", f"{c['held_out_rms_px']:.3f}"] for c in window["candidates"]]))
+        print(f"\nchosen: {window['reason']}")
 
     print("\n## skull_2x3\n")
     sequence, frames = read_capture(SKULL, SKULL_MANIFEST)

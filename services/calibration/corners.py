@@ -13,7 +13,8 @@ from services.intensity import percentile_stretch
 
 # Half-window of the saddle-point refinement as a fraction of the local corner spacing: the
 # window then covers the four squares around a corner but never reaches a neighbouring corner.
-_WINDOW_FRACTION = 0.25
+# A calibration chooses its own fraction from its views (services.calibration.corner_window).
+DEFAULT_WINDOW_FRACTION = 0.25
 _MIN_HALF_WINDOW = 2
 _SUBPIX_CRITERIA = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 100, 1e-6)
 _WEAKEST_CORNER = 0.3  # every detected corner must be an X-junction this strong relative to the median
@@ -209,15 +210,18 @@ def _detect_circles(grey: np.ndarray, board: CirclesSpec) -> tuple[np.ndarray, n
     return centres.reshape(-1, 2), np.arange(len(centres))
 
 
-def refine_corners(image: np.ndarray, corners: np.ndarray) -> np.ndarray:
+def refine_corners(image: np.ndarray, corners: np.ndarray,
+                   window_fraction: float = DEFAULT_WINDOW_FRACTION) -> np.ndarray:
     """Refine chessboard corners to the intensity saddle point with a spacing-derived window.
 
     Parameters
     ----------
-    image : (H, W) uint8 or float32 array
-        The image.
+    image : (H, W) uint8, uint16 or float32 array
+        The image (16-bit frames are stretched as in ``detect_board``).
     corners : (N, 2) array, N >= 2
         Approximate corner positions in pixels.
+    window_fraction : float, optional
+        Half window as a fraction of each corner's distance to its nearest neighbour, in (0, 0.5).
 
     Returns
     -------
@@ -225,17 +229,20 @@ def refine_corners(image: np.ndarray, corners: np.ndarray) -> np.ndarray:
 
     Notes
     -----
-    Each corner gets its own half window, a quarter of the distance to its nearest
-    neighbouring corner (at least 2 pixels), then ``cv2.cornerSubPix``; see
-    ``detect_board``.
+    Each corner gets its own half window, ``window_fraction`` (by default a quarter) of the
+    distance to its nearest neighbouring corner (at least 2 pixels), then ``cv2.cornerSubPix``;
+    see ``detect_board``.
     """
     corners = np.asarray(corners, dtype=np.float32).reshape(-1, 2)
     if len(corners) < 2:
         raise ValueError(f"At least two corners are needed to derive the refinement window; got {len(corners)}.")
+    if not 0 < window_fraction < 0.5:
+        raise ValueError(f"The window fraction must lie between 0 and 0.5 of the corner spacing; got {window_fraction}.")
     spacing = cKDTree(corners).query(corners, k=2)[0][:, 1]
-    half_windows = np.maximum(_MIN_HALF_WINDOW, np.floor(_WINDOW_FRACTION * spacing)).astype(int)
+    half_windows = np.maximum(_MIN_HALF_WINDOW, np.floor(window_fraction * spacing)).astype(int)
     refined = corners.copy()
-    image = np.asarray(image, dtype=np.float32)
+    image = np.asarray(image)
+    image = _grey_levels(image) if image.dtype in (np.uint8, np.uint16) else image.astype(np.float32)
     for half in np.unique(half_windows):
         chosen = half_windows == half
         block = refined[chosen].reshape(-1, 1, 2).copy()

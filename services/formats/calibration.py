@@ -9,12 +9,20 @@
             "R": [[...]], "t": [...], "pose_std": [rx, ry, rz, tx, ty, tz]}],
  "rejected": [{"image": "ir07.png", "reason": "reprojection RMS ... exceeds ..."}],
  "model_selection": {"reason": "radial has the lowest BIC ...",
-                     "candidates": [{"model": "none", "rms_px": 0.9, "parameters": 100, "bic": -1200.0}, ...]}}
+                     "candidates": [{"model": "none", "rms_px": 0.9, "parameters": 100, "bic": -1200.0}, ...]},
+ "corner_window": {"fraction": 0.2, "reason": "a half window of 0.2 of the corner spacing predicts ...",
+                   "candidates": [{"fraction": 0.15, "held_out_rms_px": 0.35}, ...]}}
 ```
 
 ``model_selection`` is present when the lens model was chosen from the data (``--distortion auto``):
 every candidate's RMS, number of estimated parameters (intrinsics and six per view) and Bayesian
 information criterion, and why ``distortion_model`` won.
+
+``corner_window`` is present for chessboard and ChArUco boards: the half window of the corners' saddle-point
+refinement, as a fraction of the corner spacing, chosen from the views by cross-validation, with every
+candidate's held-out reprojection RMS (empty with fewer than four views, when the default 0.25 is kept).
+Projector calibrations with this camera refine its corners with the same window; files without the key
+(written before it existed) mean 0.25.
 
 ``views[i].R, t`` is the board-to-camera pose, x_cam = R x_board + t, in millimetres;
 ``pose_std`` holds the standard deviations of the Rodrigues vector (rad) and of t (mm).
@@ -25,7 +33,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from matplotlib.figure import Figure
-from pydantic import BaseModel, ConfigDict
+from pydantic import BaseModel, ConfigDict, Field
 
 from services.formats.board import BoardSpec
 from services.formats.files import atomic_output
@@ -68,6 +76,21 @@ class ModelSelectionRecord(BaseModel):
     candidates: list[ModelCandidate]
 
 
+class WindowCandidate(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+    fraction: float
+    held_out_rms_px: float
+
+
+class CornerWindowRecord(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+    fraction: float = Field(gt=0, lt=0.5)
+    reason: str
+    candidates: list[WindowCandidate]
+
+
 class CameraCalibrationFile(BaseModel):
     """What ``thermofield calibrate camera`` writes."""
 
@@ -86,6 +109,7 @@ class CameraCalibrationFile(BaseModel):
     views: list[CalibratedView]
     rejected: list[RejectedView]
     model_selection: ModelSelectionRecord | None = None
+    corner_window: CornerWindowRecord | None = None
 
     def device(self) -> CameraModel:
         """The calibrated device at the world origin, as a rig entry."""

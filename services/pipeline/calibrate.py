@@ -14,7 +14,8 @@ import numpy as np
 from matplotlib.figure import Figure
 
 from services.calibration.camera import calibrate_camera
-from services.calibration.corners import BoardDetection, detect_board
+from services.calibration.corner_window import WindowSelection, select_corner_window
+from services.calibration.corners import DEFAULT_WINDOW_FRACTION, BoardDetection, detect_board, refine_corners
 from services.calibration.model_selection import ModelSelection
 from services.calibration.projector import calibrate_projector, projector_corners
 from services.calibration.report import coverage_map, residual_bars, residual_vectors
@@ -22,8 +23,8 @@ from services.calibration.stereo import calibrate_stereo
 from services.errors import InputError
 from services.formats.board import MIN_VIEWS, BoardSpec
 from services.formats.calibration import (
-    CalibratedView, CameraCalibrationFile, ModelCandidate, ModelSelectionRecord, ProjectorCalibrationFile, RejectedView,
-    StereoCalibrationFile,
+    CalibratedView, CameraCalibrationFile, CornerWindowRecord, ModelCandidate, ModelSelectionRecord,
+    ProjectorCalibrationFile, RejectedView, StereoCalibrationFile, WindowCandidate,
 )
 from services.formats.rig import Rig
 from services.formats.sequence import Sequence as PatternSequence
@@ -94,7 +95,11 @@ def calibrate_camera_views(*, images: Sequence[LabelledImage], board: BoardSpec,
                          f"{MIN_VIEWS} views")
     detections, size = detect_in_images(images, board, unreadable)
     object_points = [board.object_points()[d.ids] for d in detections]
-    result = calibrate_camera(object_points, [d.image_points for d in detections], size, distortion)
+    image_points, window = [d.image_points for d in detections], None
+    if board.type != "circles":
+        window = select_corner_window([image for _, image in images], image_points, object_points, size, distortion)
+        image_points = window.image_points
+    result = calibrate_camera(object_points, image_points, size, distortion)
     names = [label for label, _ in images]
     views = [
         CalibratedView(image=names[i], rms_px=float(rms), polarity=detections[i].polarity, R=R.tolist(),
@@ -107,8 +112,9 @@ def calibrate_camera_views(*, images: Sequence[LabelledImage], board: BoardSpec,
         distortion_model=result.distortion_model, rms_px=result.rms, std=result.std, board=board, views=views,
         rejected=[RejectedView(image=names[i], reason=reason) for i, reason in result.rejected],
         model_selection=_model_selection_record(result.model_selection),
+        corner_window=_corner_window_record(window),
     )
-    kept_points = [detections[i].image_points for i in result.views]
+    kept_points = [image_points[i] for i in result.views]
     figures = {
         "residual_bars": residual_bars(result.per_view_rms, [names[i] for i in result.views], result.rms),
         "residual_vectors": residual_vectors(kept_points, result.residuals, size),
@@ -123,6 +129,13 @@ def _model_selection_record(selection: ModelSelection | None) -> ModelSelectionR
     return ModelSelectionRecord(reason=selection.reason, candidates=[
         ModelCandidate(model=fit.model, rms_px=fit.rms, parameters=fit.parameters, bic=fit.bic)
         for fit in selection.fits])
+
+
+def _corner_window_record(window: WindowSelection | None) -> CornerWindowRecord | None:
+    if window is None:
+        return None
+    return CornerWindowRecord(fraction=window.fraction, reason=window.reason, candidates=[
+        WindowCandidate(fraction=fraction, held_out_rms_px=rms) for fraction, rms in window.held_out_rms.items()])
 
 
 BoardCapture = tuple[str, PatternSequence, np.ndarray]
@@ -140,6 +153,8 @@ def calibrate_projector_captures(*, captures: Sequence[BoardCapture], board: Boa
         raise InputError(f"{len(captures)} captures given; projector calibration needs at least {MIN_VIEWS} "
                          "board poses")
     objects, camera_points, projector_points, problems, projector_size = [], [], [], [], None
+    # The camera's corners are refined as its own calibration refined them.
+    window_fraction = camera.corner_window.fraction if camera.corner_window else DEFAULT_WINDOW_FRACTION
     for label, sequence, frames in captures:
         size = (sequence.projector.width, sequence.projector.height)
         if projector_size is not None and size != projector_size:
@@ -163,14 +178,15 @@ def calibrate_projector_captures(*, captures: Sequence[BoardCapture], board: Boa
         if detection is None:
             problems.append(f"{label}: no {_describe(board)} found in the lit frame")
             continue
-        half_window = max(2, int(0.5 * _corner_spacing(detection.image_points)))
-        corners, found = projector_corners(detection.image_points, decoded.projector_x, decoded.projector_y,
+        camera_corners = refine_corners(lit, detection.image_points, window_fraction)
+        half_window = max(2, int(0.5 * _corner_spacing(camera_corners)))
+        corners, found = projector_corners(camera_corners, decoded.projector_x, decoded.projector_y,
                                            half_window, decoded.modulation)
         if found.sum() < 6:
             problems.append(f"{label}: only {found.sum()} board corners were decoded (is the board lit?)")
             continue
         objects.append(board.object_points()[detection.ids[found]])
-        camera_points.append(detection.image_points[found])
+        camera_points.append(camera_corners[found])
         projector_points.append(corners[found])
     if problems:
         raise InputError(f"{len(problems)} of {len(captures)} captures cannot be used:\n  " + "\n  ".join(problems))

@@ -38,6 +38,18 @@ def six(tmp_path_factory):
 
 
 @pytest.fixture(scope="module")
+def five_cameras(tmp_path_factory):
+    """Our camera calibration from SLStudio's own five sequences (1, 3, 4, 5, 6)."""
+    work = tmp_path_factory.mktemp("slstudio_five")
+    board = work / "board.json"
+    board.write_text(json.dumps({"type": "chessboard", "inner_corners": [13, 9], "square_mm": 10.0}))
+    assert thermofield(["calibrate", "camera", "--board", str(board), "--captures",
+                        *[str(DATA / "calibration" / f"calseq{n}") for n in (1, 3, 4, 5, 6)],
+                        "--manifest", str(CALIBRATION_MANIFEST), "--out", str(work / "camera.json")]) == 0
+    return json.loads((work / "camera.json").read_text())
+
+
+@pytest.fixture(scope="module")
 def slstudio_rig(tmp_path_factory):
     out = tmp_path_factory.mktemp("imported") / "rig.json"
     assert thermofield(["rig", "import", "--format", "slstudio", str(DATA / "calibration" / "calibration.xml"),
@@ -59,10 +71,16 @@ def skull(six, slstudio_rig):
     return maps
 
 
-def test_camera_calibration_is_within_a_tenth_of_slstudios_rms_with_every_sigma(six):
+def test_camera_calibration_meets_slstudios_rms_on_its_five_sequences(five_cameras):
+    assert five_cameras["rms_px"] <= SLSTUDIO["camera"]
+    window = five_cameras["corner_window"]
+    held_out = {candidate["fraction"]: candidate["held_out_rms_px"] for candidate in window["candidates"]}
+    assert window["fraction"] == min(held_out, key=held_out.get) and len(held_out) >= 5
+
+
+def test_camera_calibration_of_all_six_has_every_sigma(six):
     camera = six["camera"]
-    # Not met: SLStudio reports 0.282 px on its five sequences; ours is 0.301 px on six, 0.291 on the same five.
-    assert camera["rms_px"] <= 1.1 * SLSTUDIO["camera"]
+    assert camera["rms_px"] <= 1.1 * SLSTUDIO["camera"]  # sequence 2's board is dimmer: 0.291 px on six
     assert set(camera["std"]) == {"fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3"}
     assert all(np.isfinite(s) and s > 0 for s in camera["std"].values())
     assert abs(camera["K"][0][0] / 2195.12 - 1) < 0.01  # SLStudio's focal length within 1 %
