@@ -49,7 +49,7 @@ def create_app(runtime: Runtime, job_queue: JobQueue) -> FastAPI:
     app.add_middleware(MetricsMiddleware, metrics=app.state.metrics)
     app.include_router(health.router)
     v1 = APIRouter(prefix="/v1", responses=problem_responses(401, 403, 422, 429, 503))
-    for module in (scans, jobs, calibrations, parts, devices, apikeys):
+    for module in (jobs, scans, calibrations, parts, devices, apikeys):  # jobs first: the polls match at once
         v1.include_router(module.router)
     app.include_router(v1)
     return app

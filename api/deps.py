@@ -76,13 +76,17 @@ class KeyCache:
         self._keys = {digest: entry for digest, entry in self._keys.items() if entry[1].id != key_id}
 
 
-async def get_current_key(
-    request: Request, runtime: RuntimeDep,
-    credentials: Annotated[HTTPAuthorizationCredentials | None, Depends(_bearer)],
-) -> ApiKey:
+async def _authenticate(request: Request, credentials: HTTPAuthorizationCredentials | None) -> ApiKey:
+    """The caller's key, from the cache or the database; 401 for none or an unknown or revoked one, 429 over
+    its rate limit. Once per request (a route may need two scopes' checks, e.g. its own and its resource's),
+    so that a request takes one token of the key's rate limit."""
+    authenticated = getattr(request.state, "api_key", None)
+    if authenticated is not None:
+        return authenticated
     challenge = {"WWW-Authenticate": "Bearer"}
     if credentials is None:
         raise Problem(401, "unauthenticated", "Send an API key as 'Authorization: Bearer <key>'.", challenge)
+    runtime: Runtime = request.app.state.runtime
     cache: KeyCache = request.app.state.key_cache
     digest = secret_digest(credentials.credentials)
     key = cache.get(digest)
@@ -95,6 +99,7 @@ async def get_current_key(
     if wait:
         raise Problem(429, "rate-limited", f"This API key made more than {runtime.settings.rate_limit_per_s:g} "
                                            f"requests per second; retry in {wait} s.", {"Retry-After": str(wait)})
+    request.state.api_key = key
     return key
 
 
@@ -103,11 +108,13 @@ def _find_key(runtime: Runtime, secret: str) -> ApiKey | None:
         return find_api_key(session, secret)
 
 
-CurrentKey = Annotated[ApiKey, Depends(get_current_key)]
+def _require(scope: str) -> Callable[..., Awaitable[ApiKey]]:
+    """The dependency of a route that needs ``scope``: authentication and the scope check in one dependency
+    (each dependency costs FastAPI work on every request, and every poll of a job pays it)."""
 
-
-def _require(scope: str) -> Callable[[ApiKey], Awaitable[ApiKey]]:
-    async def check(key: CurrentKey) -> ApiKey:
+    async def check(request: Request,
+                    credentials: Annotated[HTTPAuthorizationCredentials | None, Depends(_bearer)]) -> ApiKey:
+        key = await _authenticate(request, credentials)
         if not grants(key, scope):
             raise Problem(403, "forbidden", f"This API key lacks the '{scope}' scope (it has: {key.scopes}).")
         return key

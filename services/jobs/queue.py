@@ -7,6 +7,8 @@ never loads the workers' science.
 
 from __future__ import annotations
 
+from concurrent.futures import ThreadPoolExecutor
+
 import dramatiq
 from dramatiq.brokers.rabbitmq import RabbitmqBroker
 from dramatiq.brokers.stub import StubBroker
@@ -24,14 +26,23 @@ def job_broker(settings: Settings) -> dramatiq.Broker:
 
 
 class JobQueue:
-    """Sends job ids to actors by name on one queue of ``broker``."""
+    """Sends job ids to actors by name on one queue of ``broker``, every message from one thread.
+
+    Dramatiq's RabbitMQ broker opens a connection for each thread that sends and keeps it
+    for the life of the broker. The API sends from the threads of its thread pool, which
+    anyio retires after 10 s idle and replaces with new ones, so each send from a fresh
+    thread would leave one more open connection behind (the API's file descriptors grew
+    33 -> 73 in the soak, docs/reliability.md). Sending from one thread of this queue keeps
+    it to one connection per process.
+    """
 
     def __init__(self, broker: dramatiq.Broker, queue_name: str) -> None:
         self.broker, self.queue_name = broker, queue_name
-        broker.declare_queue(queue_name)
+        self._sender = ThreadPoolExecutor(max_workers=1, thread_name_prefix="job-queue")
+        self._sender.submit(broker.declare_queue, queue_name).result()
 
     def send(self, kind: str, job_id: str) -> dramatiq.Message:
-        """Queue job ``job_id`` for the actor named ``kind``."""
+        """Queue job ``job_id`` for the actor named ``kind`` (blocks until the broker has taken it)."""
         message = dramatiq.Message(queue_name=self.queue_name, actor_name=kind, args=(job_id,), kwargs={},
                                    options={})
-        return self.broker.enqueue(message)
+        return self._sender.submit(self.broker.enqueue, message).result()

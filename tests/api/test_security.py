@@ -91,6 +91,13 @@ def test_each_key_is_rate_limited_with_retry_after(limited_client, auth):
     assert limited_client.get("/healthz").status_code == 200
 
 
+def test_a_request_checking_two_scopes_takes_one_token(limited_client, auth):
+    # POST /v1/scans/{id}/jobs checks the operate scope and, through the scan it names, the read scope.
+    statuses = [limited_client.post("/v1/scans/none/jobs", headers=auth["operate"], json={"kind": "reconstruct"})
+                .status_code for _ in range(4)]
+    assert statuses == [404, 404, 404, 429]
+
+
 class _Result:
     def __init__(self, returncode, captured):
         self.returncode, self.stdout, self.stderr = returncode, captured.out, captured.err

@@ -2,8 +2,10 @@
 at once (two API processes); a broker that cannot be reached leaves them pending, never lost."""
 
 import threading
+import uuid
 
 import dramatiq
+import pika
 import pytest
 from dramatiq.brokers.rabbitmq import RabbitmqBroker
 from dramatiq.brokers.stub import StubBroker
@@ -80,3 +82,26 @@ def test_a_refusing_broker_leaves_the_jobs_pending_and_the_thread_sends_them_lat
                 break
             threading.Event().wait(0.05)
     assert _sent(queue) == ids
+
+
+@pytest.mark.postgres  # the machine's RabbitMQ
+def test_the_queue_sends_over_one_connection_whichever_thread_calls_it():
+    """The API sends from its thread pool's threads, which come and go; Dramatiq's broker would open a
+    connection per thread and keep each (the API's descriptors grew in the soak): one connection for all."""
+    url, queue_name = "amqp://guest:guest@127.0.0.1:5672", f"tf-queue-test-{uuid.uuid4().hex[:8]}"
+    broker = RabbitmqBroker(url=url, confirm_delivery=True)
+    queue = JobQueue(broker, queue_name)
+    connection = pika.BlockingConnection(pika.URLParameters(url))
+    try:
+        for index in range(4):  # each from a thread that then ends, as retired pool threads do
+            thread = threading.Thread(target=queue.send, args=("scan", f"job-{index}"))
+            thread.start()
+            thread.join(30)
+        assert len(broker.connections) == 1
+        assert connection.channel().queue_declare(queue_name, passive=True).method.message_count == 4
+    finally:
+        broker.close()
+        channel = connection.channel()
+        for name in (queue_name, f"{queue_name}.DQ", f"{queue_name}.XQ"):
+            channel.queue_delete(name)
+        connection.close()

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import socket
 import subprocess
 import time
@@ -78,6 +79,17 @@ def test_scan_recording_holds_points_temperatures_and_colours(tmp_path, rig, fie
     expected = temperature_colors(field["temperature"]).astype(np.uint32)
     packed = (expected[:, 0] << 24) | (expected[:, 1] << 16) | (expected[:, 2] << 8) | 0xFF
     np.testing.assert_array_equal(colours, packed)
+
+
+def test_scan_recordings_leave_no_threads_behind(rig, field):
+    """Rerun keeps a dropped stream's threads unless orphans are cleaned up (rerun-io/rerun#2116): a worker
+    making one recording per scan must not grow by a thread per scan."""
+    scene = field_scene(field, rig)
+    scan_recording("scan-0", scene)
+    threads = len(os.listdir("/proc/self/task"))
+    for index in range(1, 6):
+        scan_recording(f"scan-{index}", scene)
+    assert len(os.listdir("/proc/self/task")) <= threads
 
 
 def test_device_frusta_keep_the_world_to_device_pose(tmp_path, rig, field):
