@@ -170,8 +170,11 @@ class PrivateRabbitmq:
 
         root = psutil.Process(self.process.pid)
         for process in [*root.children(recursive=True), root]:
-            if process.name() != "epmd":
-                process.kill()
+            try:  # a child may exit between being listed and being looked at
+                if process.name() != "epmd":
+                    process.kill()
+            except psutil.NoSuchProcess:
+                pass
         self.process.wait(60)
         wait_for_port(self.port, up=False)
 
