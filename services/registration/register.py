@@ -41,7 +41,6 @@ _POWELL_FTOL = 1e-5  # relative change of the objective that ends a Powell itera
 _FIELD_SIGMA = 1.0  # Gaussian smoothing (pixels) before gradient fields are taken
 _POLISH_RADII = (1.0, 0.5, 0.25)  # full-resolution quadratic fits, design radius in pixels of corner motion
 _POLISH_STEPS = 8  # most fits at one radius while the maximum lies outside the design
-POLISH = True  # TEMP experiment switch
 DEFAULT_PREPROCESSING = {"mi": "gradient", "nmi": "gradient", "ngf": "none"}  # NGF takes its own gradients
 
 
@@ -186,14 +185,18 @@ def _polish(
     """
     height, width = moving.shape
     count = PARAMETER_COUNTS[model]
+
+    def value(parameters: np.ndarray) -> float:
+        return objective(sample_fixed(fixed, start @ update_matrix(model, parameters, width, height), width, height))
+
     centre = np.zeros(count)
+    centre_value = value(centre)
     for radius in _POLISH_RADII:
         for _ in range(_POLISH_STEPS):
-            points = centre + _quadratic_design(count, radius)
-            values = np.array([objective(sample_fixed(fixed, start @ update_matrix(model, point, width, height),
-                                                      width, height)) for point in points])
+            design = _quadratic_design(count, radius)
+            values = np.array([centre_value] + [value(centre + offset) for offset in design[1:]])
             finite = np.isfinite(values)
-            coefficients = np.linalg.lstsq(_quadratic_terms(points[finite] - centre), values[finite], rcond=None)[0]
+            coefficients = np.linalg.lstsq(_quadratic_terms(design[finite]), values[finite], rcond=None)[0]
             hessian = np.zeros((count, count))
             hessian[np.triu_indices(count)] = coefficients[1 + count:]
             hessian = hessian + hessian.T  # the diagonal terms c_ii p_i^2 have second derivative 2 c_ii
@@ -202,8 +205,11 @@ def _polish(
                 length = float(np.linalg.norm(step))
                 step = step if length <= radius else step * (radius / length)
             else:
-                step = points[np.argmax(np.where(finite, values, -np.inf))] - centre
-            centre = centre + step
+                step = design[np.argmax(np.where(finite, values, -np.inf))]
+            step_value = value(centre + step)
+            if not step_value > centre_value:  # the fit promised more than the objective gives: go finer
+                break
+            centre, centre_value = centre + step, step_value
             if np.linalg.norm(step) < 0.5 * radius:  # the maximum lies inside the design: go finer
                 break
     return start @ update_matrix(model, centre, width, height)
@@ -365,7 +371,7 @@ def register(
     for level in range(chosen_level - 1, -1, -1):
         level_start = _level_matrix(matrix, level)
         level_model = "affine" if model == "homography" and level > 0 else model
-        if level == 0 and POLISH:
+        if level == 0 and metric == "ngf":
             level_matrix = _polish(fixed_pyramid[0], moving_pyramid[0], level_start, model, objectives[0])
         else:
             level_matrix, _ = _refine(fixed_pyramid[level], moving_pyramid[level], level_start, level_model,

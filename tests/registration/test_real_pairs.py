@@ -1,13 +1,12 @@
-"""Registration of real TNO infrared/visible pairs (../shared/data/tno-ir-visible), measured as consistency.
+"""Registration of the 25 real TNO infrared/visible pairs (../shared/data/tno-ir-visible), measured as consistency.
 
 Each infrared image is moved by a known similarity (shift up to 30 px per
 axis, rotation up to 4 degrees, scale 0.93..1.07, seeded by the pair number as
 in experiments/registration_real.py) and cut to a view inside it; the
 registration of the view must equal the registration of the whole image
-composed with the move. The full set of 25 pairs, with its median and share
-under 1 px beside SimpleITK, is the experiment's (docs/registration.md); to
-stay fast this test takes three pairs of different sizes and scenes (07, 13,
-19), on which the median target (0.5 px) must hold and every pair be under 1 px.
+composed with the move (services.registration.consistency). The figures are
+issue 11's targets over all 25 pairs: consistency median at most 0.5 px and
+at least 90 % of the pairs under 1 px (docs/registration.md).
 """
 
 from pathlib import Path
@@ -16,12 +15,13 @@ import cv2
 import numpy as np
 import pytest
 
-from services.registration.models import corner_error
+from services.registration.consistency import move_consistency
 from services.registration.register import register
-from services.registration.synthetic_pairs import moved_view
+
+pytestmark = pytest.mark.integration  # 50 full-resolution registrations, about a minute on a quiet core
 
 TNO_DIR = Path(__file__).resolve().parents[2].parent / "shared" / "data" / "tno-ir-visible"  # shared/ beside the clone
-PAIRS = (7, 13, 19)
+PAIRS = range(1, 26)
 
 
 def _pair(number: int) -> tuple[np.ndarray, np.ndarray]:
@@ -31,21 +31,28 @@ def _pair(number: int) -> tuple[np.ndarray, np.ndarray]:
     return images[0], images[1]
 
 
-def _consistency(number: int) -> tuple[float, float]:
-    visible, infrared = _pair(number)
-    moved, view_to_infrared = moved_view(np.random.default_rng([0, number]), infrared)
-    whole = register(visible, infrared, "similarity", metric="ngf", scale=1.0, max_shift=45.0).matrix
-    view = register(visible, moved, "similarity", metric="ngf", scale=1.0, max_shift=45.0).matrix
-    height, width = infrared.shape
-    return (corner_error(whole @ view_to_infrared, view, moved.shape[1], moved.shape[0]),
-            corner_error(np.eye(3), whole, width, height))
+def _register(visible: np.ndarray, infrared: np.ndarray) -> np.ndarray:
+    return register(visible, infrared, "similarity", metric="ngf", scale=1.0, max_shift=45.0).matrix
 
 
-def test_registration_of_moved_real_infrared_views_is_consistent_to_a_fraction_of_a_pixel():
-    results = [_consistency(number) for number in PAIRS]
-    consistency = np.array([value for value, _ in results])
+@pytest.fixture(scope="module")
+def results():
+    return {number: move_consistency(_register, *_pair(number), np.random.default_rng([0, number]))
+            for number in PAIRS}
+
+
+def test_real_pairs_are_registered_consistently_to_half_a_pixel_in_the_median(results):
+    consistency = np.array([result.consistency for result in results.values()])
     assert np.median(consistency) <= 0.5, consistency
-    assert np.all(consistency < 1.0), consistency
+
+
+def test_real_pairs_are_registered_consistently_to_a_pixel_on_nine_pairs_in_ten(results):
+    consistency = np.array([result.consistency for result in results.values()])
+    assert np.mean(consistency < 1.0) >= 0.9, consistency
+
+
+def test_real_pair_registrations_stay_near_the_hand_alignment(results):
     # the hand alignment is approximate (about a pixel by the README, but 5-10 px at the corners on pairs 11-18,
-    # see docs/registration.md), so only a gross disagreement with it would mean a wrong registration
-    assert all(from_hand < 15.0 for _, from_hand in results), results
+    # see docs/registration.md), so only a gross disagreement on most pairs would mean a wrong registration
+    from_hand = np.array([result.from_hand for result in results.values()])
+    assert np.median(from_hand) < 15.0, from_hand
