@@ -39,8 +39,8 @@ _FINE_STEP = 0.5  # first Powell step below the coarsest level, where the start 
 _POWELL_TOLERANCE = 0.02  # moving pixels at the level being refined
 _POWELL_FTOL = 1e-5  # relative change of the objective that ends a Powell iteration
 _FIELD_SIGMA = 1.0  # Gaussian smoothing (pixels) before gradient fields are taken
-_POLISH_RADII = (1.0, 0.5, 0.25)  # full-resolution quadratic fits, design radius in pixels of corner motion
-_POLISH_STEPS = 8  # most fits at one radius while the maximum lies outside the design
+_POLISH_RADII = (0.5, 0.25)  # quadratic fits after Powell at full resolution, design radius in pixels of corner motion
+_POLISH_STEPS = 3  # most fits at one radius while the maximum lies outside the design
 DEFAULT_PREPROCESSING = {"mi": "gradient", "nmi": "gradient", "ngf": "none"}  # NGF takes its own gradients
 
 
@@ -371,11 +371,10 @@ def register(
     for level in range(chosen_level - 1, -1, -1):
         level_start = _level_matrix(matrix, level)
         level_model = "affine" if model == "homography" and level > 0 else model
+        level_matrix, _ = _refine(fixed_pyramid[level], moving_pyramid[level], level_start, level_model,
+                                  objectives[level], _FINE_STEP)
         if level == 0 and metric == "ngf":
-            level_matrix = _polish(fixed_pyramid[0], moving_pyramid[0], level_start, model, objectives[0])
-        else:
-            level_matrix, _ = _refine(fixed_pyramid[level], moving_pyramid[level], level_start, level_model,
-                                      objectives[level], _FINE_STEP)
+            level_matrix = _polish(fixed_pyramid[0], moving_pyramid[0], level_matrix, model, objectives[0])
         matrix = _level_matrix(level_matrix, -level)
 
     fixed_quantized, moving_quantized = (quantize(fixed_levels[0], bins), quantize(moving_levels[0], bins)) if (
