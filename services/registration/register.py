@@ -39,8 +39,6 @@ _FINE_STEP = 0.5  # first Powell step below the coarsest level, where the start 
 _POWELL_TOLERANCE = 0.02  # moving pixels at the level being refined
 _POWELL_FTOL = 1e-5  # relative change of the objective that ends a Powell iteration
 _FIELD_SIGMA = 1.0  # Gaussian smoothing (pixels) before gradient fields are taken
-_POLISH_RADII = (0.5, 0.25)  # quadratic fits after Powell at full resolution, design radius in pixels of corner motion
-_POLISH_STEPS = 3  # most fits at one radius while the maximum lies outside the design
 DEFAULT_PREPROCESSING = {"mi": "gradient", "nmi": "gradient", "ngf": "none"}  # NGF takes its own gradients
 
 
@@ -122,97 +120,24 @@ def _level_objective(
 
 def _refine(
     fixed: np.ndarray, moving: np.ndarray, start: np.ndarray, model: str, objective: Callable[[np.ndarray], float],
-    step: float = 1.0,
+    step: float = 1.0, cubic: bool = False,
 ) -> tuple[np.ndarray, float]:
     """Maximise the objective over ``start @ G(p)`` with Powell's method; return the matrix and its value.
 
-    ``step`` is the first step along each parameter, in pixels of corner motion.
+    ``step`` is the first step along each parameter, in pixels of corner motion; ``cubic`` samples the
+    fixed image by bicubic instead of bilinear interpolation (:func:`services.registration.objective.sample_fixed`).
     """
     height, width = moving.shape
 
     def negative_score(parameters: np.ndarray) -> float:
         matrix = start @ update_matrix(model, parameters, width, height)
-        value = objective(sample_fixed(fixed, matrix, width, height))
+        value = objective(sample_fixed(fixed, matrix, width, height, cubic))
         return -value if np.isfinite(value) else 1.0e6
 
     count = PARAMETER_COUNTS[model]
     result = minimize(negative_score, np.zeros(count), method="Powell",
                       options={"xtol": _POWELL_TOLERANCE, "ftol": _POWELL_FTOL, "direc": step * np.eye(count)})
     return start @ update_matrix(model, result.x, width, height), -float(result.fun)
-
-
-def _quadratic_design(count: int, radius: float) -> np.ndarray:
-    """Centre, the 2n axial points +-r and the 4 n(n-1)/2 points (+-r, +-r) of every pair of axes, (N, n)."""
-    points = [np.zeros(count)]
-    for axis in range(count):
-        for sign in (-1.0, 1.0):
-            points.append(sign * radius * np.eye(count)[axis])
-    for first in range(count):
-        for second in range(first + 1, count):
-            for a in (-1.0, 1.0):
-                for b in (-1.0, 1.0):
-                    point = np.zeros(count)
-                    point[first], point[second] = a * radius, b * radius
-                    points.append(point)
-    return np.array(points)
-
-
-def _quadratic_terms(points: np.ndarray) -> np.ndarray:
-    """The columns 1, p_i and p_i p_j (i <= j) of a full quadratic in the parameters, (N, 1 + n + n(n+1)/2)."""
-    count = points.shape[1]
-    pairs = [points[:, i] * points[:, j] for i in range(count) for j in range(i, count)]
-    return np.column_stack([np.ones(len(points)), points, *pairs])
-
-
-def _polish(
-    fixed: np.ndarray, moving: np.ndarray, start: np.ndarray, model: str, objective: Callable[[np.ndarray], float],
-) -> np.ndarray:
-    """Maximise the objective near ``start @ G(p)`` by least-squares quadratic fits (a response surface).
-
-    Around the current estimate the objective is sampled on a design of
-    radius r (:func:`_quadratic_design`), a full quadratic is fitted by least
-    squares and its stationary point, kept within r, becomes the next
-    estimate; r goes down through ``_POLISH_RADII``. Fitting over a
-    neighbourhood averages out the objective's roughness at a small fraction
-    of a pixel (bilinear sampling, image noise), on which a line-search
-    optimiser such as Powell's stops short; when the fit is not concave the
-    best design point is kept.
-
-    References
-    ----------
-    .. [1] G. E. P. Box, K. B. Wilson, "On the experimental attainment of
-       optimum conditions", J. R. Stat. Soc. B 13(1), 1951.
-    """
-    height, width = moving.shape
-    count = PARAMETER_COUNTS[model]
-
-    def value(parameters: np.ndarray) -> float:
-        return objective(sample_fixed(fixed, start @ update_matrix(model, parameters, width, height), width, height))
-
-    centre = np.zeros(count)
-    centre_value = value(centre)
-    for radius in _POLISH_RADII:
-        for _ in range(_POLISH_STEPS):
-            design = _quadratic_design(count, radius)
-            values = np.array([centre_value] + [value(centre + offset) for offset in design[1:]])
-            finite = np.isfinite(values)
-            coefficients = np.linalg.lstsq(_quadratic_terms(design[finite]), values[finite], rcond=None)[0]
-            hessian = np.zeros((count, count))
-            hessian[np.triu_indices(count)] = coefficients[1 + count:]
-            hessian = hessian + hessian.T  # the diagonal terms c_ii p_i^2 have second derivative 2 c_ii
-            if np.all(np.linalg.eigvalsh(hessian) < 0.0):
-                step = np.linalg.solve(hessian, -coefficients[1:1 + count])
-                length = float(np.linalg.norm(step))
-                step = step if length <= radius else step * (radius / length)
-            else:
-                step = design[np.argmax(np.where(finite, values, -np.inf))]
-            step_value = value(centre + step)
-            if not step_value > centre_value:  # the fit promised more than the objective gives: go finer
-                break
-            centre, centre_value = centre + step, step_value
-            if np.linalg.norm(step) < 0.5 * radius:  # the maximum lies inside the design: go finer
-                break
-    return start @ update_matrix(model, centre, width, height)
 
 
 def _coarse_model(model: str) -> str:
@@ -359,22 +284,21 @@ def register(
         raise ValueError("The images do not overlap enough anywhere in the search range; "
                          "check the nominal scale and the search range.")
 
-    refined = [_refine(coarse_fixed, coarse_moving, candidate.matrix, _coarse_model(model), objectives[levels])
-               for candidate in candidates]
+    cubic = metric == "ngf"  # bilinear sampling blurs by how far off the grid it samples; NGF's gradients feel it
+    refined = [_refine(coarse_fixed, coarse_moving, candidate.matrix, _coarse_model(model), objectives[levels],
+                       cubic=cubic) for candidate in candidates]
     chosen_level = levels
     if metric == "ngf" and levels >= 2:  # choose among the candidates one level finer, where edges are sharper
         chosen_level = levels - 1
         refined = [_refine(fixed_pyramid[chosen_level], moving_pyramid[chosen_level],
                            _level_matrix(_level_matrix(candidate, -levels), chosen_level), _coarse_model(model),
-                           objectives[chosen_level], _FINE_STEP) for candidate, _ in refined]
+                           objectives[chosen_level], _FINE_STEP, cubic) for candidate, _ in refined]
     matrix = _level_matrix(max(refined, key=lambda item: item[1])[0], -chosen_level)
     for level in range(chosen_level - 1, -1, -1):
         level_start = _level_matrix(matrix, level)
         level_model = "affine" if model == "homography" and level > 0 else model
         level_matrix, _ = _refine(fixed_pyramid[level], moving_pyramid[level], level_start, level_model,
-                                  objectives[level], _FINE_STEP)
-        if level == 0 and metric == "ngf":
-            level_matrix = _polish(fixed_pyramid[0], moving_pyramid[0], level_matrix, model, objectives[0])
+                                  objectives[level], _FINE_STEP, cubic)
         matrix = _level_matrix(level_matrix, -level)
 
     fixed_quantized, moving_quantized = (quantize(fixed_levels[0], bins), quantize(moving_levels[0], bins)) if (

@@ -4,7 +4,6 @@ The statistics over many pairs (median, share under 1 px) are in
 experiments/registration_accuracy.py; here each pair must be accurate.
 """
 
-import cv2
 import numpy as np
 import pytest
 
@@ -84,25 +83,3 @@ def test_bad_arguments_are_refused_with_a_sentence(arguments, message):
 def test_images_too_small_are_refused():
     with pytest.raises(ValueError, match="too small"):
         register(np.zeros((400, 400)), np.zeros((40, 400)))
-
-
-@pytest.mark.parametrize("model", ["translation", "similarity"])
-def test_quadratic_polish_reaches_the_maximum_of_a_smooth_objective(model):
-    from services.registration.register import _polish
-    from services.registration.models import update_matrix
-
-    height, width = 120, 160
-    ys, xs = np.mgrid[0:height, 0:width].astype(np.float32)
-    fixed = sum(np.exp(-((xs - x) ** 2 + (ys - y) ** 2) / (2.0 * 12.0**2)) for x, y in ((50, 40), (115, 75)))
-    fixed = fixed.astype(np.float32)  # two blobs: shift, rotation and scale all change the image
-    truth_parameters = np.array([0.3, -0.2, 0.0, 0.0])[: 2 if model == "translation" else 4]
-    truth = update_matrix(model, truth_parameters, width, height)
-    target = cv2.warpAffine(fixed, truth[:2], (width, height), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP)
-    inner = np.s_[10:-10, 10:-10]
-
-    def objective(samples):  # negative sum of squared differences over the inner pixels: maximal at the truth
-        return -float(np.sum((samples[inner] - target[inner]) ** 2))
-
-    start = update_matrix(model, np.zeros_like(truth_parameters), width, height)
-    polished = _polish(fixed, np.zeros_like(fixed), start, model, objective)
-    assert corner_error(truth, polished, width, height) < 0.03, corner_error(truth, polished, width, height)
