@@ -6,11 +6,11 @@ in experiments/registration_real.py) and cut to a view inside it; the
 registration of the view must equal the registration of the whole image
 composed with the move (services.registration.consistency). Over all 25
 pairs, issue 11's targets (consistency median at most 0.5 px, at least 90 % of
-the pairs under 1 px) are not met yet (docs/registration.md: median 0.71 px,
-72 % under 1 px), so they are strict expected failures, which turn into
+the pairs under 1 px) are not met yet (docs/registration.md: median 0.54 px,
+76 % under 1 px), so they are strict expected failures, which turn into
 failures to remove the marks the day the method meets them; what is met today
 is guarded against getting worse, with room for the run-to-run scatter of
-about 0.1 px (two pairs lie within 0.06 px of 1 px).
+about 0.1 px (pairs 16 and 20 lie within 0.07 px of 1 px).
 """
 
 from pathlib import Path
@@ -63,9 +63,9 @@ def test_real_pairs_are_registered_consistently_to_a_pixel_on_nine_pairs_in_ten(
 
 
 def test_real_pair_consistency_is_no_worse_than_documented(results):
-    consistency = _consistency(results)  # documented: median 0.707 px, 18 of 25 pairs under 1 px
-    assert np.median(consistency) <= 0.8, consistency
-    assert np.sum(consistency < 1.0) >= 16, consistency
+    consistency = _consistency(results)  # documented: median 0.542 px, 19 of 25 pairs under 1 px
+    assert np.median(consistency) <= 0.65, consistency
+    assert np.sum(consistency < 1.0) >= 17, consistency
 
 
 def test_real_pair_registrations_stay_near_the_hand_alignment(results):
