@@ -15,14 +15,23 @@ moved by shifts up to 40 px, rotations up to 5 degrees, scale changes up to
 wall-clock and CPU times are summarised by their median over pairs, and the
 ratio is SimpleITK's median over ours.
 
-Usage: .venv/bin/python benchmarks/bench_registration.py [--pairs-per-source 10] [--repeats 3]
+With ``--command``, instead: the whole ``thermofield register --model similarity`` process on
+benchmarks/bench_commands.py's 500x300 TNO pair against SimpleITK's registration of the same pair in-process,
+alternating, ``--repeats`` times each; wall-clock medians and the processes' CPU times (the command's from
+``getrusage`` of its child process), with the load average.
+
+Usage: .venv/bin/python benchmarks/bench_registration.py [--pairs-per-source 10] [--repeats 3] [--command]
 Needs the bench extra (SimpleITK).
 """
 
 from __future__ import annotations
 
 import argparse
+import os
+import resource
+import subprocess
 import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -82,12 +91,51 @@ METHODS = {
 }
 
 
+def command_against_simpleitk(repeats: int) -> None:
+    """Whole `thermofield register` processes against SimpleITK in-process on one 500x300 pair (see the docstring)."""
+    from benchmarks.bench_commands import ROOT, _make_pair, _thermofield
+
+    times: dict[str, dict[str, list[float]]] = {name: {"wall": [], "cpu": []} for name in ("command", "SimpleITK")}
+    with tempfile.TemporaryDirectory() as scratch:
+        work = Path(scratch)
+        visible_path, infrared_path, visible, infrared = _make_pair(work)
+        command = _thermofield("register", "--fixed", visible_path, "--moving", infrared_path, "--model", "similarity",
+                               "--out", work / "reg.json")
+        env = os.environ | {"PYTHONPATH": str(ROOT)}
+        for _ in range(repeats):
+            before = resource.getrusage(resource.RUSAGE_CHILDREN)
+            wall = time.perf_counter()
+            subprocess.run(command, cwd=ROOT, env=env, check=True, capture_output=True)
+            times["command"]["wall"].append(time.perf_counter() - wall)
+            after = resource.getrusage(resource.RUSAGE_CHILDREN)
+            times["command"]["cpu"].append(after.ru_utime + after.ru_stime - before.ru_utime - before.ru_stime)
+            wall, cpu = time.perf_counter(), time.process_time()
+            simpleitk_register(visible, infrared, 1.0, gradient=False)
+            times["SimpleITK"]["wall"].append(time.perf_counter() - wall)
+            times["SimpleITK"]["cpu"].append(time.process_time() - cpu)
+    load = os.getloadavg()
+    print(f"{repeats} runs each, alternating; load average {load[0]:.1f} / {load[1]:.1f} / {load[2]:.1f} "
+          f"on {os.cpu_count()} cores\n")
+    print("| what | median wall (s) | median CPU (s) | wall ratio to SimpleITK | CPU ratio to SimpleITK |")
+    print("|---|---|---|---|---|")
+    reference = {kind: float(np.median(times["SimpleITK"][kind])) for kind in ("wall", "cpu")}
+    for name, label in (("command", "`thermofield register --model similarity` (whole process)"),
+                        ("SimpleITK", "SimpleITK Mattes MI, in-process")):
+        wall, cpu = float(np.median(times[name]["wall"])), float(np.median(times[name]["cpu"]))
+        print(f"| {label} | {wall:.3f} | {cpu:.3f} | {wall / reference['wall']:.2f} | {cpu / reference['cpu']:.2f} |")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--pairs-per-source", type=int, default=10)
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--seed", type=int, default=1)
+    parser.add_argument("--command", action="store_true",
+                        help="time the whole register command against SimpleITK in-process instead")
     args = parser.parse_args()
+    if args.command:
+        command_against_simpleitk(args.repeats)
+        return
     rng = np.random.default_rng(args.seed)
     pairs = list(scene_pairs(rng, args.pairs_per_source)) + list(photograph_pairs(rng, args.pairs_per_source))
     results = {name: {"error": [], "wall": [], "cpu": []} for name in METHODS}

@@ -7,7 +7,7 @@ S (each shift component up to 30 px, rotation up to 4 degrees, scale
 0.93..1.07, seeded) and cut to a view inside the original
 (services.registration.synthetic_pairs.moved_view); the registration H1 of
 the moved view must equal the registration H0 of the unmoved image composed
-with the move, H0 S^-1. Consistency = mean distance of the view's four corner
+with the move, H0 S^-1 (services.registration.consistency). Consistency = mean distance of the view's four corner
 pixels under H1 and H0 S^-1 (visible pixels). The distance of H0 to the hand
 alignment (the identity) is reported too.
 
@@ -19,8 +19,8 @@ the centred start). Times: each method in-process, and the whole
 `thermofield register` process (python -m services.cli.main, start-up
 included) on the moved pair.
 
-Usage: .venv/bin/python experiments/registration_real.py [--pairs 1 2 ...] [--seed 0] [--no-simpleitk]
-       [--no-cli] [--figure]
+Usage: .venv/bin/python experiments/registration_real.py [--pairs 1 2 ...] [--seed 0] [--methods NAME ...]
+       [--no-cli] [--figure N] [--rows-out rows.json] [--from-rows a.json b.json ...]
 Prints Markdown tables; --figure N writes docs/figures/registration/real_pair_NN_edges.png.
 """
 
@@ -41,9 +41,9 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from services.formats.registration import load_registration  # noqa: E402
+from services.registration.consistency import move_consistency  # noqa: E402
 from services.registration.models import corner_error  # noqa: E402
 from services.registration.register import register  # noqa: E402
-from services.registration.synthetic_pairs import moved_view  # noqa: E402
 
 TNO_DIR = ROOT.parent / "shared" / "data" / "tno-ir-visible"  # shared/ beside the clone
 FIGURES = ROOT / "docs" / "figures" / "registration"
@@ -60,14 +60,6 @@ def load_pair(number: int) -> tuple[np.ndarray, np.ndarray]:
             raise FileNotFoundError(f"{path}: the TNO image is missing or unreadable")
         images.append(image)
     return images[0], images[1]
-
-
-def moved_pairs(numbers: list[int], seed: int):
-    """(number, visible, infrared, moved view, view-to-infrared matrix); pair n's move is seeded by (seed, n)."""
-    for number in numbers:
-        visible, infrared = load_pair(number)
-        moved, view_to_infrared = moved_view(np.random.default_rng([seed, number]), infrared)
-        yield number, visible, infrared, moved, view_to_infrared
 
 
 def thermofield_matrix(visible: np.ndarray, infrared: np.ndarray, metric: str = "ngf") -> np.ndarray:
@@ -99,34 +91,38 @@ def cli_matrix(visible: np.ndarray, infrared: np.ndarray) -> tuple[np.ndarray, f
         return np.asarray(load_registration(out).matrix, dtype=float), seconds
 
 
-def _timed(method, *images) -> tuple[np.ndarray, float]:
-    start = time.perf_counter()
-    matrix = method(*images)
-    return matrix, time.perf_counter() - start
+METHODS = {"thermofield NGF": thermofield_matrix, "thermofield NMI": thermofield_nmi_matrix,
+           "SimpleITK Mattes": simpleitk_matrix}
 
 
-def evaluate(numbers: list[int], seed: int, simpleitk: bool, cli: bool) -> list[dict]:
+def _timed(method, seconds: list[float]):
+    """``method`` that appends the wall-clock time of each call to ``seconds``."""
+    def timed(*images):
+        start = time.perf_counter()
+        matrix = method(*images)
+        seconds.append(time.perf_counter() - start)
+        return matrix
+    return timed
+
+
+def evaluate(numbers: list[int], seed: int, names: list[str], cli: bool) -> list[dict]:
     rows = []
-    methods = {"thermofield NGF": thermofield_matrix, "thermofield NMI": thermofield_nmi_matrix}
-    if simpleitk:
-        methods["SimpleITK Mattes"] = simpleitk_matrix
-    for number, visible, infrared, moved, view_to_infrared in moved_pairs(numbers, seed):
-        row = {"pair": number, "size": list(infrared.shape[::-1]), "view": list(moved.shape[::-1])}
-        height, width = infrared.shape
+    methods = {name: METHODS[name] for name in names}
+    for number in numbers:
+        visible, infrared = load_pair(number)
+        row = {"pair": number, "size": list(infrared.shape[::-1])}
         for name, method in methods.items():
-            unmoved, _ = _timed(method, visible, infrared)
-            matrix, seconds = _timed(method, visible, moved)
-            row[name] = {
-                "consistency": corner_error(unmoved @ view_to_infrared, matrix, moved.shape[1], moved.shape[0]),
-                "hand": corner_error(np.eye(3), unmoved, width, height),
-                "seconds": seconds,
-                "unmoved": unmoved.tolist(),
-            }
+            seconds: list[float] = []  # the whole image's, then the moved view's
+            result = move_consistency(_timed(method, seconds), visible, infrared,
+                                      np.random.default_rng([seed, number]))  # the same move for every method
+            row["view"] = list(result.moved.shape[::-1])
+            row[name] = {"consistency": result.consistency, "hand": result.from_hand, "seconds": seconds[1],
+                         "unmoved": result.unmoved.tolist()}
         if cli:
-            matrix, seconds = cli_matrix(visible, moved)
-            reference = np.asarray(row["thermofield NGF"]["unmoved"]) @ view_to_infrared
+            matrix, seconds = cli_matrix(visible, result.moved)
+            reference = np.asarray(row["thermofield NGF"]["unmoved"]) @ result.view_to_infrared
             row["cli"] = {"seconds": seconds,
-                          "agrees": corner_error(reference, matrix, moved.shape[1], moved.shape[0])}
+                          "agrees": corner_error(reference, matrix, result.moved.shape[1], result.moved.shape[0])}
         rows.append(row)
         print(f"pair {number}: " + ", ".join(f"{name} {row[name]['consistency']:.3f} px" for name in methods),
               file=sys.stderr, flush=True)
@@ -140,7 +136,7 @@ def _summary(values: list[float]) -> str:
 
 
 def print_tables(rows: list[dict]) -> None:
-    methods = [name for name in ("thermofield NGF", "thermofield NMI", "SimpleITK Mattes") if name in rows[0]]
+    methods = [name for name in METHODS if all(name in row for row in rows)]
     print("| pair | size | view | " + " | ".join(f"{name} consistency (px) | {name} from hand (px)"
                                                  for name in methods) + " |")
     print("|---|---|---|" + "---|---|" * len(methods))
@@ -193,18 +189,24 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--pairs", type=int, nargs="+", default=list(range(1, 26)))
     parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--no-simpleitk", action="store_true")
+    parser.add_argument("--methods", nargs="+", choices=list(METHODS), default=list(METHODS),
+                        metavar="NAME", help=f"methods to run (default: all of {', '.join(METHODS)})")
     parser.add_argument("--no-cli", action="store_true")
     parser.add_argument("--figure", type=int, metavar="PAIR", help="write the before/after overlay of this pair")
     parser.add_argument("--rows-out", type=Path, help="also save the per-pair results as JSON")
     parser.add_argument("--from-rows", type=Path, nargs="+",
                         help="print the tables of saved results (e.g. of runs on parts of the pairs) instead")
     args = parser.parse_args()
+    if not args.no_cli and "thermofield NGF" not in args.methods:
+        parser.error("the command's run (without --no-cli) is compared with 'thermofield NGF': run that method too")
     if args.from_rows:
-        rows = sorted((row for path in args.from_rows for row in json.loads(path.read_text())),
-                      key=lambda row: row["pair"])
+        rows = {}
+        for path in args.from_rows:  # runs on parts of the pairs, or of the methods, merged pair by pair
+            for row in json.loads(path.read_text()):
+                rows.setdefault(row["pair"], {}).update(row)
+        rows = [rows[number] for number in sorted(rows)]
     else:
-        rows = evaluate(args.pairs, args.seed, not args.no_simpleitk, not args.no_cli)
+        rows = evaluate(args.pairs, args.seed, args.methods, not args.no_cli)
         if args.rows_out is not None:
             args.rows_out.write_text(json.dumps(rows))
     print_tables(rows)

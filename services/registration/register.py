@@ -120,17 +120,18 @@ def _level_objective(
 
 def _refine(
     fixed: np.ndarray, moving: np.ndarray, start: np.ndarray, model: str, objective: Callable[[np.ndarray], float],
-    step: float = 1.0,
+    step: float = 1.0, cubic: bool = False,
 ) -> tuple[np.ndarray, float]:
     """Maximise the objective over ``start @ G(p)`` with Powell's method; return the matrix and its value.
 
-    ``step`` is the first step along each parameter, in pixels of corner motion.
+    ``step`` is the first step along each parameter, in pixels of corner motion; ``cubic`` samples the
+    fixed image by bicubic instead of bilinear interpolation (:func:`services.registration.objective.sample_fixed`).
     """
     height, width = moving.shape
 
     def negative_score(parameters: np.ndarray) -> float:
         matrix = start @ update_matrix(model, parameters, width, height)
-        value = objective(sample_fixed(fixed, matrix, width, height))
+        value = objective(sample_fixed(fixed, matrix, width, height, cubic))
         return -value if np.isfinite(value) else 1.0e6
 
     count = PARAMETER_COUNTS[model]
@@ -283,20 +284,21 @@ def register(
         raise ValueError("The images do not overlap enough anywhere in the search range; "
                          "check the nominal scale and the search range.")
 
-    refined = [_refine(coarse_fixed, coarse_moving, candidate.matrix, _coarse_model(model), objectives[levels])
-               for candidate in candidates]
+    cubic = metric == "ngf"  # bilinear sampling blurs by how far off the grid it samples; NGF's gradients feel it
+    refined = [_refine(coarse_fixed, coarse_moving, candidate.matrix, _coarse_model(model), objectives[levels],
+                       cubic=cubic) for candidate in candidates]
     chosen_level = levels
     if metric == "ngf" and levels >= 2:  # choose among the candidates one level finer, where edges are sharper
         chosen_level = levels - 1
         refined = [_refine(fixed_pyramid[chosen_level], moving_pyramid[chosen_level],
                            _level_matrix(_level_matrix(candidate, -levels), chosen_level), _coarse_model(model),
-                           objectives[chosen_level], _FINE_STEP) for candidate, _ in refined]
+                           objectives[chosen_level], _FINE_STEP, cubic) for candidate, _ in refined]
     matrix = _level_matrix(max(refined, key=lambda item: item[1])[0], -chosen_level)
     for level in range(chosen_level - 1, -1, -1):
         level_start = _level_matrix(matrix, level)
         level_model = "affine" if model == "homography" and level > 0 else model
         level_matrix, _ = _refine(fixed_pyramid[level], moving_pyramid[level], level_start, level_model,
-                                  objectives[level], _FINE_STEP)
+                                  objectives[level], _FINE_STEP, cubic)
         matrix = _level_matrix(level_matrix, -level)
 
     fixed_quantized, moving_quantized = (quantize(fixed_levels[0], bins), quantize(moving_levels[0], bins)) if (

@@ -74,6 +74,26 @@ def _distinct_best(candidates: list[Candidate], count: int, width: int, height: 
     return chosen
 
 
+_PEAKS_PER_CANVAS = 20  # best shifts kept per (rotation, scale) before choosing distinct candidates
+
+
+def _best_shifts(values: np.ndarray, base: np.ndarray, margin: int) -> list[Candidate]:
+    """The ``_PEAKS_PER_CANVAS`` best finite entries of one canvas's shift map as candidates, best first.
+
+    Entry (row, column) of ``values`` is the shift d = (column - margin, row - margin) applied after ``base``.
+    Keeping a few per canvas instead of every shift spares sorting and comparing tens of thousands of
+    candidates of which only the few best distinct ones are kept.
+    """
+    candidates = []
+    for index in np.argsort(values, axis=None)[::-1][:_PEAKS_PER_CANVAS]:
+        row, column = np.unravel_index(index, values.shape)
+        if not np.isfinite(values[row, column]):
+            break
+        shift = np.array([[1.0, 0.0, column - margin], [0.0, 1.0, row - margin], [0.0, 0.0, 1.0]])
+        candidates.append(Candidate(base @ shift, float(values[row, column])))
+    return candidates
+
+
 def coarse_search(
     fixed: np.ndarray,
     moving: np.ndarray,
@@ -137,13 +157,8 @@ def coarse_search(
             canvas = sample_fixed(fixed, base @ canvas_to_moving, width + 2 * margin, height + 2 * margin)
             values = _scan_shifts(_bin_indices(canvas), moving_bins, margin, bins, log_base, metric == "nmi",
                                   min_overlap * moving.size)
-            for row, column in zip(*np.nonzero(np.isfinite(values))):
-                shift = np.array([[1.0, 0.0, column - margin], [0.0, 1.0, row - margin], [0.0, 0.0, 1.0]])
-                candidates.append(Candidate(base @ shift, float(values[row, column])))
+            candidates += _best_shifts(values, base, margin)
     return _distinct_best(candidates, count, width, height, spacing=1.5)
-
-
-_PEAKS_PER_CANVAS = 20  # best shifts kept per (rotation, scale) before choosing distinct candidates
 
 
 def _field_canvas(canvas: np.ndarray, epsilon: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -200,10 +215,5 @@ def gradient_field_search(
             canvas = sample_fixed(fixed, base @ canvas_to_moving, width + 2 * margin, height + 2 * margin)
             values = tensor_similarity_map(*_field_canvas(canvas, fixed_epsilon), moving_x, moving_y,
                                            min_overlap * moving.size)
-            for index in np.argsort(values, axis=None)[::-1][:_PEAKS_PER_CANVAS]:
-                row, column = np.unravel_index(index, values.shape)
-                if not np.isfinite(values[row, column]):
-                    break
-                shift = np.array([[1.0, 0.0, column - margin], [0.0, 1.0, row - margin], [0.0, 0.0, 1.0]])
-                candidates.append(Candidate(base @ shift, float(values[row, column])))
+            candidates += _best_shifts(values, base, margin)
     return _distinct_best(candidates, count, width, height, spacing=1.5)

@@ -13,6 +13,20 @@ def test_samples_outside_the_fixed_image_are_negative_and_inside_ones_exact():
     assert np.all(samples[:, 5:] < 0)
 
 
+def test_bicubic_samples_are_valid_only_where_their_four_by_four_support_is_inside():
+    fixed = np.arange(100, dtype=np.float32).reshape(10, 10)
+    shift = np.array([[1.0, 0.0, 4.5], [0.0, 1.0, 0.5], [0.0, 0.0, 1.0]])  # half-pixel offsets on both axes
+    samples = sample_fixed(fixed, shift, 8, 8, cubic=True)
+    # sample (row r, column c) sits at (4.5 + c, 0.5 + r): its support spans columns 4 + c - 1 .. 4 + c + 2
+    # and rows r - 1 .. r + 2, so columns c <= 3 and rows 1 <= r <= 7 are inside
+    inside = np.zeros((8, 8), bool)
+    inside[1:8, :4] = True
+    assert np.all(samples[inside] >= 0) and np.all(samples[~inside] < 0)
+    # a linear ramp is reproduced exactly by the bicubic kernel
+    rows, columns = np.nonzero(inside)
+    np.testing.assert_allclose(samples[inside], 10.0 * (rows + 0.5) + (columns + 4.5), rtol=0, atol=1e-3)
+
+
 def test_perspective_matrices_are_sampled_too():
     fixed = np.ones((20, 20), np.float32)
     perspective = np.array([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.001, 0.0, 1.0]])
