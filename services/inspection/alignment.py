@@ -176,11 +176,12 @@ def align_nominal(points: np.ndarray, nominal: NominalSurface, max_distance_mm: 
     max_distance_mm : float
         Correspondence distance of the last ICP stage and the inlier threshold.
     start : (4, 4) array, optional
-        A known part-to-world transform to refine; without it the 24 axis-to-axis matches of the
-        principal frames are tried.
+        A part-to-world transform within ``max_distance_mm`` of the answer (an earlier alignment of
+        nearly the same points), which only the polish refines; without it the principal frames'
+        axis-to-axis matches are tried.
     polish : bool
-        Refine the winner on 10 000 points; without, the alignment ends on 3000 points (a first
-        alignment that a later call refines).
+        Without a start: refine the winner on 10 000 points; without, the alignment ends on 3000
+        points (a first alignment that a later call refines from its result).
 
     Returns
     -------
@@ -201,7 +202,7 @@ def align_nominal(points: np.ndarray, nominal: NominalSurface, max_distance_mm: 
     iterations (after 3, only the 6 starts with most points near the nominal go on); the three starts with most
     points near the nominal are refined on 3000 points down to ``max_distance_mm``; the one with most
     points within that distance of the nominal surface (then the lowest residual) wins and is
-    polished by 5 iterations on 10 000 points. Symmetries of the part (a cylinder's rotation about its axis) leave
+    polished by 5 iterations at ``max_distance_mm`` on 10 000 points, as a given start is. Symmetries of the part (a cylinder's rotation about its axis) leave
     the transform undetermined along them, which no measure depends on.
 
     References
@@ -218,7 +219,7 @@ def align_nominal(points: np.ndarray, nominal: NominalSurface, max_distance_mm: 
     size = float(np.linalg.norm(np.ptp(nominal.samples, axis=0)))
     fine = points[_even_subset(len(points), _FINE_POINTS)]
     if start is not None:
-        candidates = np.linalg.inv(start)[None]
+        transform = np.linalg.inv(start)[None]
     else:
         coarse = points[_even_subset(len(points), _COARSE_POINTS)]
         measured_centre, measured_axes = _principal_frame(fine)
@@ -242,14 +243,14 @@ def align_nominal(points: np.ndarray, nominal: NominalSurface, max_distance_mm: 
         for distances, keep in ((schedule[:3], _PRUNED_STARTS), (schedule[3:], _COARSE_KEEP)):
             refined = _icp(coarse, nominal, starts, distances, coarse=True)
             starts = refined[_near_order(coarse, nominal, refined, distances[-1])[:keep]]
-        candidates = starts
-    middle = points[_even_subset(len(points), _CANDIDATE_POINTS)]
-    refined = _icp(middle, nominal, candidates, np.geomspace(8 * max_distance_mm, max_distance_mm, 10))
-    fraction, rms = _score(middle, nominal, refined, max_distance_mm)
-    best = np.lexsort((np.arange(len(refined)), rms, -np.round(fraction, 3)))[0]
-    if not polish:
-        return Alignment(matrix=np.linalg.inv(refined[best]), rms_mm=float(rms[best]),
-                         inlier_fraction=float(fraction[best]))
-    transform = _icp(fine, nominal, refined[best:best + 1], np.full(5, max_distance_mm))
+        middle = points[_even_subset(len(points), _CANDIDATE_POINTS)]
+        refined = _icp(middle, nominal, starts, np.geomspace(8 * max_distance_mm, max_distance_mm, 10))
+        fraction, rms = _score(middle, nominal, refined, max_distance_mm)
+        best = np.lexsort((np.arange(len(refined)), rms, -np.round(fraction, 3)))[0]
+        if not polish:
+            return Alignment(matrix=np.linalg.inv(refined[best]), rms_mm=float(rms[best]),
+                             inlier_fraction=float(fraction[best]))
+        transform = refined[best:best + 1]
+    transform = _icp(fine, nominal, transform, np.full(5, max_distance_mm))
     fraction, rms = _score(fine, nominal, transform, max_distance_mm)
     return Alignment(matrix=np.linalg.inv(transform[0]), rms_mm=float(rms[0]), inlier_fraction=float(fraction[0]))

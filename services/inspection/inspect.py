@@ -153,7 +153,7 @@ def inspect_field(*, field: dict[str, np.ndarray], part: Part | PreparedPart) ->
     if material_fraction is None:
         material_fraction = part.material.relative_uncertainty
     in_part = cold_part_frame[member]
-    hot_part_frame = alignment.to_part(points[candidates[member]])
+    part_points = candidates[member]
     used_temperature = cold.temperature[member]
     used_fallback = cold.fallback[member]
 
@@ -171,7 +171,7 @@ def inspect_field(*, field: dict[str, np.ndarray], part: Part | PreparedPart) ->
                 results.append(_unmeasured(feature, str(error)))
             continue
         stretch = float(np.mean(1 + part.material.strain(used_temperature[inside])))
-        hot_element = fit_measured(nominal_feature, hot_part_frame[inside], stretch)
+        hot_element = fit_measured(nominal_feature, alignment.to_part(points[part_points[inside]]), stretch)
         mean_t = float(np.mean(used_temperature[inside]))
         u_t = _temperature_std(mean_t, budget, float(np.mean(used_fallback[inside])),
                                definition.uncertainty.fallback_temperature_k)

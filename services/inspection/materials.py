@@ -86,29 +86,31 @@ class Material:
         """
         end_c = np.asarray(end_c, dtype=np.float64)
         width = end_c - start_c
-        short = np.abs(width) < 1e-3
         with np.errstate(invalid="ignore", divide="ignore"):
             mean = (self._antiderivative(end_c) - self._antiderivative(np.float64(start_c))) / width
-        return np.where(short, self.strain((start_c + end_c) / 2), mean)
+        short = np.abs(width) < 1e-3
+        mean[short] = self.strain((start_c + end_c[short]) / 2)
+        return mean
 
     @cached_property
-    def _cumulative_integral(self) -> np.ndarray:
-        """The integral of the strain from the table's first temperature to each of its temperatures, K."""
-        pieces = np.diff(self.temperatures) * (self.strains[:-1] + self.strains[1:]) / 2
-        return np.concatenate([[0.0], np.cumsum(pieces)])
+    def _pieces(self) -> tuple[np.ndarray, np.ndarray]:
+        """Per piece of the table: the strain's integral from the first temperature to the piece's start
+        (K), and the strain's rate (1/K)."""
+        widths = np.diff(self.temperatures)
+        integral = np.concatenate([[0.0], np.cumsum(widths * (self.strains[:-1] + self.strains[1:]) / 2)])
+        return integral[:-1], np.diff(self.strains) / widths
 
     def _antiderivative(self, temperature_c: np.ndarray) -> np.ndarray:
         """The integral of the strain from the table's first temperature to each temperature (exact: the
         strain is linear on each piece, constant beyond the table's ends)."""
         temperatures, strains = self.temperatures, self.strains
         piece = np.clip(np.searchsorted(temperatures, temperature_c, side="right") - 1, 0, len(temperatures) - 2)
-        low = temperatures[piece]
-        rate = (strains[piece + 1] - strains[piece]) / (temperatures[piece + 1] - low)
-        offset = np.clip(temperature_c, temperatures[0], temperatures[-1]) - low
-        inside = self._cumulative_integral[piece] + offset * (strains[piece] + 0.5 * rate * offset)
+        integral, rate = self._pieces
+        clamped = np.clip(temperature_c, temperatures[0], temperatures[-1])
+        offset = clamped - temperatures[piece]
+        inside = integral[piece] + offset * (strains[piece] + 0.5 * rate[piece] * offset)
         # beyond an end the clamped strain is that end's: its integral grows linearly
-        return (inside + np.maximum(temperature_c - temperatures[-1], 0.0) * strains[-1]
-                + np.minimum(temperature_c - temperatures[0], 0.0) * strains[0])
+        return inside + (temperature_c - clamped) * np.where(temperature_c > clamped, strains[-1], strains[0])
 
     def slope(self, temperature_c: np.ndarray) -> np.ndarray:
         """d(Delta l / l)/dT, 1/K, of the interpolated table (a central difference of 1 K)."""
