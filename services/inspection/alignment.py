@@ -9,9 +9,10 @@ import numpy as np
 
 
 from services.inspection.nominal import NominalSurface
+from services.inspection.point_rows import finite_rows
 
 _COARSE_POINTS = 300
-_CANDIDATE_POINTS = 3000
+_CANDIDATE_POINTS = 1000
 _FINE_POINTS = 10000
 _COARSE_KEEP = 3
 _PRUNED_STARTS = 6
@@ -88,39 +89,49 @@ def _least_squares_steps(system: np.ndarray, right: np.ndarray) -> np.ndarray:
     return np.einsum("sji,sj->si", vt, inverse * np.einsum("sji,sj->si", u, right))
 
 
-def _samples(nominal: NominalSurface, coarse: bool):
-    if coarse:
-        return nominal.coarse_tree, nominal.coarse_samples, nominal.coarse_normals
-    return nominal.sample_tree, nominal.samples, nominal.sample_normals
-
-
 def _moved(points: np.ndarray, transforms: np.ndarray) -> np.ndarray:
     """Points (N, 3) under each of S transforms (S, 4, 4): (S, N, 3)."""
     return points @ transforms[:, :3, :3].transpose(0, 2, 1) + transforms[:, None, :3, 3]
 
 
+def _correspondences(moved: np.ndarray, nominal: NominalSurface, matching: str,
+                     cut_off: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Point-to-plane residuals (S, N), plane normals (S, N, 3) and which points are within ``cut_off``."""
+    if matching == "surface":
+        residual, normal = nominal.signed_distance_gradient(moved.reshape(-1, 3))
+        residual, normal = residual.reshape(moved.shape[:2]), normal.reshape(moved.shape)
+        return residual, normal, np.abs(residual) < cut_off
+    if matching == "sparse":
+        tree, samples, sample_normals = nominal.coarse_tree, nominal.coarse_samples, nominal.coarse_normals
+    else:
+        tree, samples, sample_normals = nominal.sample_tree, nominal.samples, nominal.sample_normals
+    # bounded: a far query visits much of the tree, and beyond the cut-off its weight is 0 anyway
+    distance, index = tree.query(moved.reshape(-1, 3), distance_upper_bound=cut_off)
+    near = np.isfinite(distance).reshape(moved.shape[:2])
+    index = np.where(near, index.reshape(near.shape), 0)
+    normal = sample_normals[index]
+    return np.einsum("sni,sni->sn", moved - samples[index], normal), normal, near
+
+
 def _icp(points: np.ndarray, nominal: NominalSurface, transforms: np.ndarray, distances: np.ndarray,
-         coarse: bool = False) -> np.ndarray:
+         matching: str = "samples") -> np.ndarray:
     """Point-to-plane ICP with Tukey weights from S starts at once, one iteration per entry of ``distances``
     (the Tukey cut-off, mm).
 
-    ``transforms`` (S, 4, 4) map measured points to the part frame; ``coarse`` matches against the
-    nominal's sparse samples. Every start's points go to the tree in one query per iteration, each
-    start solves its own 6 x 6 normal equations; a start with a total weight below 6 stops there.
-    Hand-written on the nominal's prepared cKDTrees: Open3D's ``registration_icp`` searches its own
-    tree by radius on every call, which made the 24 starts take seconds.
+    ``transforms`` (S, 4, 4) map measured points to the part frame. ``matching``: each point's plane
+    is that of its nearest nominal sample (``"samples"``) or sparse sample (``"sparse"``), or that of
+    its closest point on the mesh itself (``"surface"``: the signed distance and its gradient, read
+    from the distance grid near the surface, for points already close to it). Every start's points
+    are matched in one query per iteration, each start solves its own 6 x 6 normal equations; a start
+    with a total weight below 6 stops there. Hand-written on the nominal's prepared cKDTrees: Open3D's
+    ``registration_icp`` searches its own tree by radius on every call, which made the 24 starts
+    take seconds.
     """
-    tree, samples, sample_normals = _samples(nominal, coarse)
     transforms = np.array(transforms, dtype=np.float64)
     active = np.ones(len(transforms), dtype=bool)
     for cut_off in distances:
         moved = _moved(points, transforms[active])
-        # bounded: a far query visits much of the tree, and beyond the cut-off its weight is 0 anyway
-        distance, index = tree.query(moved.reshape(-1, 3), distance_upper_bound=cut_off)
-        near = np.isfinite(distance).reshape(moved.shape[:2])
-        index = np.where(near, index.reshape(near.shape), 0)
-        target, normal = samples[index], sample_normals[index]
-        residual = np.einsum("sni,sni->sn", moved - target, normal)
+        residual, normal, near = _correspondences(moved, nominal, matching, cut_off)
         u = residual / cut_off
         weight = np.where(near & (np.abs(u) < 1), (1 - u * u) ** 2, 0.0)
         enough = weight.sum(axis=1) >= 6
@@ -213,7 +224,7 @@ def align_nominal(points: np.ndarray, nominal: NominalSurface, max_distance_mm: 
        algorithms", ICRA 2019.
     """
     points = np.asarray(points, dtype=np.float64)
-    points = points[np.isfinite(points).all(axis=1)]
+    points = points[finite_rows(points)]
     if len(points) < 10:
         raise ValueError(f"Only {len(points)} measured points of the part; at least 10 are needed to align it.")
     size = float(np.linalg.norm(np.ptp(nominal.samples, axis=0)))
@@ -241,7 +252,7 @@ def align_nominal(points: np.ndarray, nominal: NominalSurface, max_distance_mm: 
         starts = np.array(starts)
         schedule = np.geomspace(size / 4, size / 30, 10)
         for distances, keep in ((schedule[:3], _PRUNED_STARTS), (schedule[3:], _COARSE_KEEP)):
-            refined = _icp(coarse, nominal, starts, distances, coarse=True)
+            refined = _icp(coarse, nominal, starts, distances, matching="sparse")
             starts = refined[_near_order(coarse, nominal, refined, distances[-1])[:keep]]
         middle = points[_even_subset(len(points), _CANDIDATE_POINTS)]
         refined = _icp(middle, nominal, starts, np.geomspace(8 * max_distance_mm, max_distance_mm, 10))
@@ -251,6 +262,6 @@ def align_nominal(points: np.ndarray, nominal: NominalSurface, max_distance_mm: 
             return Alignment(matrix=np.linalg.inv(refined[best]), rms_mm=float(rms[best]),
                              inlier_fraction=float(fraction[best]))
         transform = refined[best:best + 1]
-    transform = _icp(fine, nominal, transform, np.full(5, max_distance_mm))
+    transform = _icp(fine, nominal, transform, np.full(5, max_distance_mm), matching="surface")
     fraction, rms = _score(fine, nominal, transform, max_distance_mm)
     return Alignment(matrix=np.linalg.inv(transform[0]), rms_mm=float(rms[0]), inlier_fraction=float(fraction[0]))

@@ -7,6 +7,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from services.inspection.materials import Material
+from services.inspection.point_rows import column_mean, finite_rows
 
 _TREND_SAMPLES = 20000
 _MIN_SCALE_K = 0.01  # below any camera's NETD: an exactly uniform field keeps its weights
@@ -47,7 +48,7 @@ def temperature_trend(points: np.ndarray, temperature: np.ndarray, iterations: i
     from the median absolute deviation) on at most 20 000 evenly drawn points, so that hot and cold
     spots do not tilt the trend.
     """
-    finite = np.isfinite(temperature) & np.isfinite(points).all(axis=1)
+    finite = np.isfinite(temperature) & finite_rows(points)
     index = np.flatnonzero(finite)
     if len(index) < 4:
         raise ValueError(f"Only {len(index)} points have a temperature; at least 4 are needed for the part's "
@@ -117,7 +118,7 @@ def cold_equivalent(points: np.ndarray, temperature: np.ndarray, material: Mater
         raise ValueError(f"points must have shape (N, 3) and temperature (N,); got {points.shape} and "
                          f"{temperature.shape}.")
     trend = temperature_trend(points, temperature)
-    centre = points.mean(axis=0) if centre is None else np.asarray(centre, dtype=np.float64)
+    centre = column_mean(points) if centre is None else np.asarray(centre, dtype=np.float64)
     fallback = ~np.isfinite(temperature)
     used = temperature.copy()
     used[fallback] = points[fallback] @ trend[1:] + trend[0]

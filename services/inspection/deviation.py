@@ -8,6 +8,7 @@ import numpy as np
 from scipy import ndimage
 
 from services.inspection.nominal import NominalSurface
+from services.inspection.point_rows import column_range, finite_rows
 
 _DENSE_CELLS = 20_000_000
 
@@ -94,15 +95,16 @@ def cell_means(points_part: np.ndarray, deviation: np.ndarray, cell_mm: float = 
     -------
     CellMeans
     """
-    finite = np.isfinite(deviation) & np.isfinite(points_part).all(axis=1)
+    finite = np.isfinite(deviation) & finite_rows(points_part)
     if not finite.all():
         points_part, deviation = points_part[finite], deviation[finite]
     if len(deviation) == 0:
         return CellMeans((1, 1, 1), np.zeros(0, np.intp), np.zeros(0), np.zeros(0, np.intp), cell_mm,
                          np.zeros((0, 3)), np.zeros(0, np.intp))
     cells = np.floor(points_part / cell_mm).astype(np.int64)
-    cells -= cells.min(axis=0)
-    shape = tuple(int(n) for n in cells.max(axis=0) + 1)
+    low, high = column_range(cells)
+    cells -= low
+    shape = tuple(int(n) for n in high - low + 1)
     flat = np.ravel_multi_index(cells.T, shape)
     if np.prod(shape) <= _DENSE_CELLS:  # counting in the box's cells is several times faster than sorting
         counts = np.bincount(flat)

@@ -15,6 +15,7 @@ from services.inspection.distance import feature_distance
 from services.inspection.features import (NominalFeature, element_position_std, fit_measured, fit_nominal_feature,
                                           measure_std, measure_value)
 from services.inspection.nominal import NominalSurface
+from services.inspection.point_rows import column_mean, finite_rows
 from services.inspection.uncertainty import (COVERAGE_FACTOR, TemperatureBudget, size_uncertainty,
                                              temperature_uncertainty)
 from services.inspection.verdict import decide, overall
@@ -117,7 +118,7 @@ def inspect_field(*, field: dict[str, np.ndarray], part: Part | PreparedPart) ->
                          "(thermofield field or fuse).")
     points = np.column_stack([field["x"], field["y"], field["z"]]).astype(np.float64)
     temperature = np.asarray(field["temperature"], dtype=np.float64)
-    finite = np.isfinite(points).all(axis=1)
+    finite = finite_rows(points)
     hot = finite & (temperature >= definition.segmentation.min_temperature_c)
     if hot.sum() < 100:
         raise ValueError(f"Only {int(hot.sum())} points are at least {definition.segmentation.min_temperature_c:g} "
@@ -253,7 +254,11 @@ def _surface_result(in_part: np.ndarray, deviation: np.ndarray, temperature: np.
     # a cell's deviation: its mean noise, the structured light's systematic error and, far from the centre,
     # the temperature and table errors acting on its distance from the centre
     mean_t = float(np.mean(temperature))
-    reach = float(np.max(np.linalg.norm(in_part - in_part.mean(axis=0), axis=1))) if len(in_part) else 0.0
+    if len(in_part):
+        offset = in_part - column_mean(in_part)
+        reach = float(np.sqrt(np.max(np.einsum("ij,ij->i", offset, offset))))
+    else:
+        reach = 0.0
     terms = size_uncertainty(reach, mean_t, temperature_uncertainty(mean_t, budget)["total"], part.material,
                              material_fraction, definition.uncertainty.structured_light_noise_mm / np.sqrt(5),
                              definition.uncertainty.structured_light_systematic_mm)
