@@ -191,7 +191,7 @@ def align_nominal(points: np.ndarray, nominal: NominalSurface, max_distance_mm: 
         nearly the same points), which only the polish refines; without it the principal frames'
         axis-to-axis matches are tried.
     polish : bool
-        Without a start: refine the winner on 10 000 points; without, the alignment ends on 3000
+        Without a start: refine the winner on 10 000 points; without, the alignment ends on 1000
         points (a first alignment that a later call refines from its result).
 
     Returns
@@ -211,10 +211,12 @@ def align_nominal(points: np.ndarray, nominal: NominalSurface, max_distance_mm: 
     refined by point-to-plane ICP [1]_ with Tukey weights [2]_ on 300 points against 3000 nominal
     samples, the weights' cut-off shrinking from a quarter to a thirtieth of the part's size over 10
     iterations (after 3, only the 6 starts with most points near the nominal go on); the three starts with most
-    points near the nominal are refined on 3000 points down to ``max_distance_mm``; the one with most
+    points near the nominal are refined on 1000 points down to ``max_distance_mm``; the one with most
     points within that distance of the nominal surface (then the lowest residual) wins and is
-    polished by 5 iterations at ``max_distance_mm`` on 10 000 points, as a given start is. Symmetries of the part (a cylinder's rotation about its axis) leave
-    the transform undetermined along them, which no measure depends on.
+    polished by 5 iterations at ``max_distance_mm`` on 10 000 points, as a given start is, with each
+    point's plane that of its closest point on the mesh (``NominalSurface.signed_distance_gradient``).
+    Symmetries of the part (a cylinder's rotation about its axis) leave the transform undetermined
+    along them, which no measure depends on.
 
     References
     ----------
