@@ -103,8 +103,8 @@ def cold_equivalent(points: np.ndarray, temperature: np.ndarray, material: Mater
     That is T(s) = T_lin(c) + s (T(X) - T_lin(c)), linear in s, so eps_bar is the mean strain over
     [T_lin(c), T(X)], which the piecewise-linear table integrates exactly (``Material.mean_strain``).
     For a uniform temperature this is the exact uniform scaling; for a linear field it is exact to
-    second order in the strain; a hot or cold spot acts on its own points. Points without a temperature use the trend at their position
-    (flagged). Thermal stresses, plastic flow and a core hotter than the surface are not modelled.
+    second order in the strain; a hot or cold spot acts on its own points. Points without a
+    temperature use the trend at their position (flagged). Thermal stresses, plastic flow and a core hotter than the surface are not modelled.
     Strains are the material table's, from 20 degC (EN 1993-1-2 [1]_ for steel).
 
     References

@@ -141,9 +141,7 @@ def _untrusted_cells(known: np.ndarray, corners: np.ndarray, gradients: np.ndarr
     return exact
 
 
-def sample_distance_grid(grid: DistanceGrid, points: np.ndarray,
-                         gradient: bool = False) -> tuple[np.ndarray, np.ndarray] | tuple[np.ndarray, np.ndarray,
-                                                                                          np.ndarray]:
+def sample_distance_grid(grid: DistanceGrid, points: np.ndarray, gradient: bool = False) -> tuple[np.ndarray, ...]:
     """Signed distances of points (N, 3) by trilinear interpolation, and where an exact query is needed.
 
     Parameters
