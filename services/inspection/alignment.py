@@ -9,9 +9,10 @@ import numpy as np
 
 
 from services.inspection.nominal import NominalSurface
+from services.inspection.point_rows import finite_rows
 
 _COARSE_POINTS = 300
-_CANDIDATE_POINTS = 3000
+_CANDIDATE_POINTS = 1000
 _FINE_POINTS = 10000
 _COARSE_KEEP = 3
 _PRUNED_STARTS = 6
@@ -68,67 +69,109 @@ def _start_rotations() -> list[np.ndarray]:
     return rotations
 
 
-def _rotation(omega: np.ndarray) -> np.ndarray:
-    """Rotation matrix of a rotation vector (Rodrigues)."""
-    angle = float(np.linalg.norm(omega))
-    if angle < 1e-15:
-        return np.eye(3)
-    k = omega / angle
-    cross = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
-    return np.eye(3) + np.sin(angle) * cross + (1 - np.cos(angle)) * cross @ cross
+def _rotations(omega: np.ndarray) -> np.ndarray:
+    """Rotation matrices (S, 3, 3) of rotation vectors (S, 3) (Rodrigues)."""
+    angle = np.linalg.norm(omega, axis=1)
+    k = omega / np.where(angle < 1e-15, 1.0, angle)[:, None]
+    cross = np.zeros((len(omega), 3, 3))
+    cross[:, 0, 1], cross[:, 0, 2], cross[:, 1, 2] = -k[:, 2], k[:, 1], -k[:, 0]
+    cross -= cross.transpose(0, 2, 1)
+    return (np.eye(3) + np.sin(angle)[:, None, None] * cross
+            + (1 - np.cos(angle))[:, None, None] * cross @ cross)
 
 
-def _samples(nominal: NominalSurface, coarse: bool):
-    if coarse:
-        return nominal.coarse_tree, nominal.coarse_samples, nominal.coarse_normals
-    return nominal.sample_tree, nominal.samples, nominal.sample_normals
+def _least_squares_steps(system: np.ndarray, right: np.ndarray) -> np.ndarray:
+    """Minimum-norm solutions (S, 6) of S normal systems (S, 6, 6), as ``np.linalg.lstsq`` solves one: singular
+    values below machine precision times 6 of the largest count as zero (a cylinder's spin about its axis)."""
+    u, singular, vt = np.linalg.svd(system)
+    kept = singular > np.finfo(float).eps * system.shape[-1] * singular[:, :1]
+    inverse = np.divide(1.0, singular, out=np.zeros_like(singular), where=kept)
+    return np.einsum("sji,sj->si", vt, inverse * np.einsum("sji,sj->si", u, right))
 
 
-def _icp(points: np.ndarray, nominal: NominalSurface, transform: np.ndarray, distances: np.ndarray,
-         coarse: bool = False) -> np.ndarray:
-    """Point-to-plane ICP with Tukey weights, one iteration per entry of ``distances`` (the Tukey cut-off, mm).
+def _moved(points: np.ndarray, transforms: np.ndarray) -> np.ndarray:
+    """Points (N, 3) under each of S transforms (S, 4, 4): (S, N, 3)."""
+    return points @ transforms[:, :3, :3].transpose(0, 2, 1) + transforms[:, None, :3, 3]
 
-    ``transform`` maps measured points to the part frame; ``coarse`` matches against the nominal's
-    sparse samples. Hand-written on the nominal's prepared cKDTrees: Open3D's ``registration_icp``
-    searches its own tree by radius on every call, which made the 24 starts take seconds.
+
+def _correspondences(moved: np.ndarray, nominal: NominalSurface, matching: str,
+                     cut_off: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Point-to-plane residuals (S, N), plane normals (S, N, 3) and which points are within ``cut_off``."""
+    if matching == "surface":
+        residual, normal = nominal.signed_distance_gradient(moved.reshape(-1, 3))
+        residual, normal = residual.reshape(moved.shape[:2]), normal.reshape(moved.shape)
+        return residual, normal, np.abs(residual) < cut_off
+    if matching == "sparse":
+        tree, samples, sample_normals = nominal.coarse_tree, nominal.coarse_samples, nominal.coarse_normals
+    else:
+        tree, samples, sample_normals = nominal.sample_tree, nominal.samples, nominal.sample_normals
+    # bounded: a far query visits much of the tree, and beyond the cut-off its weight is 0 anyway
+    distance, index = tree.query(moved.reshape(-1, 3), distance_upper_bound=cut_off)
+    near = np.isfinite(distance).reshape(moved.shape[:2])
+    index = np.where(near, index.reshape(near.shape), 0)
+    normal = sample_normals[index]
+    return np.einsum("sni,sni->sn", moved - samples[index], normal), normal, near
+
+
+def _icp(points: np.ndarray, nominal: NominalSurface, transforms: np.ndarray, distances: np.ndarray,
+         matching: str = "samples") -> np.ndarray:
+    """Point-to-plane ICP with Tukey weights from S starts at once, one iteration per entry of ``distances``
+    (the Tukey cut-off, mm).
+
+    ``transforms`` (S, 4, 4) map measured points to the part frame. ``matching``: each point's plane
+    is that of its nearest nominal sample (``"samples"``) or sparse sample (``"sparse"``), or that of
+    its closest point on the mesh itself (``"surface"``: the signed distance and its gradient, read
+    from the distance grid near the surface, for points already close to it). Every start's points
+    are matched in one query per iteration, each start solves its own 6 x 6 normal equations; a start
+    with a total weight below 6 stops there. Hand-written on the nominal's prepared cKDTrees: Open3D's
+    ``registration_icp`` searches its own tree by radius on every call, which made the 24 starts
+    take seconds.
     """
-    tree, samples, sample_normals = _samples(nominal, coarse)
-    rotation, translation = transform[:3, :3].copy(), transform[:3, 3].copy()
+    transforms = np.array(transforms, dtype=np.float64)
+    active = np.ones(len(transforms), dtype=bool)
     for cut_off in distances:
-        moved = points @ rotation.T + translation
-        # bounded: a far query visits much of the tree, and beyond the cut-off its weight is 0 anyway
-        distance, index = tree.query(moved, distance_upper_bound=cut_off)
-        near = np.isfinite(distance)
-        moved, index = moved[near], index[near]
-        target, normal = samples[index], sample_normals[index]
-        residual = np.einsum("ij,ij->i", moved - target, normal)
+        moved = _moved(points, transforms[active])
+        residual, normal, near = _correspondences(moved, nominal, matching, cut_off)
         u = residual / cut_off
-        weight = np.where(np.abs(u) < 1, (1 - u * u) ** 2, 0.0)
-        if weight.sum() < 6:
+        weight = np.where(near & (np.abs(u) < 1), (1 - u * u) ** 2, 0.0)
+        enough = weight.sum(axis=1) >= 6
+        active[np.flatnonzero(active)[~enough]] = False
+        if not active.any():
             break
-        design = np.column_stack([np.cross(moved, normal), normal])
-        system = design.T @ (design * weight[:, None])
-        step = np.linalg.lstsq(system, -design.T @ (weight * residual), rcond=None)[0]
-        increment = _rotation(step[:3])
-        rotation, translation = increment @ rotation, increment @ translation + step[3:]
-    result = np.eye(4)
-    result[:3, :3], result[:3, 3] = rotation, translation
-    return result
+        moved, normal, weight, residual = moved[enough], normal[enough], weight[enough], residual[enough]
+        design = np.concatenate([np.cross(moved, normal), normal], axis=2)
+        weighted = design * weight[..., None]
+        step = _least_squares_steps(weighted.transpose(0, 2, 1) @ design,
+                                    -np.einsum("sni,sn->si", weighted, residual))
+        increment = _rotations(step[:, :3])
+        transforms[active, :3, :3] = increment @ transforms[active, :3, :3]
+        transforms[active, :3, 3] = np.einsum("sij,sj->si", increment, transforms[active, :3, 3]) + step[:, 3:]
+    return transforms
 
 
-def _near_score(points: np.ndarray, nominal: NominalSurface, transform: np.ndarray, cut_off: float):
-    """(-fraction of points within ``cut_off`` of a sparse nominal sample, their median distance): lower is better."""
-    moved = points @ transform[:3, :3].T + transform[:3, 3]
-    distance, _ = nominal.coarse_tree.query(moved, distance_upper_bound=cut_off)
+def _near_order(points: np.ndarray, nominal: NominalSurface, transforms: np.ndarray, cut_off: float) -> np.ndarray:
+    """Indices of the transforms (S, 4, 4), best first: most points within ``cut_off`` of a sparse nominal
+    sample (to the hundredth), then the lowest median distance of those."""
+    moved = _moved(points, transforms)
+    distance = nominal.coarse_tree.query(moved.reshape(-1, 3), distance_upper_bound=cut_off)[0]
+    distance = distance.reshape(moved.shape[:2])
     near = np.isfinite(distance)
-    return -round(float(near.mean()), 2), float(np.median(distance[near])) if near.any() else np.inf
+    fraction = np.round(near.mean(axis=1), 2)
+    with np.errstate(all="ignore"):
+        median = np.where(near.any(axis=1), np.nanmedian(np.where(near, distance, np.nan), axis=1), np.inf)
+    return np.lexsort((np.arange(len(transforms)), median, -fraction))
 
 
-def _score(points: np.ndarray, nominal: NominalSurface, transform: np.ndarray, max_distance: float):
-    distance = np.abs(nominal.signed_distance(points @ transform[:3, :3].T + transform[:3, 3]))
+def _score(points: np.ndarray, nominal: NominalSurface, transforms: np.ndarray, max_distance: float):
+    """Per transform (S, 4, 4): the fraction of points within ``max_distance`` of the nominal surface and
+    their RMS distance (inf without any)."""
+    moved = _moved(points, transforms)
+    distance = np.abs(nominal.signed_distance(moved.reshape(-1, 3))).reshape(moved.shape[:2])
     inliers = distance <= max_distance
-    rms = float(np.sqrt(np.mean(distance[inliers] ** 2))) if inliers.any() else float("inf")
-    return float(inliers.mean()), rms
+    count = inliers.sum(axis=1)
+    with np.errstate(all="ignore"):
+        rms = np.where(count > 0, np.sqrt(np.where(inliers, distance**2, 0.0).sum(axis=1) / count), np.inf)
+    return inliers.mean(axis=1), rms
 
 
 def align_nominal(points: np.ndarray, nominal: NominalSurface, max_distance_mm: float = 2.0,
@@ -144,11 +187,12 @@ def align_nominal(points: np.ndarray, nominal: NominalSurface, max_distance_mm: 
     max_distance_mm : float
         Correspondence distance of the last ICP stage and the inlier threshold.
     start : (4, 4) array, optional
-        A known part-to-world transform to refine; without it the 24 axis-to-axis matches of the
-        principal frames are tried.
+        A part-to-world transform within ``max_distance_mm`` of the answer (an earlier alignment of
+        nearly the same points), which only the polish refines; without it the principal frames'
+        axis-to-axis matches are tried.
     polish : bool
-        Refine the winner on 10 000 points; without, the alignment ends on 3000 points (a first
-        alignment that a later call refines).
+        Without a start: refine the winner on 10 000 points; without, the alignment ends on 1000
+        points (a first alignment that a later call refines from its result).
 
     Returns
     -------
@@ -167,10 +211,12 @@ def align_nominal(points: np.ndarray, nominal: NominalSurface, max_distance_mm: 
     refined by point-to-plane ICP [1]_ with Tukey weights [2]_ on 300 points against 3000 nominal
     samples, the weights' cut-off shrinking from a quarter to a thirtieth of the part's size over 10
     iterations (after 3, only the 6 starts with most points near the nominal go on); the three starts with most
-    points near the nominal are refined on 3000 points down to ``max_distance_mm``; the one with most
+    points near the nominal are refined on 1000 points down to ``max_distance_mm``; the one with most
     points within that distance of the nominal surface (then the lowest residual) wins and is
-    polished by 5 iterations on 10 000 points. Symmetries of the part (a cylinder's rotation about its axis) leave
-    the transform undetermined along them, which no measure depends on.
+    polished by 5 iterations at ``max_distance_mm`` on 10 000 points, as a given start is, with each
+    point's plane that of its closest point on the mesh (``NominalSurface.signed_distance_gradient``).
+    Symmetries of the part (a cylinder's rotation about its axis) leave the transform undetermined
+    along them, which no measure depends on.
 
     References
     ----------
@@ -180,13 +226,13 @@ def align_nominal(points: np.ndarray, nominal: NominalSurface, max_distance_mm: 
        algorithms", ICRA 2019.
     """
     points = np.asarray(points, dtype=np.float64)
-    points = points[np.isfinite(points).all(axis=1)]
+    points = points[finite_rows(points)]
     if len(points) < 10:
         raise ValueError(f"Only {len(points)} measured points of the part; at least 10 are needed to align it.")
     size = float(np.linalg.norm(np.ptp(nominal.samples, axis=0)))
     fine = points[_even_subset(len(points), _FINE_POINTS)]
     if start is not None:
-        candidates = [np.linalg.inv(start)]
+        transform = np.linalg.inv(start)[None]
     else:
         coarse = points[_even_subset(len(points), _COARSE_POINTS)]
         measured_centre, measured_axes = _principal_frame(fine)
@@ -205,23 +251,19 @@ def align_nominal(points: np.ndarray, nominal: NominalSurface, max_distance_mm: 
                 guess = np.eye(4)
                 guess[:3, :3], guess[:3, 3] = rotation, translation + shift * axis
                 starts.append(guess)
+        starts = np.array(starts)
         schedule = np.geomspace(size / 4, size / 30, 10)
         for distances, keep in ((schedule[:3], _PRUNED_STARTS), (schedule[3:], _COARSE_KEEP)):
-            refined = [_icp(coarse, nominal, start, distances, coarse=True) for start in starts]
-            scored = sorted((_near_score(coarse, nominal, transform, distances[-1]), index)
-                            for index, transform in enumerate(refined))
-            starts = [refined[index] for _, index in scored[:keep]]
-        candidates = starts
-    middle = points[_even_subset(len(points), _CANDIDATE_POINTS)]
-    best = None
-    for candidate in candidates:
-        transform = _icp(middle, nominal, candidate, np.geomspace(8 * max_distance_mm, max_distance_mm, 10))
-        fraction, rms = _score(middle, nominal, transform, max_distance_mm)
-        key = (-round(fraction, 3), rms)
-        if best is None or key < best[0]:
-            best = (key, transform)
-    if not polish:
-        return Alignment(matrix=np.linalg.inv(best[1]), rms_mm=best[0][1], inlier_fraction=-best[0][0])
-    transform = _icp(fine, nominal, best[1], np.full(5, max_distance_mm))
+            refined = _icp(coarse, nominal, starts, distances, matching="sparse")
+            starts = refined[_near_order(coarse, nominal, refined, distances[-1])[:keep]]
+        middle = points[_even_subset(len(points), _CANDIDATE_POINTS)]
+        refined = _icp(middle, nominal, starts, np.geomspace(8 * max_distance_mm, max_distance_mm, 10))
+        fraction, rms = _score(middle, nominal, refined, max_distance_mm)
+        best = np.lexsort((np.arange(len(refined)), rms, -np.round(fraction, 3)))[0]
+        if not polish:
+            return Alignment(matrix=np.linalg.inv(refined[best]), rms_mm=float(rms[best]),
+                             inlier_fraction=float(fraction[best]))
+        transform = refined[best:best + 1]
+    transform = _icp(fine, nominal, transform, np.full(5, max_distance_mm), matching="surface")
     fraction, rms = _score(fine, nominal, transform, max_distance_mm)
-    return Alignment(matrix=np.linalg.inv(transform), rms_mm=rms, inlier_fraction=fraction)
+    return Alignment(matrix=np.linalg.inv(transform[0]), rms_mm=float(rms[0]), inlier_fraction=float(fraction[0]))

@@ -7,8 +7,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from services.inspection.materials import Material
+from services.inspection.point_rows import column_mean, finite_rows
 
-_PATH_NODES = 6  # Gauss-Legendre nodes along each point's segment; exact for strains of degree <= 11 in s
 _TREND_SAMPLES = 20000
 _MIN_SCALE_K = 0.01  # below any camera's NETD: an exactly uniform field keeps its weights
 
@@ -48,7 +48,7 @@ def temperature_trend(points: np.ndarray, temperature: np.ndarray, iterations: i
     from the median absolute deviation) on at most 20 000 evenly drawn points, so that hot and cold
     spots do not tilt the trend.
     """
-    finite = np.isfinite(temperature) & np.isfinite(points).all(axis=1)
+    finite = np.isfinite(temperature) & finite_rows(points)
     index = np.flatnonzero(finite)
     if len(index) < 4:
         raise ValueError(f"Only {len(index)} points have a temperature; at least 4 are needed for the part's "
@@ -95,15 +95,16 @@ def cold_equivalent(points: np.ndarray, temperature: np.ndarray, material: Mater
     eps(T) = Delta l / l of its material. Along the straight segment from the centre c to a hot
     point X the hot length is the integral of (1 + eps) over the cold length, so
 
-        X_cold = c + (X - c) / (1 + eps_bar),   eps_bar = int_0^1 eps(T(c + s (X - c))) ds,
+        X_cold = c + (X - c) / (1 + eps_bar),   eps_bar = int_0^1 eps(T(c + s (X - c))) ds.
 
-    evaluated with 6-point Gauss-Legendre quadrature. The interior temperature along the segment is
-    not measured: it is modelled as the part's linear surface trend T_lin(X) = a + b . X (robust fit
-    to all points) plus the point's own departure from the trend, growing linearly from the centre,
-    T(s) = T_lin(c + s (X - c)) + s (T(X) - T_lin(X)). For a uniform temperature this is the exact
-    uniform scaling; for a linear field it is exact to second order in the strain; a hot or cold
-    spot acts on its own points. Points without a temperature use the trend at their position
-    (flagged). Thermal stresses, plastic flow and a core hotter than the surface are not modelled.
+    The interior temperature along the segment is not measured: it is modelled as the part's linear
+    surface trend T_lin(X) = a + b . X (robust fit to all points) plus the point's own departure from
+    the trend, growing linearly from the centre, T(s) = T_lin(c + s (X - c)) + s (T(X) - T_lin(X)).
+    That is T(s) = T_lin(c) + s (T(X) - T_lin(c)), linear in s, so eps_bar is the mean strain over
+    [T_lin(c), T(X)], which the piecewise-linear table integrates exactly (``Material.mean_strain``).
+    For a uniform temperature this is the exact uniform scaling; for a linear field it is exact to
+    second order in the strain; a hot or cold spot acts on its own points. Points without a
+    temperature use the trend at their position (flagged). Thermal stresses, plastic flow and a core hotter than the surface are not modelled.
     Strains are the material table's, from 20 degC (EN 1993-1-2 [1]_ for steel).
 
     References
@@ -117,17 +118,10 @@ def cold_equivalent(points: np.ndarray, temperature: np.ndarray, material: Mater
         raise ValueError(f"points must have shape (N, 3) and temperature (N,); got {points.shape} and "
                          f"{temperature.shape}.")
     trend = temperature_trend(points, temperature)
-    centre = points.mean(axis=0) if centre is None else np.asarray(centre, dtype=np.float64)
-    along_trend = points @ trend[1:] + trend[0]
+    centre = column_mean(points) if centre is None else np.asarray(centre, dtype=np.float64)
     fallback = ~np.isfinite(temperature)
-    used = np.where(fallback, along_trend, temperature)
-    departure = used - along_trend
-    trend_at_centre = trend[0] + centre @ trend[1:]
-    nodes, weights = np.polynomial.legendre.leggauss(_PATH_NODES)
-    nodes, weights = (nodes + 1) / 2, weights / 2
-    strain = np.zeros(len(points))
-    for s, weight in zip(nodes, weights):
-        along = (1 - s) * trend_at_centre + s * along_trend + s * departure
-        strain += weight * material.strain(along)
+    used = temperature.copy()
+    used[fallback] = points[fallback] @ trend[1:] + trend[0]
+    strain = material.mean_strain(float(trend[0] + centre @ trend[1:]), used)
     cold = centre + (points - centre) / (1 + strain)[:, None]
     return ColdGeometry(points=cold, temperature=used, fallback=fallback, strain=strain, centre=centre, trend=trend)

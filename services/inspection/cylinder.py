@@ -82,7 +82,7 @@ def fit_cylinder(points: np.ndarray, axis_point: np.ndarray, axis: np.ndarray, r
         offset = kept - np.array([parameters[0], parameters[1], 0.0])
         along = offset @ direction
         radial = offset - np.outer(along, direction)
-        return radial, np.linalg.norm(radial, axis=1), along
+        return radial, np.sqrt(np.einsum("ij,ij->i", radial, radial)), along
 
     def residuals(parameters: np.ndarray, kept: np.ndarray = local) -> np.ndarray:
         return radial_parts(parameters, kept)[1] - parameters[4]

@@ -8,6 +8,7 @@ import numpy as np
 from scipy import ndimage
 
 from services.inspection.nominal import NominalSurface
+from services.inspection.point_rows import column_range, finite_rows
 
 _DENSE_CELLS = 20_000_000
 
@@ -60,9 +61,22 @@ class CellMeans:
     shape: tuple[int, int, int]
     keys: np.ndarray  # flat index of each occupied cell in ``shape``
     mean: np.ndarray  # mean deviation of its points, mm
-    centroid: np.ndarray  # (K, 3) centroid of its points, part frame
     counts: np.ndarray
     cell_mm: float
+    points: np.ndarray  # (N, 3) the binned points, part frame
+    point_keys: np.ndarray  # (N,) the flat index of each one's cell
+
+    def centroids(self, cells: np.ndarray) -> np.ndarray:
+        """Centroids (K, 3) of the points of some occupied cells (indices into ``keys``), part frame.
+
+        Only the cells asked for are summed (a defect's deepest cell), not every cell of the map.
+        """
+        wanted, inverse = np.unique(self.keys[np.asarray(cells, dtype=np.intp)], return_inverse=True)
+        chosen = np.flatnonzero(np.isin(self.point_keys, wanted))
+        slot = np.searchsorted(wanted, self.point_keys[chosen])
+        sums = np.column_stack([np.bincount(slot, weights=self.points[chosen, k], minlength=len(wanted))
+                                for k in range(3)])
+        return (sums / np.bincount(slot, minlength=len(wanted))[:, None])[inverse.ravel()]
 
 
 def cell_means(points_part: np.ndarray, deviation: np.ndarray, cell_mm: float = 1.0) -> CellMeans:
@@ -81,29 +95,26 @@ def cell_means(points_part: np.ndarray, deviation: np.ndarray, cell_mm: float = 
     -------
     CellMeans
     """
-    finite = np.isfinite(deviation) & np.isfinite(points_part).all(axis=1)
-    points, values = points_part[finite], deviation[finite]
-    if len(values) == 0:
-        return CellMeans((1, 1, 1), np.zeros(0, np.intp), np.zeros(0), np.zeros((0, 3)), np.zeros(0, np.intp), cell_mm)
-    cells = np.floor(points / cell_mm).astype(np.int64)
-    cells -= cells.min(axis=0)
-    shape = tuple(int(n) for n in cells.max(axis=0) + 1)
+    finite = np.isfinite(deviation) & finite_rows(points_part)
+    if not finite.all():
+        points_part, deviation = points_part[finite], deviation[finite]
+    if len(deviation) == 0:
+        return CellMeans((1, 1, 1), np.zeros(0, np.intp), np.zeros(0), np.zeros(0, np.intp), cell_mm,
+                         np.zeros((0, 3)), np.zeros(0, np.intp))
+    cells = np.floor(points_part / cell_mm).astype(np.int64)
+    low, high = column_range(cells)
+    cells -= low
+    shape = tuple(int(n) for n in high - low + 1)
     flat = np.ravel_multi_index(cells.T, shape)
     if np.prod(shape) <= _DENSE_CELLS:  # counting in the box's cells is several times faster than sorting
         counts = np.bincount(flat)
         keys = np.flatnonzero(counts)
+        mean = np.bincount(flat, weights=deviation)[keys] / counts[keys]
         counts = counts[keys]
-
-        def cell_sums(weights: np.ndarray) -> np.ndarray:
-            return np.bincount(flat, weights=weights)[keys]
     else:
         keys, inverse, counts = np.unique(flat, return_inverse=True, return_counts=True)
-
-        def cell_sums(weights: np.ndarray) -> np.ndarray:
-            return np.bincount(inverse, weights=weights)
-    mean = cell_sums(values) / counts
-    centroid = np.column_stack([cell_sums(points[:, k]) / counts for k in range(3)])
-    return CellMeans(shape, keys, mean, centroid, counts, cell_mm)
+        mean = np.bincount(inverse, weights=deviation) / counts
+    return CellMeans(shape, keys, mean, counts, cell_mm, points_part, flat)
 
 
 def find_defects(cells: CellMeans, threshold_mm: float, min_cells: int = 10) -> list[Defect]:
@@ -145,12 +156,13 @@ def find_defects(cells: CellMeans, threshold_mm: float, min_cells: int = 10) -> 
         labels, _ = ndimage.label(bridged, structure=np.ones((3, 3, 3)))
         cell_labels = labels[tuple(index.T)]
         beyond_index = np.flatnonzero(beyond)
-        for label in np.unique(cell_labels):
-            members = beyond_index[cell_labels == label]
-            if len(members) < min_cells:
-                continue
-            extreme = members[np.argmax(sign * cells.mean[members])]
-            defects.append(Defect(center=cells.centroid[extreme], depth_mm=float(cells.mean[extreme]),
+        patches = [beyond_index[cell_labels == label] for label in np.unique(cell_labels)]
+        patches = [members for members in patches if len(members) >= min_cells]
+        if not patches:
+            continue
+        extremes = [members[np.argmax(sign * cells.mean[members])] for members in patches]
+        for members, extreme, center in zip(patches, extremes, cells.centroids(extremes)):
+            defects.append(Defect(center=center, depth_mm=float(cells.mean[extreme]),
                                   area_mm2=float(len(members) * cells.cell_mm**2),
                                   points=int(cells.counts[members].sum())))
     return sorted(defects, key=lambda defect: -abs(defect.depth_mm))

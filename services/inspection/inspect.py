@@ -15,6 +15,7 @@ from services.inspection.distance import feature_distance
 from services.inspection.features import (NominalFeature, element_position_std, fit_measured, fit_nominal_feature,
                                           measure_std, measure_value)
 from services.inspection.nominal import NominalSurface
+from services.inspection.point_rows import column_mean, finite_rows
 from services.inspection.uncertainty import (COVERAGE_FACTOR, TemperatureBudget, size_uncertainty,
                                              temperature_uncertainty)
 from services.inspection.verdict import decide, overall
@@ -117,7 +118,7 @@ def inspect_field(*, field: dict[str, np.ndarray], part: Part | PreparedPart) ->
                          "(thermofield field or fuse).")
     points = np.column_stack([field["x"], field["y"], field["z"]]).astype(np.float64)
     temperature = np.asarray(field["temperature"], dtype=np.float64)
-    finite = np.isfinite(points).all(axis=1)
+    finite = finite_rows(points)
     hot = finite & (temperature >= definition.segmentation.min_temperature_c)
     if hot.sum() < 100:
         raise ValueError(f"Only {int(hot.sum())} points are at least {definition.segmentation.min_temperature_c:g} "
@@ -153,7 +154,7 @@ def inspect_field(*, field: dict[str, np.ndarray], part: Part | PreparedPart) ->
     if material_fraction is None:
         material_fraction = part.material.relative_uncertainty
     in_part = cold_part_frame[member]
-    hot_part_frame = alignment.to_part(points[candidates[member]])
+    part_points = candidates[member]
     used_temperature = cold.temperature[member]
     used_fallback = cold.fallback[member]
 
@@ -171,7 +172,7 @@ def inspect_field(*, field: dict[str, np.ndarray], part: Part | PreparedPart) ->
                 results.append(_unmeasured(feature, str(error)))
             continue
         stretch = float(np.mean(1 + part.material.strain(used_temperature[inside])))
-        hot_element = fit_measured(nominal_feature, hot_part_frame[inside], stretch)
+        hot_element = fit_measured(nominal_feature, alignment.to_part(points[part_points[inside]]), stretch)
         mean_t = float(np.mean(used_temperature[inside]))
         u_t = _temperature_std(mean_t, budget, float(np.mean(used_fallback[inside])),
                                definition.uncertainty.fallback_temperature_k)
@@ -253,7 +254,11 @@ def _surface_result(in_part: np.ndarray, deviation: np.ndarray, temperature: np.
     # a cell's deviation: its mean noise, the structured light's systematic error and, far from the centre,
     # the temperature and table errors acting on its distance from the centre
     mean_t = float(np.mean(temperature))
-    reach = float(np.max(np.linalg.norm(in_part - in_part.mean(axis=0), axis=1))) if len(in_part) else 0.0
+    if len(in_part):
+        offset = in_part - column_mean(in_part)
+        reach = float(np.sqrt(np.max(np.einsum("ij,ij->i", offset, offset))))
+    else:
+        reach = 0.0
     terms = size_uncertainty(reach, mean_t, temperature_uncertainty(mean_t, budget)["total"], part.material,
                              material_fraction, definition.uncertainty.structured_light_noise_mm / np.sqrt(5),
                              definition.uncertainty.structured_light_systematic_mm)

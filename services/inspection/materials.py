@@ -7,6 +7,7 @@ reference temperature 20 degC, against temperature, linearly interpolated betwee
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 
@@ -65,6 +66,51 @@ class Material:
     def strain(self, temperature_c: np.ndarray) -> np.ndarray:
         """Delta l / l from 20 degC at each temperature (clamped to the table's ends)."""
         return np.interp(temperature_c, self.temperatures, self.strains)
+
+    def mean_strain(self, start_c: float, end_c: np.ndarray) -> np.ndarray:
+        """The mean of the interpolated strain over each temperature interval [start_c, end_c].
+
+        Parameters
+        ----------
+        start_c : float
+            The intervals' common end, degrees C.
+        end_c : (N,) array
+            Their other ends, degrees C.
+
+        Returns
+        -------
+        (N,) array
+            (E(end) - E(start)) / (end - start) with E the exact antiderivative of the piecewise-linear
+            table (clamped ends continued as constants); the strain at the middle where the interval
+            is shorter than 1 mK (exact there on a linear piece, and free of the difference's rounding).
+        """
+        end_c = np.asarray(end_c, dtype=np.float64)
+        width = end_c - start_c
+        with np.errstate(invalid="ignore", divide="ignore"):
+            mean = (self._antiderivative(end_c) - self._antiderivative(np.float64(start_c))) / width
+        short = np.abs(width) < 1e-3
+        mean[short] = self.strain((start_c + end_c[short]) / 2)
+        return mean
+
+    @cached_property
+    def _pieces(self) -> tuple[np.ndarray, np.ndarray]:
+        """Per piece of the table: the strain's integral from the first temperature to the piece's start
+        (K), and the strain's rate (1/K)."""
+        widths = np.diff(self.temperatures)
+        integral = np.concatenate([[0.0], np.cumsum(widths * (self.strains[:-1] + self.strains[1:]) / 2)])
+        return integral[:-1], np.diff(self.strains) / widths
+
+    def _antiderivative(self, temperature_c: np.ndarray) -> np.ndarray:
+        """The integral of the strain from the table's first temperature to each temperature (exact: the
+        strain is linear on each piece, constant beyond the table's ends)."""
+        temperatures, strains = self.temperatures, self.strains
+        piece = np.clip(np.searchsorted(temperatures, temperature_c, side="right") - 1, 0, len(temperatures) - 2)
+        integral, rate = self._pieces
+        clamped = np.clip(temperature_c, temperatures[0], temperatures[-1])
+        offset = clamped - temperatures[piece]
+        inside = integral[piece] + offset * (strains[piece] + 0.5 * rate[piece] * offset)
+        # beyond an end the clamped strain is that end's: its integral grows linearly
+        return inside + (temperature_c - clamped) * np.where(temperature_c > clamped, strains[-1], strains[0])
 
     def slope(self, temperature_c: np.ndarray) -> np.ndarray:
         """d(Delta l / l)/dT, 1/K, of the interpolated table (a central difference of 1 K)."""

@@ -102,10 +102,25 @@ class NominalSurface:
         """
         points = np.asarray(points, dtype=np.float64)
         distance, needs_exact = sample_distance_grid(self.grid, points)
-        needs_exact |= np.isnan(distance)
         if needs_exact.any():
             distance[needs_exact] = self.closest(points[needs_exact]).signed_distance
         return distance
+
+    def signed_distance_gradient(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Signed distances (N,) of points in the part frame and the distance's gradients (N, 3) there: for
+        a point near the surface, its offset along the outward normal of its closest surface point, and that
+        normal (the point-to-plane residual and direction of ICP against the mesh itself).
+
+        Notes
+        -----
+        Read from the distance grid (``sample_distance_grid``, the gradient of its trilinear interpolant)
+        where it is trusted; elsewhere exact (``closest``: (p - q) / d, the triangle's normal on the surface).
+        """
+        points = np.asarray(points, dtype=np.float64)
+        distance, needs_exact, gradient = sample_distance_grid(self.grid, points, gradient=True)
+        if needs_exact.any():
+            distance[needs_exact], gradient[needs_exact] = self._exact(points[needs_exact])
+        return distance, gradient
 
     def _exact(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Signed distances and the distance's gradient, (p - q) / d: the closest triangle's normal only on

@@ -30,6 +30,15 @@ def test_grid_matches_exact_distances_within_its_tolerance(mesh):
     trusted = np.isfinite(interpolated) & ~needs_exact
     assert trusted.mean() > 0.5  # the grid, not the mesh, answers most of them
     assert np.max(np.abs(interpolated[trusted] - exact[trusted])) < 0.01
+    # the ICP's planes: the distance and its gradient, the outward normal of the closest point
+    distance, gradient = nominal.signed_distance_gradient(points)
+    assert np.max(np.abs(distance - exact)) < 0.01
+    closest = nominal.closest(points)
+    off = np.abs(exact) > 0.05
+    normal = (points[off] - closest.points[off]) / exact[off, None]
+    cosine = np.einsum("ij,ij->i", gradient[off], normal) / np.linalg.norm(gradient[off], axis=1)
+    assert np.degrees(np.arccos(np.clip(cosine.min(), -1, 1))) < 5
+    assert np.abs(np.linalg.norm(gradient, axis=1) - 1).max() < 0.05
 
 
 def test_edges_are_queried_exactly_and_far_points_too():

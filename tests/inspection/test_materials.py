@@ -30,6 +30,17 @@ def test_stainless_aluminium_titanium():
         assert material.source
 
 
+def test_mean_strain_over_an_interval_is_the_tables_exact_integral():
+    steel = builtin_material("carbon-steel")
+    # across the phase change's kinks, beyond both ends of the table (clamped), and down to no width
+    ends = np.array([1000.0, 700.0, 900.0, 1300.0, -30.0, 1000.0 + 1e-6])
+    mean = steel.mean_strain(1000.0, ends)
+    for end, value in zip(ends[1:-1], mean[1:-1]):
+        t = np.linspace(1000.0, end, 400001)
+        assert value == pytest.approx(np.trapezoid(steel.strain(t), t) / (end - 1000.0), abs=1e-10)
+    assert mean[[0, -1]] == pytest.approx([steel.strain(1000.0)] * 2, abs=1e-10)
+
+
 def test_unknown_and_invalid_tables():
     with pytest.raises(ValueError, match="unknown material 'brass'.*carbon-steel"):
         builtin_material("brass")
