@@ -13,6 +13,7 @@ import time
 
 import httpx
 import numpy as np
+import pytest
 from asyncua import Client
 
 from services.events.opcua import NAMESPACE
@@ -22,6 +23,7 @@ from services.formats.rig import rig_to_json
 from services.simulation.presets import forging_rig
 
 
+@pytest.mark.reliability  # 1.5 min: in make test-reliability (also in .ci/run), not make test
 def test_scaled_out_scans_with_two_workers_and_survive_a_worker_crash(e2e, deployment, tmp_path):
     env = deployment
     api_url = f"http://127.0.0.1:{env['THERMOFIELD_API_PORT']}"
