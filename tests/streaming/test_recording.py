@@ -89,7 +89,9 @@ def test_scan_recordings_leave_no_threads_behind(rig, field):
     threads = len(os.listdir("/proc/self/task"))
     for index in range(1, 6):
         scan_recording(f"scan-{index}", scene)
-    assert len(os.listdir("/proc/self/task")) <= threads
+    # the leak left two threads per scan (ten here); the suite's other threads (a pool's worker starting
+    # or stopping) may change the count by one or two meanwhile
+    assert len(os.listdir("/proc/self/task")) <= threads + 2
 
 
 def test_device_frusta_keep_the_world_to_device_pose(tmp_path, rig, field):
