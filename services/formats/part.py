@@ -68,7 +68,11 @@ class Region(BaseModel):
 
     def contains(self, points: np.ndarray) -> np.ndarray:
         """Whether each point (N, 3) lies in the box."""
-        return np.all((points >= np.asarray(self.min)) & (points <= np.asarray(self.max)), axis=1)
+        inside = np.ones(len(points), dtype=bool)
+        for axis in range(3):  # column by column: numpy's reduction over the short axis is several times slower
+            column = points[:, axis]
+            inside &= (column >= self.min[axis]) & (column <= self.max[axis])
+        return inside
 
 
 class Feature(BaseModel):

@@ -7,9 +7,10 @@ from itertools import permutations, product
 
 import numpy as np
 
-
+from services.geometry.rigid import rigid_transform
 from services.inspection.nominal import NominalSurface
 from services.inspection.point_rows import finite_rows
+from services.inspection.robust import even_subset
 
 _COARSE_POINTS = 300
 _CANDIDATE_POINTS = 1000
@@ -40,15 +41,11 @@ class Alignment:
     def to_part(self, points: np.ndarray) -> np.ndarray:
         """World points (N, 3) in the part frame."""
         rotation, translation = self.matrix[:3, :3], self.matrix[:3, 3]
-        return (np.asarray(points) - translation) @ rotation
+        return rigid_transform(points, rotation.T, -rotation.T @ translation)
 
     def to_world(self, points: np.ndarray) -> np.ndarray:
         """Part-frame points (N, 3) in the world frame."""
-        return np.asarray(points) @ self.matrix[:3, :3].T + self.matrix[:3, 3]
-
-
-def _even_subset(count: int, wanted: int) -> np.ndarray:
-    return np.arange(count) if count <= wanted else np.linspace(0, count - 1, wanted).astype(np.intp)
+        return rigid_transform(points, self.matrix[:3, :3], self.matrix[:3, 3])
 
 
 def _principal_frame(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -230,11 +227,11 @@ def align_nominal(points: np.ndarray, nominal: NominalSurface, max_distance_mm: 
     if len(points) < 10:
         raise ValueError(f"Only {len(points)} measured points of the part; at least 10 are needed to align it.")
     size = float(np.linalg.norm(np.ptp(nominal.samples, axis=0)))
-    fine = points[_even_subset(len(points), _FINE_POINTS)]
+    fine = even_subset(points, _FINE_POINTS)
     if start is not None:
         transform = np.linalg.inv(start)[None]
     else:
-        coarse = points[_even_subset(len(points), _COARSE_POINTS)]
+        coarse = even_subset(points, _COARSE_POINTS)
         measured_centre, measured_axes = _principal_frame(fine)
         nominal_centre, nominal_axes = _principal_frame(nominal.samples)
         starts = []
@@ -256,7 +253,7 @@ def align_nominal(points: np.ndarray, nominal: NominalSurface, max_distance_mm: 
         for distances, keep in ((schedule[:3], _PRUNED_STARTS), (schedule[3:], _COARSE_KEEP)):
             refined = _icp(coarse, nominal, starts, distances, matching="sparse")
             starts = refined[_near_order(coarse, nominal, refined, distances[-1])[:keep]]
-        middle = points[_even_subset(len(points), _CANDIDATE_POINTS)]
+        middle = even_subset(points, _CANDIDATE_POINTS)
         refined = _icp(middle, nominal, starts, np.geomspace(8 * max_distance_mm, max_distance_mm, 10))
         fraction, rms = _score(middle, nominal, refined, max_distance_mm)
         best = np.lexsort((np.arange(len(refined)), rms, -np.round(fraction, 3)))[0]

@@ -123,5 +123,7 @@ def cold_equivalent(points: np.ndarray, temperature: np.ndarray, material: Mater
     used = temperature.copy()
     used[fallback] = points[fallback] @ trend[1:] + trend[0]
     strain = material.mean_strain(float(trend[0] + centre @ trend[1:]), used)
-    cold = centre + (points - centre) / (1 + strain)[:, None]
+    cold = points - centre
+    cold /= (1 + strain)[:, None]
+    cold += centre
     return ColdGeometry(points=cold, temperature=used, fallback=fallback, strain=strain, centre=centre, trend=trend)

@@ -168,14 +168,17 @@ def sample_distance_grid(grid: DistanceGrid, points: np.ndarray, gradient: bool 
     Each point's cell is found once, for its corners and its ``exact`` flag; the interpolation runs
     along z, then y, then x, and its gradient is the derivative of the same trilinear polynomial.
     """
-    position = (np.asarray(points, dtype=np.float64) - grid.origin) / grid.spacing
-    cell = np.floor(position)
-    fx, fy, fz = (position - cell).T
-    cell = cell.astype(np.intp)
+    position = np.asarray(points, dtype=np.float64) - grid.origin
+    if grid.spacing != 1.0:
+        position /= grid.spacing
+    with np.errstate(invalid="ignore"):
+        cell = position.astype(np.intp)  # truncation: the floor of the non-negative positions, the only ones inside
     cells = np.array(grid.exact.shape)
     inside = np.ones(len(cell), dtype=bool)
     for axis in range(3):  # column by column: numpy's reduction over the short axis is several times slower
-        inside &= (cell[:, axis] >= 0) & (cell[:, axis] < cells[axis])
+        inside &= (position[:, axis] >= 0) & (cell[:, axis] < cells[axis])
+    position -= cell
+    fx, fy, fz = position.T
     np.clip(cell, 0, cells - 1, out=cell)  # points outside the grid read any cell: their distance is NaN below
     _, ny, nz = grid.distance.shape
     first = (cell[:, 0] * ny + cell[:, 1]) * nz + cell[:, 2]

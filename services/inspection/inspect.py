@@ -16,6 +16,7 @@ from services.inspection.features import (NominalFeature, element_position_std, 
                                           measure_std, measure_value)
 from services.inspection.nominal import NominalSurface
 from services.inspection.point_rows import column_mean, finite_rows
+from services.inspection.robust import even_subset
 from services.inspection.uncertainty import (COVERAGE_FACTOR, TemperatureBudget, size_uncertainty,
                                              temperature_uncertainty)
 from services.inspection.verdict import decide, overall
@@ -75,10 +76,6 @@ def _budget(part: Part) -> TemperatureBudget:
                              calibration_min_k=budget.calibration_min_k, netd_k=budget.netd_k)
 
 
-def _even(index: np.ndarray, wanted: int) -> np.ndarray:
-    return index if len(index) <= wanted else index[np.linspace(0, len(index) - 1, wanted).astype(np.intp)]
-
-
 def inspect_field(*, field: dict[str, np.ndarray], part: Part | PreparedPart) -> Inspection:
     """Inspect one measured part: cold-equivalent geometry, alignment, features, surface deviation, verdicts.
 
@@ -125,7 +122,7 @@ def inspect_field(*, field: dict[str, np.ndarray], part: Part | PreparedPart) ->
                          "degC hot; the field shows no hot part (segmentation.min_temperature_c in the part file).")
     max_distance = definition.segmentation.max_distance_mm
 
-    seed = _even(np.flatnonzero(hot), _SEED_POINTS)
+    seed = even_subset(np.flatnonzero(hot), _SEED_POINTS)
     first = cold_equivalent(points[seed], temperature[seed], part.material)
     coarse = align_nominal(first.points, prepared.nominal, max_distance_mm=max_distance, polish=False)
     centre = coarse.to_world(prepared.nominal.centroid[None])[0]
@@ -163,16 +160,17 @@ def inspect_field(*, field: dict[str, np.ndarray], part: Part | PreparedPart) ->
     for feature in definition.features:
         if feature.type == "distance":
             continue
-        inside = feature.region.contains(in_part)
+        inside = np.flatnonzero(feature.region.contains(in_part))
+        fitted = even_subset(inside)  # the points the fits keep, drawn before their positions are gathered
         nominal_feature = prepared.features[feature.name]
         try:
-            cold_element = fit_measured(nominal_feature, in_part[inside])
+            cold_element = fit_measured(nominal_feature, in_part[fitted])
         except ValueError as error:  # the view may not show every feature: say so, decide nothing
             if feature.measure is not None:
                 results.append(_unmeasured(feature, str(error)))
             continue
         stretch = float(np.mean(1 + part.material.strain(used_temperature[inside])))
-        hot_element = fit_measured(nominal_feature, alignment.to_part(points[part_points[inside]]), stretch)
+        hot_element = fit_measured(nominal_feature, alignment.to_part(points[part_points[fitted]]), stretch)
         mean_t = float(np.mean(used_temperature[inside]))
         u_t = _temperature_std(mean_t, budget, float(np.mean(used_fallback[inside])),
                                definition.uncertainty.fallback_temperature_k)
@@ -180,7 +178,7 @@ def inspect_field(*, field: dict[str, np.ndarray], part: Part | PreparedPart) ->
         if feature.measure is not None:
             results.append(_feature_result(
                 feature, measure_value(feature, hot_element), measure_value(feature, cold_element),
-                measure_std(feature, cold_element), int(inside.sum()), mean_t, u_t, part, material_fraction))
+                measure_std(feature, cold_element), len(inside), mean_t, u_t, part, material_fraction))
     for feature in definition.features:
         if feature.type != "distance":
             continue
