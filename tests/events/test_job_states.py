@@ -42,5 +42,7 @@ def test_every_state_is_heard_once_in_order_and_bad_payloads_are_ignored():
         publisher.close()
         probe.loop_stop()
         probe.disconnect()
-    assert [(s["job_id"], s["status"]) for s in heard] == [
-        ("j1", "queued"), ("j1", "running"), ("j1", "succeeded"), ("j2", "failed")]
+    # MQTT keeps the order of one topic's messages, not across topics: each job's states in order
+    by_job = {job: [s["status"] for s in heard if s["job_id"] == job] for job in ("j1", "j2", "j3")}
+    assert by_job == {"j1": ["queued", "running", "succeeded"], "j2": ["failed"], "j3": []}
+    assert len(heard) == 4
