@@ -21,12 +21,12 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
+from scipy.optimize import minimize
 
 from services.registration.gradient_fields import gradient_epsilon, normalized_gradient_field
 from services.registration.models import MODELS, PARAMETER_COUNTS, update_matrix
 from services.registration.mutual_information import DEFAULT_BINS, DEFAULT_LOG_BASE, quantize
 from services.registration.objective import METRICS, field_score, information, sample_fixed, score
-from services.registration.powell import minimize_powell
 from services.registration.preprocess import PREPROCESSING, preprocess
 from services.registration.search import coarse_search, gradient_field_search
 
@@ -135,9 +135,9 @@ def _refine(
         return -value if np.isfinite(value) else 1.0e6
 
     count = PARAMETER_COUNTS[model]
-    parameters, value = minimize_powell(negative_score, np.zeros(count), step * np.eye(count), _POWELL_TOLERANCE,
-                                        _POWELL_FTOL)
-    return start @ update_matrix(model, parameters, width, height), -float(value)
+    result = minimize(negative_score, np.zeros(count), method="Powell",
+                      options={"xtol": _POWELL_TOLERANCE, "ftol": _POWELL_FTOL, "direc": step * np.eye(count)})
+    return start @ update_matrix(model, result.x, width, height), -float(result.fun)
 
 
 def _coarse_model(model: str) -> str:
