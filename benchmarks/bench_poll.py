@@ -212,7 +212,19 @@ def _child(tree: Path, mode: str, args: argparse.Namespace) -> dict:
         finally:
             with make_engine(POSTGRES_URL).begin() as connection:
                 connection.execute(text(f"DROP SCHEMA IF EXISTS {schema} CASCADE"))
+            _delete_queues(env["THERMOFIELD_JOB_QUEUE"])
     return json.loads(output.splitlines()[-1])
+
+
+def _delete_queues(queue: str) -> None:
+    """The job queue ``thermofield api`` declared on RabbitMQ, with its delay and dead-letter queues."""
+    import pika
+
+    connection = pika.BlockingConnection(pika.URLParameters(BROKER_URL))
+    channel = connection.channel()
+    for name in (queue, f"{queue}.DQ", f"{queue}.XQ"):
+        channel.queue_delete(name)
+    connection.close()
 
 
 def main() -> None:
@@ -257,7 +269,8 @@ def main() -> None:
     print(f"## GET /v1/jobs/{{id}}: CPU per poll ({args.repeats} repeats, medians; {CONNECTIONS} concurrent)\n")
     print("| code | path | CPU ms per poll | polls/s | p50 ms | p99 ms |\n|---|---|---|---|---|---|")
     for (label, mode), results in runs.items():
-        cells = [f"{median(r['cpu_ms_per_poll'] for r in results):.3f}", f"{median(r['polls_per_s'] for r in results):.0f}"]
+        cells = [f"{median(r['cpu_ms_per_poll'] for r in results):.3f}",
+                 f"{median(r['polls_per_s'] for r in results):.0f}"]
         cells += [f"{median(r[name] for r in results):.1f}" if mode == "http" else "-" for name in ("p50_ms", "p99_ms")]
         path = "ASGI app in process" if mode == "asgi" else "`thermofield api` over HTTP"
         print(f"| {label} | {path} | " + " | ".join(cells) + " |")
