@@ -5,7 +5,7 @@ from __future__ import annotations
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
 
-from fastapi import APIRouter, FastAPI
+from fastapi import FastAPI
 from fastapi.routing import APIRoute
 
 from api.deps import KeyCache
@@ -39,6 +39,9 @@ def create_app(runtime: Runtime, job_queue: JobQueue) -> FastAPI:
         version="1",
         summary="3D temperature fields of hot forgings: scans, inspection, calibration sets, part types, jobs.",
         generate_unique_id_function=_operation_id,
+        # FastAPI's own OpenTelemetry hooks look the global providers up on every request; the service's
+        # metrics are its Prometheus ones (api/metrics.py), so they are off
+        telemetry={"tracing": False, "metrics": False, "logs": False},
     )
     app.state.runtime = runtime
     app.state.jobs = outbox
@@ -47,9 +50,9 @@ def create_app(runtime: Runtime, job_queue: JobQueue) -> FastAPI:
     app.state.metrics = ApiMetrics(runtime, outbox.pending)
     install_problem_handlers(app)
     app.add_middleware(MetricsMiddleware, metrics=app.state.metrics)
+    # each router straight under /v1 (one level of FastAPI's route matching less than a /v1 router of routers), the
+    # jobs first: the polls match at once
+    for module in (jobs, scans, calibrations, parts, devices, apikeys):
+        app.include_router(module.router, prefix="/v1", responses=problem_responses(401, 403, 422, 429, 503))
     app.include_router(health.router)
-    v1 = APIRouter(prefix="/v1", responses=problem_responses(401, 403, 422, 429, 503))
-    for module in (jobs, scans, calibrations, parts, devices, apikeys):  # jobs first: the polls match at once
-        v1.include_router(module.router)
-    app.include_router(v1)
     return app

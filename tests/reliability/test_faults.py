@@ -61,8 +61,8 @@ def test_postgres_stopped_and_restarted(private_postgres, tmp_path):
             ready = client.get("/readyz")
             assert ready.status_code == 503 and ready.headers["content-type"] == PROBLEM
             assert int(ready.headers["retry-after"]) > 0 and "database" in ready.json()["detail"]
-            for method, path in (("GET", "/v1/jobs"), ("GET", "/v1/scans"), ("POST", "/v1/scans"),
-                                 ("GET", "/v1/calibration-sets")):
+            for method, path in (("GET", "/v1/jobs"), ("GET", "/v1/jobs/any"), ("GET", "/v1/scans"),
+                                 ("POST", "/v1/scans"), ("GET", "/v1/calibration-sets")):
                 response = client.request(method, path, headers=headers)
                 assert response.status_code == 503, (path, response.text)
                 assert response.headers["content-type"] == PROBLEM and int(response.headers["retry-after"]) > 0
@@ -80,6 +80,7 @@ def test_postgres_stopped_and_restarted(private_postgres, tmp_path):
         assert created.status_code == 201, created.text
         scan = client.post("/v1/scans", headers={**headers, "Idempotency-Key": "after"})
         assert scan.status_code == 202
+        assert client.get(scan.headers["location"], headers=headers).json()["status"] == "queued"  # the poll's path
     with runtime.sessions() as session:
         assert session.query(Job).count() == 1 and session.query(IdempotencyRecord).count() == 1
 
