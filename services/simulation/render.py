@@ -385,21 +385,41 @@ def render_frames(view: ViewGeometry, patterns: np.ndarray, rng: np.random.Gener
                          f"{projector.width}x{projector.height} projector; got {patterns.shape}.")
     frames = np.empty((len(patterns), view.camera.height, view.camera.width), dtype=camera_effects.dtype)
     for index, pattern in enumerate(patterns):
-        irradiance = integrate_pixels(sample_irradiance(view, pattern, projector_effects), view.supersample)
-        frames[index] = expose(irradiance, camera_effects, rng)
+        frames[index] = sensor_levels(pixel_irradiance(view, pattern, camera_effects, projector_effects),
+                                      camera_effects, rng)
     return frames
+
+
+def pixel_irradiance(view: ViewGeometry, pattern: np.ndarray, camera_effects: CameraEffects,
+                     projector_effects: ProjectorEffects) -> np.ndarray:
+    """Irradiance (float32, (H, W)) of each camera pixel under one pattern, area-integrated and through the
+    lens's defocus blur: all of a frame but exposure, noise and quantisation (:func:`sensor_levels`), so the
+    same for every frame of a static scene under that pattern."""
+    samples = sample_irradiance(view, pattern, projector_effects)
+    return defocus(integrate_pixels(samples, view.supersample), camera_effects)
 
 
 def expose(irradiance: np.ndarray, effects: CameraEffects, rng: np.random.Generator) -> np.ndarray:
     """Turn a pixel irradiance image (relative to full projector light on white) into quantised grey levels.
 
-    Applies the camera's defocus blur, exposure, gamma, Gaussian read and shot noise, rounding and
-    saturation (see ``CameraEffects``).
+    Applies the camera's defocus blur (:func:`defocus`), then exposure, gamma, Gaussian read and shot noise,
+    rounding and saturation (:func:`sensor_levels`; see ``CameraEffects``).
     """
+    return sensor_levels(defocus(irradiance, effects), effects, rng)
+
+
+def defocus(irradiance: np.ndarray, effects: CameraEffects) -> np.ndarray:
+    """The camera lens's Gaussian defocus blur of ``blur_sigma`` pixels, as float32."""
     irradiance = np.asarray(irradiance, dtype=np.float32)
     if effects.blur_sigma > 0:
         irradiance = cv2.GaussianBlur(irradiance, (0, 0), effects.blur_sigma, borderType=cv2.BORDER_REPLICATE)
-    grey = np.multiply(irradiance, np.float32(effects.exposure))  # in place from here: a frame is 1M pixels
+    return irradiance
+
+
+def sensor_levels(irradiance: np.ndarray, effects: CameraEffects, rng: np.random.Generator) -> np.ndarray:
+    """Quantised grey levels of a defocused pixel irradiance image: exposure, gamma, Gaussian read and shot
+    noise, rounding and saturation (see ``CameraEffects``)."""
+    grey = np.multiply(np.asarray(irradiance, dtype=np.float32), np.float32(effects.exposure))  # then in place
     np.maximum(grey, 0, out=grey)
     if effects.gamma != 1:
         np.power(grey, np.float32(1 / effects.gamma), out=grey)
