@@ -56,8 +56,9 @@ def view_angles(points: np.ndarray, normals: np.ndarray, centre: np.ndarray) -> 
 
 
 # Compiled per-point loops: numpy's whole-array expressions over a scan's half a million points made a dozen
-# temporaries each and took four times as long.
-@numba.njit(cache=True)
+# temporaries each and took four times as long. nogil: the service's other threads (API, artifact writers)
+# run meanwhile.
+@numba.njit(cache=True, nogil=True)
 def _view_angles(points, normals, centre, out):
     for i in range(points.shape[0]):
         x, y, z = centre[0] - points[i, 0], centre[1] - points[i, 1], centre[2] - points[i, 2]
@@ -91,7 +92,7 @@ def _bilinear_samples(
     return samples
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _bilinear_kernel(frames, pixels, depth, buffer, tolerance, out):
     count, height, width = frames.shape
     for i in range(pixels.shape[0]):

@@ -92,7 +92,7 @@ def depth_gradient(
     return gradient
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _depth_gradient(points, normals, focal, max_view_angle, out):
     floor, unknown_slope = np.cos(max_view_angle), np.tan(max_view_angle)
     for i in range(points.shape[0]):
@@ -135,7 +135,7 @@ def _nearest_pixel_index(pixels: np.ndarray, width: int, height: int) -> np.ndar
     return index
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _nearest_pixels(pixels, width, height, out):
     for i in range(pixels.shape[0]):
         column, row = np.rint(pixels[i, 0]), np.rint(pixels[i, 1])
@@ -143,14 +143,14 @@ def _nearest_pixels(pixels, width, height, out):
         out[i] = int(row) * width + int(column) if inside else -1
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _splat_nearest(index, depth, buffer):
     for i in range(index.shape[0]):
         if index[i] >= 0 and depth[i] > 0 and depth[i] < buffer[index[i]]:
             buffer[index[i]] = depth[i]
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _within_tolerance(index, depth, buffer, tolerance, out):
     for i in range(index.shape[0]):
         out[i] = index[i] >= 0 and depth[i] > 0 and depth[i] <= buffer[index[i]] + tolerance[i]
