@@ -12,7 +12,9 @@ geometry is traced once, when the devices are first opened (seconds for a
 1280x800 view); every frame after that is one cheap pass plus fresh noise. The
 scene is static: a cold scene's noiseless image under a pattern is kept (per
 pattern content, a few MB each), so filming the same pattern again adds only the
-exposure, fresh noise and quantisation; a hot scene cools, and is rendered per frame.
+exposure, fresh noise and quantisation; the gateway has the camera render its
+sequence's images when it starts (``prepare``), so the first capture is as fast as
+the next. A hot scene cools, and is rendered per frame.
 By default it is the forging station of ``services.simulation.presets``: the
 rig's true calibration is ``presets.forging_rig()``.
 
@@ -171,6 +173,13 @@ class SimulatedStation:
         effects = dataclasses.replace(effects, exposure=effects.exposure * exposure_us / REFERENCE_EXPOSURE_US)
         return sensor_levels(self._clean_frame(view, pattern), effects, self._rng)
 
+    def render_ahead(self, patterns: np.ndarray) -> None:
+        """Render a cold scene's noiseless images under ``patterns`` now rather than in the first capture."""
+        if not self.hot:
+            view = self.view()
+            for pattern in patterns:
+                self._clean_frame(view, np.asarray(pattern, dtype=np.uint8))
+
     def _clean_frame(self, view: ViewGeometry, pattern: np.ndarray) -> np.ndarray:
         """The cold scene's pixel irradiance under ``pattern`` before exposure and noise, computed once."""
         key = hashlib.blake2b(np.ascontiguousarray(pattern), digest_size=16).digest()
@@ -257,6 +266,10 @@ class SimulatedCamera(_SimulatedDevice, CameraDriver):
     def open(self) -> None:
         self.station.view()
         self._open = True
+
+    def prepare(self, patterns: np.ndarray) -> None:
+        self._require_open()
+        self.station.render_ahead(patterns)
 
     def grab(self, timeout_s: float) -> Frame:
         self._require_open()
