@@ -8,8 +8,10 @@ Starts ``thermofield serve`` (fresh data directory, free ports), waits for ``/re
 warmed up: kernels compiled, the active calibration's triangulation table built), then runs ``--scans``
 scans one after the other: each is timed from the POST to its job's ``succeeded`` (polled every 20 ms),
 which is when the field, its PLY, its Rerun recording and the summary are stored. Reports every scan's
-latency, their median, the start-to-ready time, and the peak resident memory (``VmHWM``) of the service
-process, which runs the API and the worker, and of the gateway process.
+latency, their median, the start-to-ready time, the CPU time each scan cost the service and the gateway
+processes (user + system, from ``/proc``: on a machine shared with other work the latency grows with the
+load, the CPU time much less), and the peak resident memory (``VmHWM``) of the service process, which runs
+the API and the worker, and of the gateway process.
 """
 
 from __future__ import annotations
@@ -43,6 +45,12 @@ def _peak_rss_mb(pid: int) -> float:
     return float("nan")
 
 
+def _cpu_s(pid: int) -> float:
+    """User + system CPU seconds of a process so far (all its threads)."""
+    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(") ", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
 def _children(pid: int) -> list[int]:
     found = []
     for entry in Path("/proc").iterdir():
@@ -71,7 +79,7 @@ def main() -> None:
                                    "--port", str(port), "--gateway-port", str(_free_port()),
                                    "--rerun-port", str(_free_port())], env=env, cwd=ROOT,
                                   stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
-        latencies, stages = [], []
+        latencies, stages, service_cpu, gateway_cpu = [], [], [], []
         try:
             with httpx.Client(base_url=f"http://127.0.0.1:{port}", headers={"Authorization": f"Bearer {secret}"},
                               timeout=60) as client:
@@ -85,12 +93,16 @@ def main() -> None:
                         raise RuntimeError("the service did not become ready")
                     time.sleep(0.1)
                 ready_s = time.perf_counter() - started
+                gateway = _children(server.pid)
                 for _ in range(args.scans):
+                    cpu_before = _cpu_s(server.pid), sum(map(_cpu_s, gateway))
                     start = time.perf_counter()
                     job_url = client.post("/v1/scans", json={}).headers["Location"]
                     while (job := client.get(job_url).json())["status"] not in ("succeeded", "failed"):
                         time.sleep(0.02)
                     latencies.append(time.perf_counter() - start)
+                    service_cpu.append(_cpu_s(server.pid) - cpu_before[0])
+                    gateway_cpu.append(sum(map(_cpu_s, gateway)) - cpu_before[1])
                     if job["status"] != "succeeded":
                         raise RuntimeError(f"scan failed: {job['error']}")
                     stages.append(job["result"]["stage_seconds"])
@@ -109,6 +121,8 @@ def main() -> None:
              "at most 1.0 s |",
              f"| all scans | {', '.join(f'{s:.3f}' for s in latencies)} s | |",
              f"| stages of the median scan (worker) | {stages[latencies.index(statistics.median(latencies))] if len(latencies) % 2 else stages[len(stages) // 2]} | |",
+             f"| CPU time per scan, median: service (API + worker) / gateway | {statistics.median(service_cpu):.2f} / "
+             f"{statistics.median(gateway_cpu):.2f} s | |",
              f"| peak memory of the service process (API + worker) | {service_mb:.0f} MB | reported |",
              f"| peak memory of the gateway process | {gateway_mb:.0f} MB | reported |"]
     text = "\n".join(lines)

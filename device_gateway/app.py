@@ -78,6 +78,7 @@ def create_app(station: Station, sequence: Sequence, patterns: np.ndarray) -> Fa
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
         try:
             station.open()
+            station.camera.prepare(patterns)
         except DeviceError as error:
             logger.warning("starting with devices unavailable (captures will retry): %s", error)
         yield

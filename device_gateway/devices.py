@@ -107,6 +107,10 @@ class CameraDriver(DeviceDriver):
         """Grey level at which the sensor saturates (255 for an 8-bit camera)."""
         return 255
 
+    def prepare(self, patterns: np.ndarray) -> None:
+        """Get ready to film ``patterns`` (F, H, W), the sequence every capture projects, once the camera is
+        open. A real camera needs nothing; the simulated one renders their noiseless images."""
+
 
 class ThermalDriver(DeviceDriver):
     """An infrared camera giving temperatures in degrees Celsius."""

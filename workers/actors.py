@@ -39,12 +39,12 @@ from services.pipeline.field import fuse_field
 from services.pipeline.inspect import report_digest
 from services.pipeline.reconstruct import reconstruct_capture
 from services.pipeline.register import register_scan
-from services.pipeline.scan import StageClock, process_scan, scan_artifacts
+from services.pipeline.scan import StageClock, capture_artifacts, outcome_artifacts, process_scan
 from services.pipeline.summary import field_summary, glow_summary
 from services.pipeline.warmup import warm_up
 from services.runtime import Runtime, current_runtime
 from services.simulation.presets import forging_rig
-from services.storage.artifacts import ArtifactStore, StorageFull
+from services.storage.artifacts import ArtifactStore, ArtifactWriter, StorageFull
 from services.streaming.field import field_scene
 from services.streaming.recording import scan_recording
 from services.structured_light.patterns import generate_sequence
@@ -77,18 +77,20 @@ def scan(job_id: str) -> dict[str, Any]:
             capture = gateway.capture(thermal_frames=1, exposure=runtime.settings.camera_exposure_mode)
     except GatewayError as error:  # the job's error says which stage lost the devices
         raise GatewayError(f"capture failed: {error}", error.status) from None
-    outcome = process_scan(frames=capture.frames, sequence=capture.sequence, thermal=capture.thermal, rig=rig,
-                           tables=runtime.tables, exposure=capture.exposure, part=part, clock=clock)
-    clock.start("store", 0.7)
-    files = scan_artifacts(frames=capture.frames, sequence=capture.sequence, thermal=capture.thermal,
-                           exposure=capture.exposure, outcome=outcome)
-    artifacts = {name: runtime.store.put_bytes(content) for name, content in files.items()}
-    clock.start("stream", 0.85)
-    captured_at = float(capture.frame_timestamps[0]) if len(capture.frame_timestamps) else None
-    deviation = None if outcome.inspection is None else outcome.inspection.deviation
-    scene = field_scene(outcome.field, rig, capture.thermal[0], deviation=deviation)
-    artifacts["field.rrd"] = runtime.store.put_bytes(scan_recording(params["scan_id"], scene, captured_at))
-    runtime.station_view().publish(scene, captured_at)
+    with ArtifactWriter(runtime.store) as writer:  # the files are stored while the scan goes on
+        writer.put(capture_artifacts(frames=capture.frames, sequence=capture.sequence, thermal=capture.thermal,
+                                     exposure=capture.exposure))
+        outcome = process_scan(frames=capture.frames, sequence=capture.sequence, thermal=capture.thermal, rig=rig,
+                               tables=runtime.tables, exposure=capture.exposure, part=part, clock=clock)
+        writer.put_made(lambda: outcome_artifacts(outcome))
+        clock.start("stream", 0.7)
+        captured_at = float(capture.frame_timestamps[0]) if len(capture.frame_timestamps) else None
+        deviation = None if outcome.inspection is None else outcome.inspection.deviation
+        scene = field_scene(outcome.field, rig, capture.thermal[0], deviation=deviation)
+        writer.put({"field.rrd": scan_recording(params["scan_id"], scene, captured_at)})
+        runtime.station_view().publish(scene, captured_at)
+        clock.start("store", 0.85)  # what storing adds after the stream: the rest of the writes
+        artifacts = writer.digests()
     clock.stop()
     # the job tracker writes the artifacts, the summary and the verdict onto the scan when it records the result
     inspected = {}

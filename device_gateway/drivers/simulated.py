@@ -9,7 +9,12 @@ through a sensor in electrons: 12-bit frames by default). The camera honours
 ``CameraEffects.exposure`` scales with it (the default 8 ms gives it as set). The thermal camera sees the scene's temperature field through
 ``services.simulation.thermal`` (area integration, blur, NETD noise). The scene
 geometry is traced once, when the devices are first opened (seconds for a
-1280x800 view); every frame after that is one cheap pass plus fresh noise.
+1280x800 view); every frame after that is one cheap pass plus fresh noise. The
+scene is static: a cold scene's noiseless image under a pattern is kept (per
+pattern content, a few MB each), so filming the same pattern again adds only the
+exposure, fresh noise and quantisation; the gateway has the camera render its
+sequence's images when it starts (``prepare``), so the first capture is as fast as
+the next. A hot scene cools, and is rendered per frame.
 By default it is the forging station of ``services.simulation.presets``: the
 rig's true calibration is ``presets.forging_rig()``.
 
@@ -22,6 +27,7 @@ for the thermal camera) instead of the part.
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 import threading
 import time
 from dataclasses import dataclass, field
@@ -35,7 +41,9 @@ from services.geometry.camera_model import CameraModel
 from services.simulation import presets
 from services.simulation.boards import render_board
 from services.simulation.glow import GlowView, render_glow_view, render_hot_frames
-from services.simulation.render import CameraEffects, ProjectorEffects, ViewGeometry, render_frames, render_view
+from services.simulation.render import (
+    CameraEffects, ProjectorEffects, ViewGeometry, pixel_irradiance, render_view, sensor_levels,
+)
 from services.simulation.scene import Scene
 from services.simulation.thermal import TemperatureScene, ThermalEffects, forging_temperatures, render_thermal
 
@@ -55,6 +63,9 @@ class SimulationOptions:
     seed: int = 0
     frame_interval_s: float = 1 / 30
 
+
+# Noiseless pattern images kept (4 MB each at 1280x800): a sequence's 30 patterns, metering frames and more.
+_CLEAN_FRAMES_KEPT = 64
 
 # The exposure at which a cold scene's frames follow ``CameraEffects.exposure`` (the OAK driver's default).
 REFERENCE_EXPOSURE_US = 8000.0
@@ -113,6 +124,7 @@ class SimulatedStation:
         self._glow: GlowView | None = None
         self.clock_s = 0.0  # simulated time since the station opened: a hot part cools with it
         self._clean_thermal: np.ndarray | None = None
+        self._clean_frames: dict[bytes, np.ndarray] = {}  # a cold scene's noiseless image per pattern digest
         self._board: tuple[BoardSpec, tuple[np.ndarray, np.ndarray]] | None = None
         self.shown: np.ndarray | None = None
         camera_name, _ = self.rig.device(camera, "camera")
@@ -159,7 +171,28 @@ class SimulatedStation:
                                      projector_effects=self.options.projector_effects)[0]
         effects = self.options.camera_effects
         effects = dataclasses.replace(effects, exposure=effects.exposure * exposure_us / REFERENCE_EXPOSURE_US)
-        return render_frames(view, pattern[None], self._rng, effects, self.options.projector_effects)[0]
+        return sensor_levels(self._clean_frame(view, pattern), effects, self._rng)
+
+    def render_ahead(self, patterns: np.ndarray) -> None:
+        """Render a cold scene's noiseless images under ``patterns`` now rather than in the first capture."""
+        if not self.hot:
+            view = self.view()
+            for pattern in patterns:
+                self._clean_frame(view, np.asarray(pattern, dtype=np.uint8))
+
+    def _clean_frame(self, view: ViewGeometry, pattern: np.ndarray) -> np.ndarray:
+        """The cold scene's pixel irradiance under ``pattern`` before exposure and noise, computed once."""
+        key = hashlib.blake2b(np.ascontiguousarray(pattern), digest_size=16).digest()
+        with self._lock:
+            clean = self._clean_frames.get(key)
+        if clean is None:
+            clean = pixel_irradiance(view, pattern, self.options.camera_effects, self.options.projector_effects)
+            clean.flags.writeable = False
+            with self._lock:
+                if len(self._clean_frames) >= _CLEAN_FRAMES_KEPT:
+                    self._clean_frames.clear()
+                self._clean_frames[key] = clean
+        return clean
 
     def present(self, board: BoardSpec | None, view: int) -> None:
         """Hold ``board`` in the pose of calibration view ``view`` before the devices, or take it away."""
@@ -233,6 +266,10 @@ class SimulatedCamera(_SimulatedDevice, CameraDriver):
     def open(self) -> None:
         self.station.view()
         self._open = True
+
+    def prepare(self, patterns: np.ndarray) -> None:
+        self._require_open()
+        self.station.render_ahead(patterns)
 
     def grab(self, timeout_s: float) -> Frame:
         self._require_open()

@@ -1,7 +1,12 @@
-"""Which cloud points a thermal camera sees: a z-buffer of the cloud in the thermal view."""
+"""Which cloud points a thermal camera sees: a z-buffer of the cloud in the thermal view.
+
+The per-point passes are compiled loops (numba): a scan's cloud has half a million points, and numpy's
+whole-array expressions made several temporaries of that size per step (the depth test took 7x as long).
+"""
 
 from __future__ import annotations
 
+import numba
 import numpy as np
 from scipy import ndimage
 
@@ -45,10 +50,9 @@ def depth_buffer(pixels: np.ndarray, depth: np.ndarray, width: int, height: int)
     depth = np.asarray(depth, dtype=np.float64)
     if pixels.ndim != 2 or pixels.shape[1] != 2 or depth.shape != (pixels.shape[0],):
         raise ValueError(f"pixels must be (N, 2) and depth (N,); got {pixels.shape} and {depth.shape}.")
-    column, row, inside = _nearest_pixel(pixels, width, height)
-    inside &= depth > 0
+    index = _nearest_pixel_index(pixels, width, height)
     buffer = np.full(height * width, np.inf)
-    np.minimum.at(buffer, row[inside] * width + column[inside], depth[inside])
+    _splat_nearest(index, depth, buffer)
     buffer = buffer.reshape(height, width)
     empty = np.isinf(buffer)
     buffer[empty] = ndimage.minimum_filter(buffer, size=3, mode="nearest")[empty]
@@ -81,14 +85,22 @@ def depth_gradient(
     with |n . X| = |X| cos(theta) for the view angle theta, floored at
     cos(theta_max).
     """
-    depth = points_device[:, 2]
-    distance = np.linalg.norm(points_device, axis=1)
-    along = np.abs(np.einsum("ni,ni->n", normals_device, points_device))
-    along = np.maximum(along, distance * np.cos(max_view_angle))
-    gradient = depth**2 * np.hypot(normals_device[:, 0], normals_device[:, 1]) / (focal_px * along)
-    unknown = ~np.isfinite(gradient)
-    gradient[unknown] = depth[unknown] / focal_px * np.tan(max_view_angle)
+    gradient = np.empty(len(points_device))
+    _depth_gradient(np.ascontiguousarray(points_device, dtype=np.float64),
+                    np.ascontiguousarray(normals_device, dtype=np.float64), float(focal_px), float(max_view_angle),
+                    gradient)
     return gradient
+
+
+@numba.njit(cache=True, nogil=True)
+def _depth_gradient(points, normals, focal, max_view_angle, out):
+    floor, unknown_slope = np.cos(max_view_angle), np.tan(max_view_angle)
+    for i in range(points.shape[0]):
+        x, y, z = points[i, 0], points[i, 1], points[i, 2]
+        along = abs(normals[i, 0] * x + normals[i, 1] * y + normals[i, 2] * z)
+        along = max(along, np.sqrt(x * x + y * y + z * z) * floor)
+        gradient = z * z * np.hypot(normals[i, 0], normals[i, 1]) / (focal * along)
+        out[i] = gradient if np.isfinite(gradient) and np.isfinite(along) else z / focal * unknown_slope
 
 
 def depth_tolerance(gradient: np.ndarray, absolute_mm: float, footprints: float = SAMPLE_FOOTPRINTS) -> np.ndarray:
@@ -104,23 +116,41 @@ def nearest_depth_around(buffer: np.ndarray, radius_px: int) -> np.ndarray:
     return ndimage.minimum_filter(buffer, size=2 * radius_px + 1, mode="nearest")
 
 
-def _nearest_pixel(pixels: np.ndarray, width: int, height: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Integer column, row of each point's nearest pixel centre and whether it lies in the view."""
-    with np.errstate(invalid="ignore"):
-        rounded = np.rint(pixels)
-        inside = (
-            np.isfinite(rounded).all(axis=1)
-            & (rounded[:, 0] >= 0) & (rounded[:, 0] < width)
-            & (rounded[:, 1] >= 0) & (rounded[:, 1] < height)
-        )
-    rounded[~inside] = 0
-    return rounded[:, 0].astype(np.intp), rounded[:, 1].astype(np.intp), inside
-
-
 def seen_mask(
     pixels: np.ndarray, depth: np.ndarray, buffer: np.ndarray, tolerance: np.ndarray
 ) -> np.ndarray:
     """Points in the view whose depth is within ``tolerance`` of the z-buffer at their nearest pixel."""
     height, width = buffer.shape
-    column, row, inside = _nearest_pixel(np.asarray(pixels, dtype=np.float64), width, height)
-    return inside & (depth > 0) & (depth <= buffer[row, column] + tolerance)
+    index = _nearest_pixel_index(pixels, width, height)
+    seen = np.empty(len(index), dtype=bool)
+    _within_tolerance(index, np.ascontiguousarray(depth, dtype=np.float64), np.ascontiguousarray(buffer).ravel(),
+                      np.ascontiguousarray(tolerance, dtype=np.float64), seen)
+    return seen
+
+
+def _nearest_pixel_index(pixels: np.ndarray, width: int, height: int) -> np.ndarray:
+    """Flat index row * width + column of each point's nearest pixel centre; -1 outside the view (or NaN)."""
+    index = np.empty(len(pixels), dtype=np.intp)
+    _nearest_pixels(np.ascontiguousarray(pixels, dtype=np.float64), width, height, index)
+    return index
+
+
+@numba.njit(cache=True, nogil=True)
+def _nearest_pixels(pixels, width, height, out):
+    for i in range(pixels.shape[0]):
+        column, row = np.rint(pixels[i, 0]), np.rint(pixels[i, 1])
+        inside = column >= 0 and column < width and row >= 0 and row < height  # False for NaN
+        out[i] = int(row) * width + int(column) if inside else -1
+
+
+@numba.njit(cache=True, nogil=True)
+def _splat_nearest(index, depth, buffer):
+    for i in range(index.shape[0]):
+        if index[i] >= 0 and depth[i] > 0 and depth[i] < buffer[index[i]]:
+            buffer[index[i]] = depth[i]
+
+
+@numba.njit(cache=True, nogil=True)
+def _within_tolerance(index, depth, buffer, tolerance, out):
+    for i in range(index.shape[0]):
+        out[i] = index[i] >= 0 and depth[i] > 0 and depth[i] <= buffer[index[i]] + tolerance[i]

@@ -99,15 +99,25 @@ def npy_bytes(stack: np.ndarray) -> bytes:
 
 def scan_artifacts(*, frames: np.ndarray, sequence: Sequence, thermal: np.ndarray, outcome: ScanOutcome,
                    exposure: dict[str, Any] | None = None) -> dict[str, bytes]:
-    """The files a scan keeps: ``cloud.ply``, ``field.ply``, ``frames.npy``, ``thermal.npy`` (float32 degrees C),
-    ``sequence.json``, ``exposure.json`` and, when inspected, ``report.json`` and ``deviation.ply``."""
-    inspected = {} if outcome.inspection is None else inspection_artifacts(outcome.inspection)
+    """The files a scan keeps: its :func:`capture_artifacts` and :func:`outcome_artifacts`."""
+    return {**capture_artifacts(frames=frames, sequence=sequence, thermal=thermal, exposure=exposure),
+            **outcome_artifacts(outcome)}
+
+
+def capture_artifacts(*, frames: np.ndarray, sequence: Sequence, thermal: np.ndarray,
+                      exposure: dict[str, Any] | None = None) -> dict[str, bytes]:
+    """The files of the capture itself, known before any processing: ``frames.npy``, ``thermal.npy`` (float32
+    degrees C), ``sequence.json`` and ``exposure.json``."""
     return {
-        "cloud.ply": cloud_to_ply(outcome.cloud),
-        "field.ply": cloud_to_ply(outcome.field),
         "frames.npy": npy_bytes(frames),
         "thermal.npy": npy_bytes(thermal.astype(np.float32)),
         "sequence.json": sequence_to_json(sequence).encode(),
         "exposure.json": json.dumps(exposure or {}).encode(),
-        **inspected,
     }
+
+
+def outcome_artifacts(outcome: ScanOutcome) -> dict[str, bytes]:
+    """The files of the scan's results: ``cloud.ply``, ``field.ply`` and, when inspected, ``report.json`` and
+    ``deviation.ply``."""
+    inspected = {} if outcome.inspection is None else inspection_artifacts(outcome.inspection)
+    return {"cloud.ply": cloud_to_ply(outcome.cloud), "field.ply": cloud_to_ply(outcome.field), **inspected}

@@ -20,15 +20,15 @@ def field_summary(field: PointCloud | Mapping[str, np.ndarray]) -> dict:
     Statistics cover the points with a temperature (finite); ``temperature`` is None
     when no point has one.
     """
-    points = np.column_stack([field["x"], field["y"], field["z"]]).astype(np.float64)
+    coordinates = [np.asarray(field[name]) for name in ("x", "y", "z")]
     temperature = np.asarray(field["temperature"], dtype=np.float64)
     seen = temperature[np.isfinite(temperature)]
-    empty = len(points) == 0
+    empty = len(coordinates[0]) == 0
     summary = {
-        "point_count": int(len(points)),
+        "point_count": int(len(coordinates[0])),
         "points_with_temperature": int(len(seen)),
-        "bbox_min": [0.0, 0.0, 0.0] if empty else points.min(axis=0).round(3).tolist(),
-        "bbox_max": [0.0, 0.0, 0.0] if empty else points.max(axis=0).round(3).tolist(),
+        "bbox_min": [0.0, 0.0, 0.0] if empty else [float(np.round(np.float64(axis.min()), 3)) for axis in coordinates],
+        "bbox_max": [0.0, 0.0, 0.0] if empty else [float(np.round(np.float64(axis.max()), 3)) for axis in coordinates],
         "temperature": None,
     }
     if len(seen):

@@ -21,7 +21,7 @@ import numpy as np
 from services.geometry.camera_model import CameraModel
 from services.simulation.optics import Optics, SensorOptics
 from services.simulation.raycast import cast_rays
-from services.simulation.render import ProjectorEffects, ViewGeometry, integrate_pixels, projector_light, subsample_rays
+from services.simulation.render import ProjectorEffects, ViewGeometry, integrate_pixels, sample_irradiance, subsample_rays
 from services.simulation.scene import Scene
 from services.simulation.temperature import surface_temperature
 
@@ -164,8 +164,8 @@ def render_hot_frames(view: ViewGeometry, glow: GlowView, patterns: np.ndarray, 
     for index, pattern in enumerate(patterns):
         if cooling:
             emitted = glow.glow(start_s + index * frame_interval_s)
-        light = cv2.remap(projector_light(pattern, projector_effects), view.projector_x, view.projector_y,
-                          cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-        irradiance = integrate_pixels(view.direct * light + view.ambient + emitted, view.supersample)
+        samples = sample_irradiance(view, pattern, projector_effects)
+        samples += emitted
+        irradiance = integrate_pixels(samples, view.supersample)
         frames[index] = expose_sensor(irradiance, sensor, glow.optics.white_rate, exposure_s, rng, blur_sigma)
     return frames

@@ -14,8 +14,10 @@ import os
 import re
 import shutil
 import tempfile
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator, Mapping
+from concurrent.futures import Future, ThreadPoolExecutor, wait
 from contextlib import contextmanager
+from functools import cache
 from pathlib import Path
 
 _DIGEST = re.compile(r"^[0-9a-f]{64}$")
@@ -124,6 +126,55 @@ class ArtifactStore:
             temporary.unlink(missing_ok=True)
             raise
         return digest
+
+
+class ArtifactWriter:
+    """Stores blobs on background threads while the caller goes on computing; :meth:`digests` waits for them.
+
+    A scan's artifacts are about 100 MB: hashing, writing and syncing them takes longer than the fusion that
+    follows the capture, and hashlib and file writes release the GIL, so they overlap with it. Each blob is
+    stored by :meth:`ArtifactStore.put_bytes` (atomic, :class:`StorageFull` on a full disk, raised by
+    :meth:`digests`). Leaving the ``with`` block waits for every write, also on an error; a blob whose job
+    then fails is unreferenced and goes with the retention sweep. The threads are the process's
+    (:data:`WRITER_THREADS` of them, started on first use), not one pool per writer.
+    """
+
+    def __init__(self, store: ArtifactStore) -> None:
+        self.store = store
+        self._pending: dict[str, Future[str]] = {}
+        self._makers: list[Future[None]] = []
+
+    def __enter__(self) -> ArtifactWriter:
+        return self
+
+    def __exit__(self, *exc_info: object) -> None:
+        wait(self._makers)  # then every blob, the makers' included
+        wait(list(self._pending.values()))
+
+    def put(self, files: Mapping[str, bytes]) -> None:
+        """Start storing each named blob."""
+        for name, content in files.items():
+            self._pending[name] = _writer_threads().submit(self.store.put_bytes, content)
+
+    def put_made(self, make: Callable[[], Mapping[str, bytes]]) -> None:
+        """Start making the named blobs (e.g. encoding them) and storing each, all in the background."""
+        def made_and_stored() -> None:
+            self.put(make())
+        self._makers.append(_writer_threads().submit(made_and_stored))
+
+    def digests(self) -> dict[str, str]:
+        """Wait for every write; the digest of each named blob. Raises the first write's error."""
+        for maker in self._makers:
+            maker.result()
+        return {name: future.result() for name, future in self._pending.items()}
+
+
+WRITER_THREADS = 2
+
+
+@cache
+def _writer_threads() -> ThreadPoolExecutor:
+    return ThreadPoolExecutor(max_workers=WRITER_THREADS, thread_name_prefix="artifact-writer")
 
 
 class _TemporaryFile:

@@ -3,7 +3,7 @@ import hashlib
 import numpy as np
 import pytest
 
-from services.storage.artifacts import ArtifactStore
+from services.storage.artifacts import ArtifactStore, ArtifactWriter
 
 
 def test_put_bytes_is_content_addressed_and_deduplicated(tmp_path):
@@ -52,3 +52,27 @@ def test_a_full_disk_is_storage_full_and_leaves_nothing_behind(small_disk):
     assert raised.value.errno == errno.ENOSPC and str(store.root) in str(raised.value)
     assert not list((store.root / "incoming").iterdir())
     assert [digest for digest, _ in store.blobs()] == [kept]
+
+
+def test_the_writer_stores_in_the_background_what_put_bytes_would(tmp_path):
+    store = ArtifactStore(tmp_path)
+    blobs = {f"part{i}": np.random.default_rng(i).bytes(300_000) for i in range(5)}
+    with ArtifactWriter(store) as writer:
+        writer.put(dict(list(blobs.items())[:3]))
+        writer.put_made(lambda: dict(list(blobs.items())[3:]))
+        digests = writer.digests()
+    assert digests == {name: hashlib.sha256(content).hexdigest() for name, content in blobs.items()}
+    assert all(store.read_bytes(digests[name]) == content for name, content in blobs.items())
+    assert not list((tmp_path / "incoming").iterdir())
+
+
+def test_the_writer_raises_a_full_disk_when_asked_for_the_digests(small_disk):
+    from services.storage.artifacts import StorageFull
+
+    store = ArtifactStore(small_disk(1 << 20))
+    with ArtifactWriter(store) as writer:
+        writer.put({"small": b"kept", "big": np.random.default_rng(0).bytes(2 << 20)})
+        with pytest.raises(StorageFull):
+            writer.digests()
+    assert not list((store.root / "incoming").iterdir())
+    assert [digest for digest, _ in store.blobs()] == [hashlib.sha256(b"kept").hexdigest()]

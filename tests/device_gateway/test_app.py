@@ -118,3 +118,15 @@ def test_a_gateway_that_dies_during_a_request_is_a_gateway_error_that_says_so(fr
             with pytest.raises(GatewayError, match=r"stopped answering during POST /v1/captures \(the gateway or "
                                                    r"a device was lost\)"):
                 client.capture()
+
+
+def test_the_gateway_has_the_simulated_camera_render_its_sequence_before_serving(small_rig, sequence_and_patterns,
+                                                                                   free_port):
+    from device_gateway.drivers.simulated import SimulatedStation
+
+    sequence, patterns = sequence_and_patterns
+    simulated = SimulatedStation(rig=small_rig)
+    station = Station(simulated.camera, simulated.thermal, simulated.projector)
+    assert not simulated._clean_frames
+    with _serving(create_app(station, sequence, patterns), free_port):
+        assert len(simulated._clean_frames) == len({pattern.tobytes() for pattern in patterns})

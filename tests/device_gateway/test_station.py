@@ -94,3 +94,30 @@ def test_a_device_still_away_after_a_loss_is_retried_on_the_next_capture(simulat
     assert capture.frames.shape[0] == len(patterns)
     assert all(station.health().values())
     station.close()
+
+
+def test_filming_a_sequence_again_gives_the_frames_a_fresh_rendering_would(small_rig, sequence_and_patterns):
+    import dataclasses
+
+    from device_gateway.drivers.simulated import REFERENCE_EXPOSURE_US, SimulatedStation, SimulationOptions
+    from services.simulation.render import render_frames
+
+    sequence, patterns = sequence_and_patterns
+    simulated = SimulatedStation(rig=small_rig, options=SimulationOptions(seed=7))
+    station = Station(simulated.camera, simulated.thermal, simulated.projector)
+    effects = simulated.options.camera_effects
+    effects = dataclasses.replace(effects, exposure=effects.exposure * simulated.camera.exposure_us
+                                  / REFERENCE_EXPOSURE_US)
+    try:
+        captures = []
+        for _ in range(2):  # the first renders every pattern, the second reuses their noiseless images
+            rng = np.random.default_rng()
+            station.open()
+            rng.bit_generator.state = simulated._rng.bit_generator.state
+            captures.append(station.capture(sequence, patterns).frames)
+            expected = render_frames(simulated.view(), patterns, rng, effects, simulated.options.projector_effects)
+            np.testing.assert_array_equal(captures[-1], expected)
+    finally:
+        station.close()
+    assert np.any(captures[0] != captures[1])  # fresh noise in every frame
+    assert np.abs(captures[0].astype(int) - captures[1]).mean() < 2  # one grey level of noise, the same scene

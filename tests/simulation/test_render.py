@@ -234,3 +234,13 @@ def test_a_two_triangle_mesh_renders_like_the_same_plane(small_rig):
     np.testing.assert_array_equal(views[1].truth.lit, views[0].truth.lit)
     assert np.abs(frames[1].astype(int) - frames[0]).max() <= 1
     assert views[0].truth.lit.mean() > 0.2
+
+
+@pytest.mark.parametrize("effects", [ProjectorEffects(), ProjectorEffects(gamma=2.2, black_level=0.03, blur_sigma=0.7)])
+def test_8_bit_patterns_get_the_light_the_formula_gives_their_values(effects):
+    from services.simulation.render import projector_light
+
+    pattern = np.random.default_rng(0).integers(0, 256, (40, 60)).astype(np.uint8)
+    as_float = projector_light(pattern.astype(np.float64) / 255.0, effects)  # the formula, without the table
+    np.testing.assert_allclose(projector_light(pattern, effects), as_float, rtol=1e-6, atol=1e-7)
+    assert projector_light(pattern, effects).dtype == np.float32
