@@ -38,8 +38,7 @@ system-libraries:
 
 # The load, the long Schemathesis run and the long fault tests, the scaled-out worker crash among them (docs/reliability.md); figures go to
 # reliability-output/.
-# The 10-minute soak is `make test-soak` (about 12 min with its start and warm-up); `.ci/run` runs it when
-# THERMOFIELD_CI_SOAK=1.
+# The 10-minute soak is `make test-soak` (about 12 min with its start and warm-up); `.ci/run` runs it last.
 RELIABILITY_OUT ?= reliability-output
 test-reliability: install-test
 	THERMOFIELD_RELIABILITY_OUT=$(abspath $(RELIABILITY_OUT)) THERMOFIELD_SCHEMATHESIS_EXAMPLES=100 \
