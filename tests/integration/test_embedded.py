@@ -130,7 +130,9 @@ def test_embedded_scan_with_a_part_type_is_inspected_over_http_mqtt_and_opcua(e2
             received.append({name: getattr(event, name) for name in ("ResultId", "PartId", "ResultState", "Verdict")})
 
     async def listen():
-        async with Client(endpoint) as client:
+        # a generous request timeout: on a loaded CI machine a reply from the scanning process can take longer
+        # than asyncua's default 4 s, and a timed-out client disconnects (what is tested is what arrives)
+        async with Client(endpoint, timeout=30) as client:
             namespace = await client.get_namespace_index(NAMESPACE)
             vision = await client.nodes.objects.get_child(f"{namespace}:VisionSystem")
             event_type = await client.nodes.base_event_type.get_child(f"{namespace}:ResultReadyEventType")
