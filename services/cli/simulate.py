@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 
 from services.errors import InputError
-from services.formats.files import atomic_output
+from services.formats.files import atomic_output, output_directory
 from services.formats.images import read_frame_stack, write_image
 from services.formats.json_files import write_text_atomically
 from services.formats.rig import Rig, load_rig, save_rig
@@ -114,19 +114,18 @@ def _run(args: argparse.Namespace) -> int:
                                  f"images; --bit-depth 16 needs PNG or TIFF frame names")
     if args.out.resolve() == args.patterns.resolve():
         raise InputError(f"--out {args.out}: must differ from --patterns, whose images would be overwritten")
-    args.out.mkdir(parents=True, exist_ok=True)
-
     view = render_view(scene, camera, projector, args.supersample)
     frames = render_frames(view, patterns, np.random.default_rng(args.seed), camera_effects, projector_effects)
-    for frame, image in zip(sequence.frames, frames):
-        write_image(args.out / frame.file, image)
-    save_sequence(sequence, args.out)
-    save_rig(rig, args.out / "rig.json")
-    write_text_atomically(args.out / "scene.json", scene.model_dump_json(indent=2, exclude_none=True) + "\n")
-    _write_array(args.out / "depth.npy", view.truth.depth)
-    _write_array(args.out / "points.npy", view.truth.points)
-    _write_array(args.out / "projector_pixels.npy", view.truth.projector_pixels)
-    write_image(args.out / "lit_mask.png", view.truth.lit.astype(np.uint8) * 255)
+    with output_directory(args.out):
+        for frame, image in zip(sequence.frames, frames):
+            write_image(args.out / frame.file, image)
+        save_sequence(sequence, args.out)
+        save_rig(rig, args.out / "rig.json")
+        write_text_atomically(args.out / "scene.json", scene.model_dump_json(indent=2, exclude_none=True) + "\n")
+        _write_array(args.out / "depth.npy", view.truth.depth)
+        _write_array(args.out / "points.npy", view.truth.points)
+        _write_array(args.out / "projector_pixels.npy", view.truth.projector_pixels)
+        write_image(args.out / "lit_mask.png", view.truth.lit.astype(np.uint8) * 255)
     print(f"wrote {len(frames)} frames of {camera.width}x{camera.height} and the ground truth to {args.out} "
           f"({view.truth.lit.mean():.1%} of pixels lit)")
     return 0
