@@ -44,9 +44,9 @@ def _run(args: argparse.Namespace) -> int:
     if args.steps < 3:
         raise InputError(f"--steps: phase shifting needs at least 3 steps; got {args.steps}")
     sequence, patterns = generate_sequence(width, height, axes=args.axes, period=args.period, steps=args.steps)
-    with output_directory(args.out):
-        for frame, image in zip(sequence.frames, patterns):
-            write_png(args.out / frame.file, image)
-        save_sequence(sequence, args.out)
+    output_directory(args.out)
+    for frame, image in zip(sequence.frames, patterns):
+        write_png(args.out / frame.file, image)
+    save_sequence(sequence, args.out)
     print(f"{args.out}: {len(sequence.frames)} frames for a {width}x{height} projector and sequence.json")
     return 0

@@ -114,18 +114,19 @@ def _run(args: argparse.Namespace) -> int:
                                  f"images; --bit-depth 16 needs PNG or TIFF frame names")
     if args.out.resolve() == args.patterns.resolve():
         raise InputError(f"--out {args.out}: must differ from --patterns, whose images would be overwritten")
+    output_directory(args.out)
+
     view = render_view(scene, camera, projector, args.supersample)
     frames = render_frames(view, patterns, np.random.default_rng(args.seed), camera_effects, projector_effects)
-    with output_directory(args.out):
-        for frame, image in zip(sequence.frames, frames):
-            write_image(args.out / frame.file, image)
-        save_sequence(sequence, args.out)
-        save_rig(rig, args.out / "rig.json")
-        write_text_atomically(args.out / "scene.json", scene.model_dump_json(indent=2, exclude_none=True) + "\n")
-        _write_array(args.out / "depth.npy", view.truth.depth)
-        _write_array(args.out / "points.npy", view.truth.points)
-        _write_array(args.out / "projector_pixels.npy", view.truth.projector_pixels)
-        write_image(args.out / "lit_mask.png", view.truth.lit.astype(np.uint8) * 255)
+    for frame, image in zip(sequence.frames, frames):
+        write_image(args.out / frame.file, image)
+    save_sequence(sequence, args.out)
+    save_rig(rig, args.out / "rig.json")
+    write_text_atomically(args.out / "scene.json", scene.model_dump_json(indent=2, exclude_none=True) + "\n")
+    _write_array(args.out / "depth.npy", view.truth.depth)
+    _write_array(args.out / "points.npy", view.truth.points)
+    _write_array(args.out / "projector_pixels.npy", view.truth.projector_pixels)
+    write_image(args.out / "lit_mask.png", view.truth.lit.astype(np.uint8) * 255)
     print(f"wrote {len(frames)} frames of {camera.width}x{camera.height} and the ground truth to {args.out} "
           f"({view.truth.lit.mean():.1%} of pixels lit)")
     return 0

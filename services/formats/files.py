@@ -35,21 +35,25 @@ def describe_os_error(path: str | Path, error: OSError, action: str = "write the
     return f"{path}: cannot {action} ({reason})"
 
 
-@contextmanager
-def output_directory(path: str | Path) -> Iterator[Path]:
-    """Create the output directory ``path`` (and its parents) and yield it; any ``OSError`` met while
-    creating or filling it becomes an ``InputError`` naming the file at fault (or ``path``).
+def output_directory(path: str | Path) -> Path:
+    """Create the output directory ``path`` and its parents if they are missing; return it.
 
-    The files written inside go through :func:`atomic_output`, so none is ever half-written.
+    The files written into it go through :func:`atomic_output`, which names any file it cannot write.
+
+    Raises
+    ------
+    InputError
+        Naming ``path`` (or the part of it at fault), when it cannot be created: a file in the way,
+        no permission, a read-only or full disk.
     """
     path = Path(path)
     if path.exists() and not path.is_dir():
         raise InputError(f"{path}: cannot create the directory (a file is in the way of a directory)")
     try:
         path.mkdir(parents=True, exist_ok=True)
-        yield path
     except OSError as error:
         raise InputError(describe_os_error(error.filename or path, error, "create the directory")) from None
+    return path
 
 
 @contextmanager
