@@ -17,6 +17,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from services.formats.part import load_part
 from services.formats.ply import write_cloud
 from services.formats.rig import save_rig
 from services.formats.thermal import write_thermal_frame
@@ -68,8 +69,6 @@ def inputs(tmp_path_factory) -> dict[str, Path]:
     write_thermal_frame(root / "thermal.npy", np.full((thermal.height, thermal.width), 500.0))
     part = write_billet_part(root, segments=60)
     vertices, triangles = cylinder_mesh(45.0, 200.0, 60)
-    from services.formats.part import load_part
-
     hot = HotPart(vertices, triangles, load_part(part).material, SurfaceTemperature(base=1000.0), pose=billet_pose())
     devices = rig.devices
     field, _ = simulated_field(hot, devices["camera"], devices["projector"], devices["thermal"],
