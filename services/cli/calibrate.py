@@ -124,7 +124,6 @@ def run_camera(args: argparse.Namespace) -> int:
     outcome = calibrate_camera_views(images=images, board=board, name=args.name or args.kind, kind=args.kind,
                                      distortion=args.distortion, unreadable=unreadable, source=source)
     output = outcome.calibration
-    args.out.parent.mkdir(parents=True, exist_ok=True)
     for name, figure in outcome.figures.items():
         save_figure(figure, report_path(args.out, name))
     save_camera_calibration(output, args.out)
@@ -149,7 +148,6 @@ def run_projector(args: argparse.Namespace) -> int:
     captures = [(str(directory), *read_capture(directory, args.manifest)) for directory in args.captures]
     rig, report = calibrate_projector_captures(captures=captures, board=board, camera=camera, name=args.name,
                                                distortion=args.distortion)
-    args.out.parent.mkdir(parents=True, exist_ok=True)
     save_projector_calibration(report, projector_report_path(args.out))
     save_rig(rig, args.out)
     print(f"{args.name}: projector RMS {report.projector_rms_px:.3f} px, stereo RMS {report.stereo_rms_px:.3f} px "
@@ -182,7 +180,6 @@ def run_stereo(args: argparse.Namespace) -> int:
     placed, report = place_device(board=board, rig=rig, device=args.device, reference_images=reference,
                                   device_images=device, camera=camera_name, intrinsics=intrinsics,
                                   source=str(args.pairs))
-    args.out.parent.mkdir(parents=True, exist_ok=True)
     save_stereo_calibration(report, stereo_report_path(args.out, args.device))
     save_rig(placed, args.out)
     print(f"{report.device}: stereo RMS {report.stereo_rms_px:.3f} px over {len(report.pairs)} pairs; "

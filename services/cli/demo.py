@@ -20,6 +20,7 @@ from pathlib import Path
 import httpx
 
 from services.errors import InputError
+from services.formats.files import atomic_output
 
 _STARTUP_TIMEOUT_S = 180.0
 _SCAN_TIMEOUT_S = 600.0
@@ -112,7 +113,7 @@ def _run(args: argparse.Namespace) -> int:
                                       "--data-dir", str(args.data_dir)),
                          capture_output=True, text=True, check=False)
     if key.returncode != 0:
-        raise InputError(f"could not create an API key: {key.stderr.strip()}")
+        raise InputError(f"could not create an API key: {key.stderr.strip().removeprefix('thermofield: error: ')}")
     secret = key.stdout.splitlines()[0].strip()
     environment = dict(os.environ, PYTHONUNBUFFERED="1")
     server = subprocess.Popen(_thermofield("serve", "--data-dir", str(args.data_dir), "--port", str(args.port),
@@ -136,7 +137,9 @@ def _run(args: argparse.Namespace) -> int:
             _print_summary(scan)
             for artifact in ("field.ply", "field.rrd"):
                 target = args.data_dir / f"{scan_id}-{artifact}"
-                target.write_bytes(client.get(f"/v1/scans/{scan_id}/{artifact}").content)
+                content = client.get(f"/v1/scans/{scan_id}/{artifact}").content
+                with atomic_output(target) as temporary:
+                    temporary.write_bytes(content)
                 print(f"  saved {target}")
             print("\nWatch it in Rerun:")
             if not args.exit_after_scan:

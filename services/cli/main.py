@@ -46,6 +46,9 @@ COMMANDS = {
                 "cold-equivalent dimensions, deviation from the nominal part and a verdict from a temperature field"),
     "rig": ("services.cli.rig", "rig files: import another program's calibration"),
 }
+# Exit codes: 0 done; 2 the user's to fix (usage, as argparse exits, and bad input: a missing, unreadable,
+# corrupt or unwritable file, a full disk); 1 an internal error or a failed check (`worker --check`); 130 Ctrl-C.
+BAD_INPUT = 2
 # Commands that run services: their logs (and their children's) are for the operator and stay on stderr.
 SERVICE_COMMANDS = frozenset({"serve", "api", "worker", "gateway", "demo"})
 
@@ -131,13 +134,13 @@ def _run(args: argparse.Namespace) -> int:
         return args.handler(args) or 0
     except InputError as error:
         print(f"thermofield: error: {error}", file=sys.stderr)
-        return 2
-    except OSError as error:  # a file the command reads or writes: name it, no traceback
+        return BAD_INPUT
+    except OSError as error:  # a path the command reads or writes: name it, no traceback; bad input too
         if args.debug:
             traceback.print_exc()
-        what = describe_os_error(error.filename, error, "use") if error.filename else f"{error.strerror or error}"
+        what = describe_os_error(error.filename, error, "access it") if error.filename else f"{error.strerror or error}"
         print(f"thermofield: error: {what}", file=sys.stderr)
-        return 1
+        return BAD_INPUT
     except KeyboardInterrupt:
         print("thermofield: interrupted", file=sys.stderr)
         return 130

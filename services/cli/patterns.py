@@ -7,6 +7,7 @@ import re
 from pathlib import Path
 
 from services.errors import InputError
+from services.formats.files import output_directory
 from services.formats.images import write_png
 from services.formats.sequence import save_sequence
 from services.structured_light.patterns import DEFAULT_PERIOD, DEFAULT_STEPS, generate_sequence
@@ -42,15 +43,10 @@ def _run(args: argparse.Namespace) -> int:
         raise InputError(f"--period: the phase period must be at least 2 projector pixels; got {args.period:g}")
     if args.steps < 3:
         raise InputError(f"--steps: phase shifting needs at least 3 steps; got {args.steps}")
-    if args.out.exists() and not args.out.is_dir():
-        raise InputError(f"--out: {args.out} exists and is not a directory")
     sequence, patterns = generate_sequence(width, height, axes=args.axes, period=args.period, steps=args.steps)
-    try:
-        args.out.mkdir(parents=True, exist_ok=True)
-        for frame, image in zip(sequence.frames, patterns):
-            write_png(args.out / frame.file, image)
-        save_sequence(sequence, args.out)
-    except OSError as error:
-        raise InputError(f"--out: cannot write to {args.out} ({error.strerror or error})") from None
+    output_directory(args.out)
+    for frame, image in zip(sequence.frames, patterns):
+        write_png(args.out / frame.file, image)
+    save_sequence(sequence, args.out)
     print(f"{args.out}: {len(sequence.frames)} frames for a {width}x{height} projector and sequence.json")
     return 0

@@ -48,7 +48,6 @@ def _size(text: str) -> tuple[int, int]:
 def _run_import(args: argparse.Namespace) -> int:
     sizes = (None, None) if args.sizes is None else tuple(_size(text) for text in args.sizes)
     rig = import_rig(args.file, args.file_format, names=tuple(args.names), kinds=tuple(args.kinds), sizes=sizes)
-    args.out.parent.mkdir(parents=True, exist_ok=True)
     save_rig(rig, args.out)
     first, second = args.names
     baseline = float(((rig.devices[second].R.T @ rig.devices[second].t) ** 2).sum() ** 0.5)

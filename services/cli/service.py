@@ -214,8 +214,8 @@ def _maintenance(args: argparse.Namespace) -> int:
     from services.storage.retention import run_maintenance
 
     settings = _settings(data_dir=args.data_dir)
-    report = run_maintenance(_key_sessions(args), ArtifactStore(settings.resolved_artifact_dir),
-                             settings.retention_policy)
+    with _database(settings) as sessions:
+        report = run_maintenance(sessions, ArtifactStore(settings.resolved_artifact_dir), settings.retention_policy)
     print(f"thermofield: {report.scans_expired} scans expired, raw frames of {report.raw_frames_expired} more; "
           f"{report.idempotency_records_deleted} idempotency records and {report.blobs_deleted} blobs "
           f"({report.bytes_freed / 1e6:.1f} MB) deleted")
@@ -249,13 +249,31 @@ def _require_broker(settings: Settings, command: str) -> None:
                          "for a single process use `thermofield serve`")
 
 
-def _key_sessions(args: argparse.Namespace):
+@contextlib.contextmanager
+def _database(settings: Settings):
+    """Sessions of the service's database, migrated; a database that cannot be opened, read or written (a
+    data directory on a read-only or full disk, a file that is not a database, a server that refuses) is
+    the user's to fix: an ``InputError`` naming it (a server's URL without its password)."""
+    from sqlalchemy.engine import make_url
+    from sqlalchemy.exc import DatabaseError
+
     from services.db.engine import make_engine, make_sessions, migrate
 
-    settings = _settings(data_dir=args.data_dir)
-    engine = make_engine(settings.resolved_database_url, settings.database_schema)
-    migrate(engine)
-    return make_sessions(engine)
+    url = settings.resolved_database_url
+    try:
+        engine = make_engine(url, settings.database_schema)
+        migrate(engine)
+        yield make_sessions(engine)
+    except DatabaseError as error:  # OperationalError (disk full, read-only, refused) is one
+        parsed = make_url(url)
+        name = parsed.database if parsed.get_backend_name() == "sqlite" else parsed.render_as_string(hide_password=True)
+        full = getattr(error.orig, "sqlite_errorname", None) == "SQLITE_FULL"
+        reason = f"no space left on the device holding {Path(name).parent}" if full else str(error.orig).strip()
+        raise InputError(f"{name}: cannot use the database ({reason.splitlines()[0]})") from None
+
+
+def _key_sessions(args: argparse.Namespace):
+    return _database(_settings(data_dir=args.data_dir))
 
 
 def _create_api_key(args: argparse.Namespace) -> int:
@@ -265,7 +283,7 @@ def _create_api_key(args: argparse.Namespace) -> int:
         scopes = parse_scopes(args.scopes)
     except ValueError as error:
         raise InputError(f"--scopes: {error}") from None
-    with _key_sessions(args).begin() as session:
+    with _key_sessions(args) as sessions, sessions.begin() as session:
         key, secret = create_api_key(session, args.name, scopes)
     print(secret)
     print(f"thermofield: created API key {key.id} ({args.name!r}) with scopes {' '.join(scopes)}; "
@@ -276,7 +294,7 @@ def _create_api_key(args: argparse.Namespace) -> int:
 def _list_api_keys(args: argparse.Namespace) -> int:
     from services.db.apikeys import list_api_keys
 
-    with _key_sessions(args)() as session:
+    with _key_sessions(args) as sessions, sessions() as session:
         keys = list_api_keys(session)
     print(f"{'id':32}  {'scopes':18}  {'created':20}  {'revoked':20}  name")
     for key in keys:
@@ -288,7 +306,7 @@ def _list_api_keys(args: argparse.Namespace) -> int:
 def _revoke_api_key(args: argparse.Namespace) -> int:
     from services.db.apikeys import revoke_api_key
 
-    with _key_sessions(args).begin() as session:
+    with _key_sessions(args) as sessions, sessions.begin() as session:
         try:
             key = revoke_api_key(session, args.key_id)
         except KeyError:

@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 
 from services.errors import InputError
-from services.formats.files import atomic_output
+from services.formats.files import atomic_output, output_directory
 from services.formats.images import read_frame_stack, write_image
 from services.formats.json_files import write_text_atomically
 from services.formats.rig import Rig, load_rig, save_rig
@@ -114,7 +114,7 @@ def _run(args: argparse.Namespace) -> int:
                                  f"images; --bit-depth 16 needs PNG or TIFF frame names")
     if args.out.resolve() == args.patterns.resolve():
         raise InputError(f"--out {args.out}: must differ from --patterns, whose images would be overwritten")
-    args.out.mkdir(parents=True, exist_ok=True)
+    output_directory(args.out)
 
     view = render_view(scene, camera, projector, args.supersample)
     frames = render_frames(view, patterns, np.random.default_rng(args.seed), camera_effects, projector_effects)

@@ -19,18 +19,41 @@ from pathlib import Path
 from services.errors import InputError
 
 
-def describe_os_error(path: str | Path, error: OSError, action: str = "write") -> str:
-    """``path: cannot <action> the file (reason)`` for an ``OSError`` met on ``path``."""
+def describe_os_error(path: str | Path, error: OSError, action: str = "write the file") -> str:
+    """``path: cannot <action> (reason)`` for an ``OSError`` met on ``path``."""
     path = Path(path)
     if error.errno == errno.ENOENT and not path.parent.is_dir():
         reason = f"the directory {path.parent} does not exist"
     elif error.errno in (errno.ENOSPC, errno.EDQUOT):
         reason = f"no space left on the device holding {path.parent}"
+    elif error.errno in (errno.EEXIST, errno.ENOTDIR):  # mkdir or open through a file
+        reason = "a file is in the way of a directory"
     elif error.errno in (errno.EACCES, errno.EPERM, errno.EROFS):
         reason = f"permission denied ({error.strerror.lower()})"
     else:
-        reason = error.strerror or str(error)
-    return f"{path}: cannot {action} the file ({reason})"
+        reason = (error.strerror or str(error)).lower()
+    return f"{path}: cannot {action} ({reason})"
+
+
+def output_directory(path: str | Path) -> Path:
+    """Create the output directory ``path`` and its parents if they are missing; return it.
+
+    The files written into it go through :func:`atomic_output`, which names any file it cannot write.
+
+    Raises
+    ------
+    InputError
+        Naming ``path`` (or the part of it at fault), when it cannot be created: a file in the way,
+        no permission, a read-only or full disk.
+    """
+    path = Path(path)
+    if path.exists() and not path.is_dir():
+        raise InputError(f"{path}: cannot create the directory (a file is in the way of a directory)")
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+    except OSError as error:
+        raise InputError(describe_os_error(error.filename or path, error, "create the directory")) from None
+    return path
 
 
 @contextmanager

@@ -34,7 +34,7 @@ def left_dir(tmp_path, opencv_left_images):
 
 
 def test_calibrate_camera_on_opencv_images_writes_the_file_and_its_report(tmp_path, opencv_board_file, left_dir):
-    out = tmp_path / "out" / "left.json"
+    out = tmp_path / "left.json"
     assert main(["calibrate", "camera", "--board", str(opencv_board_file), "--images", str(left_dir),
                  "--out", str(out)]) == 0
     result = json.loads(out.read_text())

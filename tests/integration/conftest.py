@@ -28,8 +28,12 @@ from services.simulation.raycast import cast_rays
 from services.simulation.thermal import forging_temperatures, seen_by, surface_temperature
 
 THERMOFIELD = [sys.executable, "-m", "services.cli.main"]
-POSTGRES_URL = "postgresql+psycopg://postgres@127.0.0.1:5432/test"
-BROKER_URL = "amqp://guest:guest@127.0.0.1:5672"
+# The local PostgreSQL trusts 127.0.0.1 and ignores the password: it is there so that a log that leaks the
+# database URL's password shows it (each session's is new, so it cannot appear by chance).
+POSTGRES_PASSWORD = f"tf-pg-{uuid.uuid4().hex}"
+POSTGRES_URL = f"postgresql+psycopg://postgres:{POSTGRES_PASSWORD}@127.0.0.1:5432/test"
+BROKER_USER, BROKER_PASSWORD = "guest", "guest"
+BROKER_URL = f"amqp://{BROKER_USER}:{BROKER_PASSWORD}@127.0.0.1:5672"
 
 
 def free_port() -> int:
@@ -64,12 +68,13 @@ class Processes:
                 os.killpg(process.pid, signal.SIGKILL)
                 process.wait()
 
-    def assert_no_secrets_in_logs(self, secrets: list[str]) -> None:
-        """No log of any started process contains a secret (API keys, passwords in URLs)."""
+    def assert_no_secrets_in_logs(self, secrets: dict[str, str]) -> None:
+        """No log of any started process contains a secret (``secrets``: what each is, its text)."""
+        assert self.running, "no process was started: no log to search"
         for name, _ in self.running:
             log = self.log(name)
-            for secret in secrets:
-                assert secret not in log, f"{name}'s log contains a secret"
+            for what, secret in secrets.items():
+                assert secret not in log, f"{name}'s log contains {what}"
 
     def stop_all(self) -> None:
         for _, process in reversed(self.running):
@@ -200,7 +205,6 @@ class EndToEnd:
     """What an end-to-end test uses: processes, ports, keys, MQTT, SSE and ground truth."""
 
     free_port = staticmethod(free_port)
-    create_key = staticmethod(create_key)
     follow_events = staticmethod(follow_events)
     field_errors = staticmethod(field_errors)
     listening_addresses = staticmethod(listening_addresses)
@@ -208,6 +212,22 @@ class EndToEnd:
     def __init__(self, directory: Path) -> None:
         self.processes = Processes(directory)
         self.recorders: list[MqttRecorder] = []
+        self.api_keys: list[str] = []
+
+    def create_key(self, env: dict[str, str], scopes: list[str]) -> str:
+        """A new API key's secret, remembered for :meth:`assert_no_secrets_in_logs`."""
+        self.api_keys.append(create_key(env, scopes))
+        return self.api_keys[-1]
+
+    def assert_no_secrets_in_logs(self) -> None:
+        """No log of the started processes holds the database's or the broker's password or any API key
+        created."""
+        secrets = {"the PostgreSQL password": POSTGRES_PASSWORD,
+                   # alone, in any form (a URL, a repr of credentials); the user's name is the same word, and no
+                   # log names it either
+                   "the broker's password": BROKER_PASSWORD,
+                   **{f"API key {number + 1} of {len(self.api_keys)}": key for number, key in enumerate(self.api_keys)}}
+        self.processes.assert_no_secrets_in_logs(secrets)
 
     def mqtt(self, prefix: str) -> MqttRecorder:
         self.recorders.append(MqttRecorder(prefix))

@@ -94,7 +94,7 @@ def test_embedded_scan_from_http_to_an_accurate_field(e2e, tmp_path):
     assert (final["status"], final["attempts"]) == ("succeeded", 2), final
     serve = dict(e2e.processes.running)["serve-restarted"]
     assert e2e.listening_addresses(serve) <= {"127.0.0.1"}  # API, gateway and Rerun proxy on loopback by default
-    e2e.processes.assert_no_secrets_in_logs([admin])
+    e2e.assert_no_secrets_in_logs()
 
     errors = e2e.field_errors(tmp_path / "field.ply")
     assert errors["median_distance_mm"] < 0.5, errors

@@ -118,5 +118,5 @@ def test_cli_refuses_a_file_as_output_directory(tmp_path, capsys):
     target = tmp_path / "file"
     target.write_text("keep me")
     assert main(["patterns", "--projector", "64x32", "--out", str(target)]) == 2
-    assert "is not a directory" in capsys.readouterr().err
+    assert "a file is in the way of a directory" in capsys.readouterr().err
     assert target.read_text() == "keep me"
