@@ -200,6 +200,7 @@ def _child(tree: Path, mode: str, args: argparse.Namespace) -> dict:
     from sqlalchemy import text
 
     from services.db.engine import make_engine
+    from services.jobs.queue import delete_job_queues
 
     schema = f"tf_bench_{uuid.uuid4().hex[:10]}"
     with tempfile.TemporaryDirectory(prefix="thermofield-bench-") as artifacts:
@@ -212,19 +213,8 @@ def _child(tree: Path, mode: str, args: argparse.Namespace) -> dict:
         finally:
             with make_engine(POSTGRES_URL).begin() as connection:
                 connection.execute(text(f"DROP SCHEMA IF EXISTS {schema} CASCADE"))
-            _delete_queues(env["THERMOFIELD_JOB_QUEUE"])
+            delete_job_queues(BROKER_URL, env["THERMOFIELD_JOB_QUEUE"])
     return json.loads(output.splitlines()[-1])
-
-
-def _delete_queues(queue: str) -> None:
-    """The job queue ``thermofield api`` declared on RabbitMQ, with its delay and dead-letter queues."""
-    import pika
-
-    connection = pika.BlockingConnection(pika.URLParameters(BROKER_URL))
-    channel = connection.channel()
-    for name in (queue, f"{queue}.DQ", f"{queue}.XQ"):
-        channel.queue_delete(name)
-    connection.close()
 
 
 def main() -> None:

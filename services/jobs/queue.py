@@ -12,6 +12,7 @@ from concurrent.futures import ThreadPoolExecutor
 import dramatiq
 from dramatiq.brokers.rabbitmq import RabbitmqBroker
 from dramatiq.brokers.stub import StubBroker
+from dramatiq.common import dq_name, xq_name
 
 from services.settings import Settings
 
@@ -46,3 +47,17 @@ class JobQueue:
         message = dramatiq.Message(queue_name=self.queue_name, actor_name=kind, args=(job_id,), kwargs={},
                                    options={})
         return self._sender.submit(self.broker.enqueue, message).result()
+
+
+def delete_job_queues(broker_url: str, queue_name: str) -> None:
+    """Delete the job queue ``queue_name`` on the RabbitMQ at ``broker_url``, with the delay and dead-letter
+    queues Dramatiq declares beside it (for throwaway deployments: the tests' and benchmarks')."""
+    import pika
+
+    connection = pika.BlockingConnection(pika.URLParameters(broker_url))
+    try:
+        channel = connection.channel()
+        for name in (queue_name, dq_name(queue_name), xq_name(queue_name)):
+            channel.queue_delete(name)
+    finally:
+        connection.close()

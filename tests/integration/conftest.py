@@ -23,6 +23,7 @@ from sqlalchemy import text
 from services.db.engine import make_engine
 from services.formats.ply import read_cloud
 from services.geometry.camera import pixel_rays, project_points
+from services.jobs.queue import delete_job_queues
 from services.simulation.presets import forging_rig, forging_scene
 from services.simulation.raycast import cast_rays
 from services.simulation.thermal import forging_temperatures, seen_by, surface_temperature
@@ -267,15 +268,4 @@ def deployment(e2e, tmp_path):
     yield env
     with make_engine(POSTGRES_URL).begin() as connection:
         connection.execute(text(f"DROP SCHEMA IF EXISTS tf_it_{tag} CASCADE"))
-    _delete_queues(env["THERMOFIELD_JOB_QUEUE"])
-
-
-def _delete_queues(queue: str) -> None:
-    import pika
-
-    connection = pika.BlockingConnection(pika.URLParameters(BROKER_URL))
-    channel = connection.channel()
-    for name in (queue, f"{queue}.DQ", f"{queue}.XQ"):
-        channel.queue_delete(name)
-    connection.close()
-
+    delete_job_queues(BROKER_URL, env["THERMOFIELD_JOB_QUEUE"])
