@@ -4,13 +4,13 @@ Every operation gets schema-valid (positive) and schema-violating (negative) cas
 generated or those of seeded rows (a scan with every artifact, a finished job, a calibration set, a part
 type, an API key), so that ``GET``, ``POST`` and ``DELETE`` by id reach a row. A simulated device gateway
 runs, so ``/v1/devices`` answers too. Checked per case: no 5xx, no status, header or body outside the
-documented ones, every error ``application/problem+json``; at the end, that every operation got cases of
-both kinds, that no 401 or 403 came back, and that every operation reached its handler (a 2xx, or for the
+documented ones, every error ``application/problem+json``; at the end, that every operation got positive
+cases, and negative ones where its schema can be broken, that no 401 or 403 came back, and that every operation reached its handler (a 2xx, or for the
 three uploads no generator can make valid, an answer from the handler's own checks).
 
-The normal suite generates THERMOFIELD_SCHEMATHESIS_EXAMPLES (default 10) cases per operation and mode;
-``make test-reliability`` asks for 100 (over 2000 in all) and writes the counts per operation, mode and
-status to ``$THERMOFIELD_RELIABILITY_OUT/schemathesis.json``.
+The normal suite generates THERMOFIELD_SCHEMATHESIS_EXAMPLES (default 10) cases per operation and mode (a
+tenth of that with generated ids where seeded ones exist); ``make test-reliability`` asks for 100 (over 2000
+in all) and writes the counts per operation, mode and status to ``$THERMOFIELD_RELIABILITY_OUT/schemathesis.json``.
 """
 
 import collections
@@ -219,8 +219,11 @@ def test_every_operation_keeps_to_its_document(api_schema):
         for mode, fixed in itertools.product(MODES, [{}, seeded] if seeded else [{}]):
             if mode == GenerationMode.NEGATIVE and not _can_violate(operation, fixed):
                 continue
+            # a generated id names no row: its cases all end in the same 404 (a tenth of them show it)
+            examples = max(1, EXAMPLES // 10) if seeded and not fixed else EXAMPLES
+
             @given(case=operation.as_strategy(generation_mode=mode, path_parameters=fixed))
-            @settings(max_examples=EXAMPLES, deadline=None, suppress_health_check=list(HealthCheck),
+            @settings(max_examples=examples, deadline=None, suppress_health_check=list(HealthCheck),
                       derandomize=True, database=None)
             def conforms(case):
                 response = case.call_and_validate(headers=headers, excluded_checks=SEMANTIC_CHECKS)
