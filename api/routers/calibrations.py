@@ -85,9 +85,11 @@ async def start_stereo_calibration(
     request: Request, key: AdminKey, calibration: ExistingCalibration, session: SessionDep, runtime: RuntimeDep,
     queue: JobQueueDep,
     board: Annotated[UploadFile, File(description="Board specification JSON (docs/calibration.md).")],
-    reference_images: Annotated[list[UploadFile], File(description="Board images of the rig's camera.")],
-    device_images: Annotated[list[UploadFile], File(description="The same board poses seen by the device, "
-                                                                 "in the same order.")],
+    reference_images: Annotated[list[UploadFile], File(min_length=MIN_VIEWS,
+                                                       description="Board images of the rig's camera.")],
+    device_images: Annotated[list[UploadFile], File(min_length=MIN_VIEWS, description="The same board poses seen "
+                                                                                      "by the device, in the same "
+                                                                                      "order.")],
     name: Annotated[str, Form(min_length=1, max_length=200)],
     device: Annotated[str, Form(min_length=1, max_length=100)] = "thermal",
     activate: Annotated[bool, Form()] = False,
@@ -97,9 +99,9 @@ async def start_stereo_calibration(
     ``calibrate`` job that creates a new calibration set from this one (``result.calibration_set_id``)."""
     rig = _rig_of(runtime, calibration)
     _require_thermal_device(rig, calibration, device)
-    if len(reference_images) != len(device_images) or len(reference_images) < MIN_VIEWS:
-        raise Problem(422, "invalid-input", f"reference_images, device_images: give the same number of images, at "
-                                            f"least {MIN_VIEWS}; got {len(reference_images)} and {len(device_images)}.")
+    if len(reference_images) != len(device_images):
+        raise Problem(422, "invalid-input", f"reference_images, device_images: give the same number of images; got "
+                                            f"{len(reference_images)} and {len(device_images)}.")
     board_text = await read_limited(board, "board", _MAX_RIG_BYTES)
     parse_board(board_text.decode("utf-8", errors="replace"), f"board ({board.filename})")
     hasher = hashlib.sha256(board_text)
