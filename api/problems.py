@@ -84,6 +84,12 @@ def install_problem_handlers(app: FastAPI) -> None:
 
     @app.exception_handler(StarletteHTTPException)
     async def _http(request: Request, error: StarletteHTTPException) -> JSONResponse:
+        if error.status_code == 400:
+            # FastAPI and Starlette answer 400 only for a body they cannot parse (not UTF-8 JSON, a broken
+            # multipart form): the same fault as a body that is not JSON, which FastAPI answers 422
+            detail = f"body: {error.detail}" + (f" ({type(error.__cause__).__name__})" if error.__cause__ else "")
+            return problem_response(422, "validation-error", detail, request.url.path,
+                                    errors=[{"field": "body", "message": detail.removeprefix("body: ")}])
         kind = HTTPStatus(error.status_code).phrase.lower().replace(" ", "-")
         return problem_response(error.status_code, kind, str(error.detail), request.url.path,
                                 getattr(error, "headers", None))

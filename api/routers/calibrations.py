@@ -18,6 +18,7 @@ from sqlalchemy import select
 from api.deps import AdminKey, JobQueueDep, ReaderKey, RuntimeDep, SessionDep
 from api.dispatch import start_job
 from api.idempotency import IdempotencyKeyHeader, Outcome, request_digest, respond_once
+from api.artifacts import stored_bytes
 from api.problems import Problem, problem_responses
 from api.uploads import read_limited
 from api.schemas import Accepted, CalibrationSetOut, StereoCaptureRequest
@@ -79,14 +80,16 @@ async def create_calibration_set(request: Request, session: SessionDep, runtime:
 
 @router.post("/{calibration_set_id}/stereo", name="start_stereo_calibration", status_code=202,
              response_model=Accepted, responses={202: {"headers": {"Location": {"description": "The job."}}},
-                                                 **problem_responses(404, 413)})
+                                                 **problem_responses(404, 409, 413)})
 async def start_stereo_calibration(
     request: Request, key: AdminKey, calibration: ExistingCalibration, session: SessionDep, runtime: RuntimeDep,
     queue: JobQueueDep,
     board: Annotated[UploadFile, File(description="Board specification JSON (docs/calibration.md).")],
-    reference_images: Annotated[list[UploadFile], File(description="Board images of the rig's camera.")],
-    device_images: Annotated[list[UploadFile], File(description="The same board poses seen by the device, "
-                                                                 "in the same order.")],
+    reference_images: Annotated[list[UploadFile], File(min_length=MIN_VIEWS,
+                                                       description="Board images of the rig's camera.")],
+    device_images: Annotated[list[UploadFile], File(min_length=MIN_VIEWS, description="The same board poses seen "
+                                                                                      "by the device, in the same "
+                                                                                      "order.")],
     name: Annotated[str, Form(min_length=1, max_length=200)],
     device: Annotated[str, Form(min_length=1, max_length=100)] = "thermal",
     activate: Annotated[bool, Form()] = False,
@@ -94,11 +97,11 @@ async def start_stereo_calibration(
 ):
     """Re-place a device (default the thermal camera) relative to the camera from paired board images: a
     ``calibrate`` job that creates a new calibration set from this one (``result.calibration_set_id``)."""
-    rig = parse_rig(runtime.store.read_bytes(calibration.rig_sha256).decode(), f"calibration set {calibration.id}")
+    rig = _rig_of(runtime, calibration)
     _require_thermal_device(rig, calibration, device)
-    if len(reference_images) != len(device_images) or len(reference_images) < MIN_VIEWS:
-        raise Problem(422, "invalid-input", f"reference_images, device_images: give the same number of images, at "
-                                            f"least {MIN_VIEWS}; got {len(reference_images)} and {len(device_images)}.")
+    if len(reference_images) != len(device_images):
+        raise Problem(422, "invalid-input", f"reference_images, device_images: give the same number of images; got "
+                                            f"{len(reference_images)} and {len(device_images)}.")
     board_text = await read_limited(board, "board", _MAX_RIG_BYTES)
     parse_board(board_text.decode("utf-8", errors="replace"), f"board ({board.filename})")
     hasher = hashlib.sha256(board_text)
@@ -131,14 +134,14 @@ async def start_stereo_calibration(
 
 @router.post("/{calibration_set_id}/stereo-captures", name="start_stereo_capture", status_code=202,
              response_model=Accepted, responses={202: {"headers": {"Location": {"description": "The job."}}},
-                                                 **problem_responses(404)})
+                                                 **problem_responses(404, 409)})
 async def start_stereo_capture(request: Request, key: AdminKey, calibration: ExistingCalibration,
                                body: StereoCaptureRequest, session: SessionDep, runtime: RuntimeDep, queue: JobQueueDep,
                                idempotency_key: IdempotencyKeyHeader = None):
     """A calibration capture job: the gateway films the board in ``views`` poses with the camera and the device
     (default the thermal camera), which is then placed relative to the camera: a ``calibrate`` job that creates a
     new calibration set from this one (``result.calibration_set_id``)."""
-    rig = parse_rig(runtime.store.read_bytes(calibration.rig_sha256).decode(), f"calibration set {calibration.id}")
+    rig = _rig_of(runtime, calibration)
     _require_thermal_device(rig, calibration, body.device)
     board = runtime.store.put_bytes(json.dumps(body.model_dump(mode="json")["board"]).encode())
     params = {"calibration_set_id": calibration.id, "station": calibration.station, "device": body.device,
@@ -148,6 +151,14 @@ async def start_stereo_capture(request: Request, key: AdminKey, calibration: Exi
     return await run_in_threadpool(respond_once, session, key, idempotency_key, digest,
                                    lambda: start_job(runtime, queue, session, "calibrate", params),
                                    runtime.settings.idempotency_ttl_s)
+
+
+def _rig_of(runtime, calibration: CalibrationSet) -> Rig:
+    """The calibration set's rig, to derive a new set from; 409 while it has none."""
+    if calibration.rig_sha256 is None:
+        raise Problem(409, "not-ready", f"Calibration set {calibration.id} has no rig yet to start from.")
+    owner = f"calibration set {calibration.id}"
+    return parse_rig(stored_bytes(runtime.store, calibration.rig_sha256, owner).decode(), owner)
 
 
 def _check_image(content: bytes, field: str, filename: str | None, size: tuple[int, int]) -> None:
@@ -188,7 +199,8 @@ def download_calibration_set(calibration: ExistingCalibration, runtime: RuntimeD
     """The calibration set as a rig file."""
     if calibration.rig_sha256 is None:
         raise Problem(404, "not-ready", f"Calibration set {calibration.id} has no rig yet.")
-    return Response(runtime.store.read_bytes(calibration.rig_sha256), media_type="application/json",
+    return Response(stored_bytes(runtime.store, calibration.rig_sha256, f"calibration set {calibration.id}"),
+                    media_type="application/json",
                     headers={"Content-Disposition": f'attachment; filename="{calibration.id}-rig.json"'})
 
 

@@ -24,6 +24,7 @@ from sqlalchemy import Dialect, Engine, bindparam, select
 from sqlalchemy.exc import DBAPIError
 
 from api.deps import ReaderKey, RuntimeDep, SessionDep
+from api.artifacts import stored_path
 from api.problems import Problem, problem_responses
 from api.schemas import JobOut
 from services.db.models import TERMINAL_STATUSES, Job
@@ -162,7 +163,8 @@ def download_job_artifact(job: ExistingJob, name: str, runtime: RuntimeDep) -> F
         raise Problem(404, "not-found", f"Job {job.id} has no artifact {name!r} "
                                         f"(it has: {', '.join(job.result.get('artifacts', {})) or 'none yet'}).")
     media_type = mimetypes.guess_type(name)[0] or "application/octet-stream"
-    return FileResponse(runtime.store.path(digest), media_type=media_type, filename=f"{job.id}-{name}")
+    return FileResponse(stored_path(runtime.store, digest, f"job {job.id}"), media_type=media_type,
+                        filename=f"{job.id}-{name}")
 
 
 def _read_state(runtime, job_id: str) -> dict:

@@ -14,6 +14,7 @@ from sqlalchemy import select
 
 from api.deps import AdminKey, ReaderKey, RuntimeDep, SessionDep
 from api.idempotency import IdempotencyKeyHeader, Outcome, request_digest, respond_once
+from api.artifacts import stored_bytes
 from api.problems import Problem, problem_responses
 from api.schemas import PartTypeOut
 from api.uploads import read_limited
@@ -111,16 +112,18 @@ def get_part_type(part_type: ExistingPartType) -> PartTypeOut:
             responses={200: {"content": {"application/json": {}}}, **problem_responses(404)})
 def download_part_file(part_type: ExistingPartType, runtime: RuntimeDep) -> Response:
     """The part file as uploaded."""
-    return Response(runtime.store.read_bytes(part_type.part_sha256), media_type="application/json",
+    return Response(stored_bytes(runtime.store, part_type.part_sha256, f"part type {part_type.id}"),
+                    media_type="application/json",
                     headers={"Content-Disposition": f'attachment; filename="{part_type.id}-part.json"'})
 
 
 @router.get("/{part_type_id}/mesh", name="download_part_mesh",
-            responses={200: {"content": {"application/octet-stream": {}}}, **problem_responses(404)})
+            responses={200: {"content": dict.fromkeys(_MESH_MEDIA_TYPES.values(), {})}, **problem_responses(404)})
 def download_part_mesh(part_type: ExistingPartType, runtime: RuntimeDep) -> Response:
     """The nominal mesh as uploaded, named as the part file's ``nominal``."""
-    nominal = PurePath(json.loads(runtime.store.read_bytes(part_type.part_sha256))["nominal"]).name
-    return Response(runtime.store.read_bytes(part_type.mesh_sha256),
+    owner = f"part type {part_type.id}"
+    nominal = PurePath(json.loads(stored_bytes(runtime.store, part_type.part_sha256, owner))["nominal"]).name
+    return Response(stored_bytes(runtime.store, part_type.mesh_sha256, owner),
                     media_type=_MESH_MEDIA_TYPES.get(PurePath(nominal).suffix.lower(), "application/octet-stream"),
                     headers={"Content-Disposition": f'attachment; filename="{nominal}"'})
 

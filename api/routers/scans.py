@@ -14,6 +14,7 @@ from sqlalchemy import select
 from api.deps import JobQueueDep, OperatorKey, ReaderKey, RuntimeDep, SessionDep
 from api.dispatch import start_job
 from api.idempotency import IdempotencyKeyHeader, Outcome, request_digest, respond_once
+from api.artifacts import stored_path
 from api.problems import Problem, problem_responses
 from api.schemas import Accepted, ScanJobRequest, ScanOut, ScanRequest
 from services.db.models import CalibrationSet, Job, PartType, Scan, new_id
@@ -181,7 +182,7 @@ def download_scan_frame(scan: ExistingScan, runtime: RuntimeDep,
     digest = scan.artifacts.get(f"{kind}.npy")
     if digest is None:
         raise Problem(404, "not-ready", f"Scan {scan.id} has no {kind} (yet); see its job.")
-    frames = np.load(runtime.store.path(digest), mmap_mode="r", allow_pickle=False)
+    frames = np.load(stored_path(runtime.store, digest, f"scan {scan.id}"), mmap_mode="r", allow_pickle=False)
     if suffix != expected_suffix or not 0 <= index < len(frames):
         raise Problem(404, "not-found", f"Scan {scan.id} has no {kind}/{index}.{suffix} "
                                         f"({len(frames)} {kind}, numbered from 0, as .{expected_suffix}).")
@@ -191,8 +192,5 @@ def download_scan_frame(scan: ExistingScan, runtime: RuntimeDep,
 def _artifact_file(runtime, scan: Scan, digest: str | None, filename: str, media_type: str) -> FileResponse:
     if digest is None:
         raise Problem(404, "not-ready", f"Scan {scan.id} does not have this artifact (yet); see its job.")
-    try:
-        path = runtime.store.path(digest)
-    except KeyError:
-        raise Problem(500, "artifact-missing", f"Artifact {digest} of scan {scan.id} is missing from the store.")
-    return FileResponse(path, media_type=media_type, filename=filename)
+    return FileResponse(stored_path(runtime.store, digest, f"scan {scan.id}"), media_type=media_type,
+                        filename=filename)

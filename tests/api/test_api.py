@@ -4,7 +4,7 @@ import json
 import cv2
 import numpy as np
 
-from services.db.models import Job, Scan
+from services.db.models import CalibrationSet, Job, Scan
 from services.formats.rig import rig_to_json
 from services.simulation.presets import forging_rig
 
@@ -220,16 +220,6 @@ def test_unknown_routes_and_methods_are_problems_too(client, auth):
     assert wrong_method.status_code == 405 and wrong_method.headers["content-type"] == PROBLEM
 
 
-def test_a_lost_artifact_is_a_server_problem_not_a_traceback(client, auth, runtime):
-    upload_rig(client, auth["admin"])
-    scan_id = client.post("/v1/scans", headers=auth["operate"]).json()["scan_id"]
-    with runtime.sessions.begin() as session:
-        session.get(Scan, scan_id).artifacts = {"cloud.ply": "0" * 64}
-    response = client.get(f"/v1/scans/{scan_id}/cloud.ply", headers=auth["read"])
-    assert response.status_code == 500 and response.headers["content-type"] == PROBLEM
-    assert response.json()["type"].endswith("/artifact-missing") and "Traceback" not in response.text
-
-
 def test_stereo_calibration_checks_its_uploads_and_queues_a_calibrate_job(client, auth, runtime):
     calibration_id = upload_rig(client, auth["admin"]).json()["calibration_set_id"]
     url = f"/v1/calibration-sets/{calibration_id}/stereo"
@@ -255,7 +245,10 @@ def test_stereo_calibration_checks_its_uploads_and_queues_a_calibrate_job(client
         assert "t0.png" in refused.json()["detail"] and refused.headers["content-type"] == "application/problem+json"
     assert sum(1 for _ in runtime.store.blobs()) == stored_before  # nothing stored from a refused upload
 
-    assert "same number" in post(pairs=2).json()["detail"]
+    assert "same number" in post(pairs=4).json()["detail"]
+    too_few = post(references=2, pairs=2)  # fewer than Zhang's method needs: refused by the documented minItems
+    assert too_few.status_code == 422 and {error["field"] for error in too_few.json()["errors"]} == {
+        "body.reference_images", "body.device_images"}
     assert "not one of" in post(suffix=".gif").json()["detail"]
     wrong_device = post(device="camera")
     assert wrong_device.status_code == 422 and "no thermal device 'camera'" in wrong_device.json()["detail"]
@@ -290,3 +283,36 @@ def test_calibration_capture_checks_its_request_and_queues_a_calibrate_job(clien
         assert job.kind == "calibrate" and job.params["capture"] == {"views": 10, "interval_s": 1.5}
         assert job.params["activate"] and job.params["calibration_set_id"] == calibration_id
     assert json.loads(runtime.store.read_bytes(job.params["board"]))["square_mm"] == 30.0
+
+
+def test_an_artifact_gone_from_the_store_is_a_404_problem_that_says_so(client, auth, runtime):
+    upload_rig(client, auth["admin"])
+    scan_id = client.post("/v1/scans", headers=auth["operate"]).json()["scan_id"]
+    digest = runtime.store.put_bytes(b"a field")
+    with runtime.sessions.begin() as session:
+        session.get(Scan, scan_id).artifacts = {"field.ply": digest}
+    assert client.get(f"/v1/scans/{scan_id}/field.ply", headers=auth["read"]).content == b"a field"
+    runtime.store.path(digest).unlink()  # the store lost it (removed by hand, restored from an older backup)
+    missing = client.get(f"/v1/scans/{scan_id}/field.ply", headers=auth["read"])
+    assert missing.status_code == 404 and missing.headers["content-type"] == PROBLEM
+    assert missing.json()["type"].endswith("/artifact-missing") and digest in missing.json()["detail"]
+    assert "Traceback" not in missing.text
+
+
+def test_a_stereo_calibration_from_a_set_without_a_rig_is_a_conflict(client, auth, runtime):
+    with runtime.sessions.begin() as session:
+        calibration = CalibrationSet(name="in progress", station=runtime.settings.station, source="calibrate")
+        session.add(calibration)
+        session.flush()
+        calibration_id = calibration.id
+    refused = client.post(f"/v1/calibration-sets/{calibration_id}/stereo-captures", headers=auth["admin"],
+                          json={"name": "again", "board": {"type": "chessboard", "inner_corners": [9, 6],
+                                                           "square_mm": 25.0}})
+    assert refused.status_code == 409 and refused.json()["type"].endswith("/not-ready"), refused.text
+
+
+def test_a_body_that_cannot_be_parsed_is_a_422_problem_naming_the_body(client, auth):
+    refused = client.post("/v1/scans", headers={**auth["operate"], "Content-Type": "application/json"},
+                          content=b"{\"part_id\": \"\xc3\x28\"}")  # not UTF-8
+    assert refused.status_code == 422 and refused.headers["content-type"] == PROBLEM
+    assert refused.json()["errors"][0]["field"] == "body" and "parsing the body" in refused.json()["detail"]
