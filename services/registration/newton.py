@@ -37,16 +37,17 @@ def _quadratic_model(
             values[axis] = function(point)
             if values[axis] > best_value:
                 best_point, best_value = point, values[axis]
-    gradient = (plus - minus) / (2.0 * step)
-    hessian = np.diag((plus - 2.0 * value + minus) / step**2)
-    for first in range(count):
-        for second in range(first + 1, count):
-            point = centre.copy()
-            point[[first, second]] += step
-            both = function(point)
-            if both > best_value:
-                best_point, best_value = point, both
-            hessian[first, second] = hessian[second, first] = (both - plus[first] - plus[second] + value) / step**2
+    with np.errstate(invalid="ignore"):  # an invalid (-inf) stencil point makes the model nan, checked by the caller
+        gradient = (plus - minus) / (2.0 * step)
+        hessian = np.diag((plus - 2.0 * value + minus) / step**2)
+        for first in range(count):
+            for second in range(first + 1, count):
+                point = centre.copy()
+                point[[first, second]] += step
+                both = function(point)
+                if both > best_value:
+                    best_point, best_value = point, both
+                hessian[first, second] = hessian[second, first] = (both - plus[first] - plus[second] + value) / step**2
     return gradient, hessian, best_point, best_value
 
 
@@ -65,7 +66,8 @@ def maximize(
     step: float = 1.0,
     min_step: float | None = None,
     tolerance: float = 0.02,
-    max_iterations: int = 10,
+    relative_gain: float = 1e-5,
+    max_iterations: int = 20,
 ) -> tuple[np.ndarray, float]:
     """Maximise ``function`` of ``count`` parameters from the origin.
 
@@ -81,7 +83,9 @@ def maximize(
         Smallest stencil size (default ``step``): the stencil is halved down to it when the iteration
         converges or stalls at the current size.
     tolerance : float
-        The iteration stops when an accepted step is shorter than this.
+        The iteration converges when an accepted step is shorter than this...
+    relative_gain : float
+        ...or raises ``function`` by less than this fraction of its value.
     max_iterations : int
         Largest number of model fits.
 
@@ -100,8 +104,8 @@ def maximize(
     A step that does not increase f is quartered up to twice; if none does,
     the best stencil point, if better, is taken instead, and if no stencil
     point is better either the stencil is halved (down to ``min_step``); so
-    is it when a step shorter than ``tolerance`` is accepted, so that the last
-    model is the most local one.
+    is it when the iteration converges at the current stencil, so that the
+    last model is the most local one.
     The trust radius follows the accepted steps (twice the last one, at
     least the stencil).
 
@@ -133,10 +137,11 @@ def maximize(
                     break
                 move = 0.25 * move
         if trial > value and trial >= stencil_value:
+            gain = trial - value
             parameters, value = parameters + move, trial
             length = float(np.linalg.norm(move))
-            radius = max(step, 2.0 * length)
-            if length < tolerance:
+            radius = max(step, 4.0 * length)
+            if length < tolerance or gain < relative_gain * abs(value):
                 if step <= min_step:
                     break
                 step, radius = 0.5 * step, step  # converged at this scale: refine with a smaller model

@@ -7,7 +7,8 @@ the same model); (2) preprocess both images (the paper's inversion and
 histogram equalisation, or CLAHE, or gradient magnitude); (3) build Gaussian
 pyramids; (4) scan rotations, scales and shifts exhaustively at the coarsest
 level (:mod:`services.registration.search`); (5) refine the best candidates
-with Powell's derivative-free method, level by level down to full resolution.
+by damped Newton steps on finite-difference quadratic models
+(:mod:`services.registration.newton`), level by level down to full resolution.
 Affine and homography start as similarity at the coarsest level; a homography
 is refined as affine on the intermediate levels and gets its perspective terms
 only at full resolution, where they are best determined (this halved its
@@ -38,10 +39,10 @@ _CANDIDATES = {"mi": 3, "nmi": 3, "ngf": 5}
 # Finite-difference stencils (first, smallest) and tolerances of the refinement, in pixels of the level refined
 # (services.registration.newton.maximize): the coarse levels only choose among candidates and start the next
 # level; the finer ones shrink the stencil to an eighth of a pixel, since the peak of MI is not quadratic.
-_COARSE_REFINEMENT = (1.0, 1.0, 0.1)  # coarsest level, where the search leaves the start within a grid step
-_CHOICE_REFINEMENT = (0.5, 0.5, 0.1)  # the level NGF chooses its candidate on
+_COARSE_REFINEMENT = (2.0, 0.5, 0.1)  # coarsest level, where the search leaves the start within a grid step
+_CHOICE_REFINEMENT = (1.0, 0.25, 0.05)  # the level NGF chooses its candidate on
 _FINE_REFINEMENT = (0.5, 0.125, 0.02)  # the levels below
-_FINEST_REFINEMENT = (0.25, 0.125, 0.02)  # full resolution, started within a fraction of a pixel
+_FINEST_REFINEMENT = (0.25, 0.25, 0.02)  # full resolution, started within a fraction of a pixel
 _FIELD_SIGMA = 1.0  # Gaussian smoothing (pixels) before gradient fields are taken
 DEFAULT_PREPROCESSING = {"mi": "gradient", "nmi": "gradient", "ngf": "none"}  # NGF takes its own gradients
 

@@ -4,9 +4,12 @@ A local optimiser started at the nominal alignment falls into the nearest
 MI maximum; a shift of 40 px is many capture ranges at full resolution. At the
 coarsest pyramid level the whole plausible range is cheap to scan: for each
 (rotation, scale) the fixed image is warped once onto a moving-grid canvas
-widened by the shift range, and every integer shift is then a slice of it,
-scored with a hard-binned joint histogram (MI, NMI) or, for normalised
-gradient fields, by correlation of structure tensors (all shifts at once).
+widened by the shift range, and every integer shift is then a slice of it.
+Every shift is scored at once by correlation of the normalised gradient
+fields' structure tensors (``cv2.matchTemplate``); for MI and NMI the best few
+shifts of each canvas are then scored by a hard-binned joint histogram
+(one ``np.bincount`` for all of them), since a histogram per shift for every
+shift would cost a hundred times more.
 """
 
 from __future__ import annotations
@@ -150,6 +153,10 @@ def coarse_search(
     The transform is H(u) = c_f + s R(theta) (u - c_m + d), with c_f and c_m
     the image centres and d the shift in moving pixels; the sampled fixed
     image for shift d is the d-offset window of the canvas warped with d = 0.
+    The shifts scored by MI or NMI are the ``_PROPOSALS_PER_CANVAS`` best of
+    each canvas by the structure-tensor similarity of the two images'
+    normalised gradient fields (:func:`gradient_field_search`'s score), which
+    is blind to contrast, like MI.
     """
     if max_shift < 0:
         raise ValueError(f"The search range must be non-negative; got max_shift={max_shift}.")
