@@ -42,7 +42,7 @@ _CANDIDATES = {"mi": 3, "nmi": 3, "ngf": 5}
 _COARSE_REFINEMENT = (2.0, 0.5, 0.1)  # coarsest level, where the search leaves the start within a grid step
 _CHOICE_REFINEMENT = (1.0, 0.25, 0.05)  # the level NGF chooses its candidate on
 _FINE_REFINEMENT = (0.5, 0.125, 0.02)  # the levels below
-_FINEST_REFINEMENT = (0.25, 0.25, 0.02)  # full resolution, started within a fraction of a pixel
+_FINEST_REFINEMENT = (0.25, 0.125, 0.02)  # full resolution, started within a fraction of a pixel
 _FIELD_SIGMA = 1.0  # Gaussian smoothing (pixels) before gradient fields are taken
 DEFAULT_PREPROCESSING = {"mi": "gradient", "nmi": "gradient", "ngf": "none"}  # NGF takes its own gradients
 
