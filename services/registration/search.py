@@ -8,8 +8,8 @@ widened by the shift range, and every integer shift is then a slice of it.
 Every shift is scored at once by correlation of the normalised gradient
 fields' structure tensors (``cv2.matchTemplate``); for MI and NMI the best few
 shifts of each canvas are then scored by a hard-binned joint histogram
-(one ``np.bincount`` for all of them), since a histogram per shift for every
-shift would cost a hundred times more.
+(one ``np.bincount`` for all of them): a histogram for every shift would be
+sixty times as many histogram entries.
 """
 
 from __future__ import annotations
@@ -21,7 +21,6 @@ import numpy as np
 
 from services.registration.gradient_fields import gradient_epsilon, normalized_gradient_field, tensor_similarity_map
 from services.registration.models import corner_error, similarity_about_centres
-from services.registration.mutual_information import joint_entropies
 from services.registration.objective import sample_fixed
 
 
