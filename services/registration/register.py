@@ -36,13 +36,19 @@ _SEARCH_STEP = 2.0  # coarse-search grid step, in coarse moving pixels of corner
 _DEFAULT_SHIFT_RANGE = 0.12  # of the moving image's smaller side
 _SEARCH_BINS = 16  # fewer bins at the coarse level: a few thousand samples fill 16 x 16 cells, not 32 x 32
 _CANDIDATES = {"mi": 3, "nmi": 3, "ngf": 5}
-# Finite-difference stencils (first, smallest) and tolerances of the refinement, in pixels of the level refined
-# (services.registration.newton.maximize): the coarse levels only choose among candidates and start the next
-# level; the finer ones shrink the stencil to an eighth of a pixel, since the peak of MI is not quadratic.
-_COARSE_REFINEMENT = (2.0, 0.5, 0.1)  # coarsest level, where the search leaves the start within a grid step
-_CHOICE_REFINEMENT = (1.0, 0.25, 0.05)  # the level NGF chooses its candidate on
-_FINE_REFINEMENT = (0.5, 0.125, 0.02)  # the levels below
-_FINEST_REFINEMENT = (0.25, 0.125, 0.02)  # full resolution, started within a fraction of a pixel
+# Finite-difference stencils (first, smallest), step tolerance and relative-gain stop of the refinement, in
+# pixels of the level refined (services.registration.newton.maximize): the coarse levels only choose among
+# candidates and start the next level; the finer ones shrink the stencil, since the peak of MI is not quadratic.
+_COARSE_REFINEMENT = (2.0, 0.5, 0.1, 1e-5)  # coarsest level, where the search leaves the start within a grid step
+_CHOICE_REFINEMENT = (1.0, 0.25, 0.05, 1e-5)  # the level NGF chooses its candidate on
+_FINE_REFINEMENT = (0.5, 0.125, 0.02, 1e-5)  # the levels below
+# Full resolution, started within a fraction of a pixel. NGF's precision on real pairs is the consistency of
+# two registrations, i.e. where each stops on a flat, rough maximum: it keeps a 1 px stencil, which sees the
+# smooth shape of the peak, and converges on the step alone (0.005 px, no gain stop); chosen on the odd TNO
+# pairs among stencils of 0.25 to 2 px, validated on the even ones (docs/registration.md).
+_FINEST_REFINEMENT = {"mi": (0.25, 0.125, 0.02, 1e-5), "nmi": (0.25, 0.125, 0.02, 1e-5),
+                      "ngf": (1.0, 1.0, 0.005, 0.0)}
+_MAX_ITERATIONS = 40  # NGF's step convergence may take more than 20 models; MI and NMI stop well before 20
 _FIELD_SIGMA = 1.0  # Gaussian smoothing (pixels) before gradient fields are taken
 DEFAULT_PREPROCESSING = {"mi": "gradient", "nmi": "gradient", "ngf": "none"}  # NGF takes its own gradients
 
@@ -126,12 +132,12 @@ def _level_objective(
 
 def _refine(
     fixed: np.ndarray, moving: np.ndarray, start: np.ndarray, model: str, objective: Callable[[np.ndarray], float],
-    stencil: tuple[float, float, float], cubic: bool = False,
+    stencil: tuple[float, float, float, float], cubic: bool = False,
 ) -> tuple[np.ndarray, float]:
     """Maximise the objective over ``start @ G(p)`` (:func:`services.registration.newton.maximize`).
 
-    ``stencil`` is the first and smallest finite-difference step and the tolerance, in pixels of corner
-    motion; ``cubic`` samples the fixed image by bicubic instead of bilinear interpolation
+    ``stencil`` is the first and smallest finite-difference step and the step tolerance, in pixels of corner
+    motion, and the relative-gain stop; ``cubic`` samples the fixed image by bicubic instead of bilinear interpolation
     (:func:`services.registration.objective.sample_fixed`). Returns the matrix and its objective value.
     """
     height, width = moving.shape
@@ -140,8 +146,9 @@ def _refine(
         return objective(sample_fixed(fixed, start @ update_matrix(model, parameters, width, height), width, height,
                                       cubic))
 
-    step, min_step, tolerance = stencil
-    parameters, best = maximize(value, PARAMETER_COUNTS[model], step, min_step, tolerance)
+    step, min_step, tolerance, relative_gain = stencil
+    parameters, best = maximize(value, PARAMETER_COUNTS[model], step, min_step, tolerance, relative_gain,
+                                _MAX_ITERATIONS)
     return start @ update_matrix(model, parameters, width, height), best
 
 
@@ -304,7 +311,7 @@ def register(
         level_model = "affine" if model == "homography" and level > 0 else model
         level_matrix, _ = _refine(fixed_pyramid[level], moving_pyramid[level], level_start, level_model,
                                   objectives[level],
-                                  _FINEST_REFINEMENT if level == 0 else _FINE_REFINEMENT, cubic)
+                                  _FINEST_REFINEMENT[metric] if level == 0 else _FINE_REFINEMENT, cubic)
         matrix = _level_matrix(level_matrix, -level)
 
     fixed_quantized, moving_quantized = (quantize(fixed_levels[0], bins), quantize(moving_levels[0], bins)) if (
