@@ -56,3 +56,23 @@ def test_layers_import_only_what_they_may(package, forbidden):
     offending = {path: sorted(name for name in names if _within(name, forbidden))
                  for path, names in _modules_importing(package).items()}
     assert {path: names for path, names in offending.items() if names} == {}
+
+
+def test_the_register_command_loads_neither_numba_nor_scipy(tmp_path):
+    """Their imports alone (about 0.5 s each with numba's first call) cost more than SimpleITK's whole registration."""
+    import cv2
+    import numpy as np
+
+    rng = np.random.default_rng(0)
+    scene = (255 * cv2.GaussianBlur(rng.random((160, 200)), (0, 0), 3.0)).astype(np.uint8)
+    cv2.imwrite(str(tmp_path / "visible.png"), cv2.equalizeHist(scene))
+    cv2.imwrite(str(tmp_path / "infrared.png"), 255 - cv2.equalizeHist(scene))
+    code = ("import json, sys\nfrom services.cli.main import main\n"
+            f"status = main(['register', '--fixed', {str(tmp_path / 'visible.png')!r}, "
+            f"'--moving', {str(tmp_path / 'infrared.png')!r}, '--out', {str(tmp_path / 'reg.json')!r}])\n"
+            "print(json.dumps([status, sorted(sys.modules)]))")
+    status, loaded = json.loads(subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True,
+                                               check=True, timeout=120).stdout.splitlines()[-1])
+    assert status == 0 and (tmp_path / "reg.json").is_file()
+    assert "services.registration.register" in loaded
+    assert not [name for name in loaded if _within(name, ("numba", "scipy"))]

@@ -19,7 +19,6 @@ the coarse search uses.
 from __future__ import annotations
 
 import cv2
-import numba
 import numpy as np
 
 _EPSILON_PERCENTILE = 80.0  # eps = this percentile of |grad I|: the strongest fifth of the edges count fully
@@ -105,10 +104,11 @@ def tensor_similarity_map(
     return np.where(overlap >= min_weight, values, -np.inf)
 
 
-# Hand-written with numba: the refinement evaluates this about a thousand
-# times per level; one pass computes the sampled image's gradients, their
-# normalisation and the three sums without temporary images.
-@numba.njit(cache=True, nogil=True)
+def _weighted_sum(values: np.ndarray, weights: np.ndarray) -> float:
+    """sum values * weights in float64 (not np.vdot: BLAS threads spin on this shared machine)."""
+    return float(np.multiply(values, weights).sum(dtype=np.float64))
+
+
 def sampled_tensor_similarity(
     samples: np.ndarray, epsilon: float, moving_x: np.ndarray, moving_y: np.ndarray
 ) -> tuple[float, float]:
@@ -117,31 +117,19 @@ def sampled_tensor_similarity(
     Returns S and the number of pixels where the sampled field is defined
     (all four neighbours inside).
     """
-    height, width = samples.shape
-    epsilon2 = epsilon * epsilon
-    numerator = 0.0
-    fixed_power = 0.0
-    moving_power = 0.0
-    count = 0.0
-    for row in range(1, height - 1):
-        for column in range(1, width - 1):
-            left = samples[row, column - 1]
-            right = samples[row, column + 1]
-            up = samples[row - 1, column]
-            down = samples[row + 1, column]
-            if left < 0.0 or right < 0.0 or up < 0.0 or down < 0.0:
-                continue
-            gx = 0.5 * (right - left)
-            gy = 0.5 * (down - up)
-            norm2 = gx * gx + gy * gy + epsilon2
-            mx = moving_x[row, column]
-            my = moving_y[row, column]
-            dot = gx * mx + gy * my
-            numerator += dot * dot / norm2
-            fixed_power += (gx * gx + gy * gy) ** 2 / (norm2 * norm2)
-            moving_m = mx * mx + my * my
-            moving_power += moving_m * moving_m
-            count += 1.0
+    left, right = samples[1:-1, :-2], samples[1:-1, 2:]
+    up, down = samples[:-2, 1:-1], samples[2:, 1:-1]
+    valid = (np.minimum(np.minimum(left, right), np.minimum(up, down)) >= 0.0).astype(np.float32)
+    gx, gy = 0.5 * (right - left), 0.5 * (down - up)
+    magnitude2 = gx * gx + gy * gy
+    inverse_norm2 = valid / (magnitude2 + np.float32(epsilon) ** 2)
+    mx, my = moving_x[1:-1, 1:-1], moving_y[1:-1, 1:-1]
+    dot = gx * mx + gy * my
+    numerator = _weighted_sum(dot * dot, inverse_norm2)
+    fixed_power = _weighted_sum(magnitude2 * magnitude2, inverse_norm2 * inverse_norm2)
+    moving_m = mx * mx + my * my
+    moving_power = _weighted_sum(moving_m * moving_m, valid)
+    count = float(valid.sum())
     if fixed_power <= 0.0 or moving_power <= 0.0:
         return 0.0, count
     return numerator / np.sqrt(fixed_power * moving_power), count

@@ -15,7 +15,7 @@ import cv2
 import numpy as np
 
 from services.registration.gradient_fields import sampled_tensor_similarity
-from services.registration.mutual_information import quantized_information
+from services.registration.mutual_information import MovingWindow, quantized_information
 
 METRICS = ("mi", "nmi", "ngf")
 OUTSIDE = -1.0e4  # far below 0, so any bilinear sample touching the outside comes out negative (invalid)
@@ -55,18 +55,21 @@ def sample_fixed(fixed: np.ndarray, matrix: np.ndarray, width: int, height: int,
 
 
 def information(
-    fixed_samples: np.ndarray, moving: np.ndarray, bins: int, log_base: float
+    fixed_samples: np.ndarray, moving: np.ndarray | MovingWindow, bins: int, log_base: float
 ) -> tuple[float, float, float]:
-    """MI, NMI and the number of valid samples of two quantised, equally shaped images."""
+    """MI, NMI and the number of valid samples of two quantised, equally shaped images (or the moving window)."""
     return quantized_information(fixed_samples, moving, bins, log_base)
 
 
 def score(
-    fixed_samples: np.ndarray, moving: np.ndarray, bins: int, log_base: float, metric: str, min_overlap: float
+    fixed_samples: np.ndarray, moving: MovingWindow, bins: int, log_base: float, metric: str, min_overlap: float
 ) -> float:
-    """The value to maximise: MI or NMI, or -inf when fewer than ``min_overlap`` of the moving pixels overlap."""
+    """The value to maximise: MI or NMI, or -inf when fewer than ``min_overlap`` of the moving pixels overlap.
+
+    ``moving`` is the moving image's :func:`services.registration.mutual_information.moving_window`.
+    """
     mi, nmi, count = information(fixed_samples, moving, bins, log_base)
-    if count < min_overlap * moving.size:
+    if count < min_overlap * moving.column.size:
         return -np.inf
     return mi if metric == "mi" else nmi
 

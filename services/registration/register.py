@@ -7,7 +7,8 @@ the same model); (2) preprocess both images (the paper's inversion and
 histogram equalisation, or CLAHE, or gradient magnitude); (3) build Gaussian
 pyramids; (4) scan rotations, scales and shifts exhaustively at the coarsest
 level (:mod:`services.registration.search`); (5) refine the best candidates
-with Powell's derivative-free method, level by level down to full resolution.
+by damped Newton steps on finite-difference quadratic models
+(:mod:`services.registration.newton`), level by level down to full resolution.
 Affine and homography start as similarity at the coarsest level; a homography
 is refined as affine on the intermediate levels and gets its perspective terms
 only at full resolution, where they are best determined (this halved its
@@ -21,11 +22,11 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
-from scipy.optimize import minimize
 
 from services.registration.gradient_fields import gradient_epsilon, normalized_gradient_field
 from services.registration.models import MODELS, PARAMETER_COUNTS, update_matrix
-from services.registration.mutual_information import DEFAULT_BINS, DEFAULT_LOG_BASE, quantize
+from services.registration.newton import maximize
+from services.registration.mutual_information import DEFAULT_BINS, DEFAULT_LOG_BASE, moving_window, quantize
 from services.registration.objective import METRICS, field_score, information, sample_fixed, score
 from services.registration.preprocess import PREPROCESSING, preprocess
 from services.registration.search import coarse_search, gradient_field_search
@@ -35,9 +36,19 @@ _SEARCH_STEP = 2.0  # coarse-search grid step, in coarse moving pixels of corner
 _DEFAULT_SHIFT_RANGE = 0.12  # of the moving image's smaller side
 _SEARCH_BINS = 16  # fewer bins at the coarse level: a few thousand samples fill 16 x 16 cells, not 32 x 32
 _CANDIDATES = {"mi": 3, "nmi": 3, "ngf": 5}
-_FINE_STEP = 0.5  # first Powell step below the coarsest level, where the start is within about a pixel
-_POWELL_TOLERANCE = 0.02  # moving pixels at the level being refined
-_POWELL_FTOL = 1e-5  # relative change of the objective that ends a Powell iteration
+# Finite-difference stencils (first, smallest), step tolerance and relative-gain stop of the refinement, in
+# pixels of the level refined (services.registration.newton.maximize): the coarse levels only choose among
+# candidates and start the next level; the finer ones shrink the stencil, since the peak of MI is not quadratic.
+_COARSE_REFINEMENT = (2.0, 0.5, 0.1, 1e-5)  # coarsest level, where the search leaves the start within a grid step
+_CHOICE_REFINEMENT = (1.0, 0.25, 0.05, 1e-5)  # the level NGF chooses its candidate on
+_FINE_REFINEMENT = (0.5, 0.125, 0.02, 1e-5)  # the levels below
+# Full resolution, started within a fraction of a pixel. NGF's precision on real pairs is the consistency of
+# two registrations, i.e. where each stops on a flat, rough maximum: it keeps a 1 px stencil, which sees the
+# smooth shape of the peak, and converges on the step alone (0.005 px, no gain stop); chosen on the odd TNO
+# pairs among stencils of 0.25 to 2 px, validated on the even ones (docs/registration.md).
+_FINEST_REFINEMENT = {"mi": (0.25, 0.125, 0.02, 1e-5), "nmi": (0.25, 0.125, 0.02, 1e-5),
+                      "ngf": (1.0, 1.0, 0.005, 0.0)}
+_MAX_ITERATIONS = 40  # NGF's step convergence may take more than 20 models; MI and NMI stop well before 20
 _FIELD_SIGMA = 1.0  # Gaussian smoothing (pixels) before gradient fields are taken
 DEFAULT_PREPROCESSING = {"mi": "gradient", "nmi": "gradient", "ngf": "none"}  # NGF takes its own gradients
 
@@ -115,29 +126,30 @@ def _level_objective(
         fixed_epsilon = gradient_epsilon(fixed)
         moving_x, moving_y = normalized_gradient_field(moving, gradient_epsilon(moving))
         return lambda samples: field_score(samples, fixed_epsilon, moving_x, moving_y, min_overlap)
-    return lambda samples: score(samples, moving, bins, log_base, metric, min_overlap)
+    window = moving_window(moving, bins)
+    return lambda samples: score(samples, window, bins, log_base, metric, min_overlap)
 
 
 def _refine(
     fixed: np.ndarray, moving: np.ndarray, start: np.ndarray, model: str, objective: Callable[[np.ndarray], float],
-    step: float = 1.0, cubic: bool = False,
+    stencil: tuple[float, float, float, float], cubic: bool = False,
 ) -> tuple[np.ndarray, float]:
-    """Maximise the objective over ``start @ G(p)`` with Powell's method; return the matrix and its value.
+    """Maximise the objective over ``start @ G(p)`` (:func:`services.registration.newton.maximize`).
 
-    ``step`` is the first step along each parameter, in pixels of corner motion; ``cubic`` samples the
-    fixed image by bicubic instead of bilinear interpolation (:func:`services.registration.objective.sample_fixed`).
+    ``stencil`` is the first and smallest finite-difference step and the step tolerance, in pixels of corner
+    motion, and the relative-gain stop; ``cubic`` samples the fixed image by bicubic instead of bilinear interpolation
+    (:func:`services.registration.objective.sample_fixed`). Returns the matrix and its objective value.
     """
     height, width = moving.shape
 
-    def negative_score(parameters: np.ndarray) -> float:
-        matrix = start @ update_matrix(model, parameters, width, height)
-        value = objective(sample_fixed(fixed, matrix, width, height, cubic))
-        return -value if np.isfinite(value) else 1.0e6
+    def value(parameters: np.ndarray) -> float:
+        return objective(sample_fixed(fixed, start @ update_matrix(model, parameters, width, height), width, height,
+                                      cubic))
 
-    count = PARAMETER_COUNTS[model]
-    result = minimize(negative_score, np.zeros(count), method="Powell",
-                      options={"xtol": _POWELL_TOLERANCE, "ftol": _POWELL_FTOL, "direc": step * np.eye(count)})
-    return start @ update_matrix(model, result.x, width, height), -float(result.fun)
+    step, min_step, tolerance, relative_gain = stencil
+    parameters, best = maximize(value, PARAMETER_COUNTS[model], step, min_step, tolerance, relative_gain,
+                                _MAX_ITERATIONS)
+    return start @ update_matrix(model, parameters, width, height), best
 
 
 def _coarse_model(model: str) -> str:
@@ -286,19 +298,20 @@ def register(
 
     cubic = metric == "ngf"  # bilinear sampling blurs by how far off the grid it samples; NGF's gradients feel it
     refined = [_refine(coarse_fixed, coarse_moving, candidate.matrix, _coarse_model(model), objectives[levels],
-                       cubic=cubic) for candidate in candidates]
+                       _COARSE_REFINEMENT, cubic) for candidate in candidates]
     chosen_level = levels
     if metric == "ngf" and levels >= 2:  # choose among the candidates one level finer, where edges are sharper
         chosen_level = levels - 1
         refined = [_refine(fixed_pyramid[chosen_level], moving_pyramid[chosen_level],
                            _level_matrix(_level_matrix(candidate, -levels), chosen_level), _coarse_model(model),
-                           objectives[chosen_level], _FINE_STEP, cubic) for candidate, _ in refined]
+                           objectives[chosen_level], _CHOICE_REFINEMENT, cubic) for candidate, _ in refined]
     matrix = _level_matrix(max(refined, key=lambda item: item[1])[0], -chosen_level)
     for level in range(chosen_level - 1, -1, -1):
         level_start = _level_matrix(matrix, level)
         level_model = "affine" if model == "homography" and level > 0 else model
         level_matrix, _ = _refine(fixed_pyramid[level], moving_pyramid[level], level_start, level_model,
-                                  objectives[level], _FINE_STEP, cubic)
+                                  objectives[level],
+                                  _FINEST_REFINEMENT[metric] if level == 0 else _FINE_REFINEMENT, cubic)
         matrix = _level_matrix(level_matrix, -level)
 
     fixed_quantized, moving_quantized = (quantize(fixed_levels[0], bins), quantize(moving_levels[0], bins)) if (

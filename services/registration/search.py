@@ -4,9 +4,12 @@ A local optimiser started at the nominal alignment falls into the nearest
 MI maximum; a shift of 40 px is many capture ranges at full resolution. At the
 coarsest pyramid level the whole plausible range is cheap to scan: for each
 (rotation, scale) the fixed image is warped once onto a moving-grid canvas
-widened by the shift range, and every integer shift is then a slice of it,
-scored with a hard-binned joint histogram (MI, NMI) or, for normalised
-gradient fields, by correlation of structure tensors (all shifts at once).
+widened by the shift range, and every integer shift is then a slice of it.
+Every shift is scored at once by correlation of the normalised gradient
+fields' structure tensors (``cv2.matchTemplate``); for MI and NMI the best few
+shifts of each canvas are then scored by a hard-binned joint histogram
+(one ``np.bincount`` for all of them): a histogram for every shift would be
+sixty times as many histogram entries.
 """
 
 from __future__ import annotations
@@ -14,12 +17,10 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import cv2
-import numba
 import numpy as np
 
 from services.registration.gradient_fields import gradient_epsilon, normalized_gradient_field, tensor_similarity_map
 from services.registration.models import corner_error, similarity_about_centres
-from services.registration.mutual_information import joint_entropies
 from services.registration.objective import sample_fixed
 
 
@@ -31,31 +32,36 @@ class Candidate:
     value: float
 
 
-# Hand-written with numba: the inner loop over tens of thousands of shifts
-# would otherwise be dominated by Python call overhead. The scan only ranks
-# grid points, so it bins hard (one cell update per sample, a quarter of the
-# Parzen window's cost); the refinement then uses the smooth estimator.
-@numba.njit(cache=True, nogil=True)
-def _scan_shifts(
-    canvas: np.ndarray, moving: np.ndarray, margin: int, bins: int, log_base: float, use_nmi: bool, min_weight: float
+def _shift_windows(canvas: np.ndarray, shape: tuple[int, int], shifts: np.ndarray) -> np.ndarray:
+    """The ``shape``-sized windows of ``canvas`` at offsets (dy, dx), stacked: (len(shifts), height, width)."""
+    windows = np.lib.stride_tricks.sliding_window_view(canvas, shape)
+    return windows[shifts[:, 0], shifts[:, 1]]
+
+
+def _hard_binned_scores(
+    canvas: np.ndarray, moving: np.ndarray, shifts: np.ndarray, bins: int, log_base: float, use_nmi: bool,
+    min_weight: float,
 ) -> np.ndarray:
-    """Objective for every integer shift (dy, dx) in [-margin, margin]^2 of bin-index images; -inf below overlap."""
-    height, width = moving.shape
-    values = np.full((2 * margin + 1, 2 * margin + 1), -np.inf)
-    histogram = np.zeros((bins, bins))
-    for dy in range(2 * margin + 1):
-        for dx in range(2 * margin + 1):
-            histogram[:] = 0.0
-            for row in range(height):
-                for column in range(width):
-                    a = canvas[dy + row, dx + column]
-                    if a >= 0:
-                        histogram[a, moving[row, column]] += 1.0
-            weight, h_fixed, h_moving, h_joint = joint_entropies(histogram)
-            if weight >= min_weight and h_joint > 0.0:
-                values[dy, dx] = (h_fixed + h_moving) / h_joint if use_nmi else (
-                    (h_fixed + h_moving - h_joint) / np.log(log_base))
-    return values
+    """MI or NMI of bin-index images at each shift (dy, dx) of the canvas, one hard-binned histogram each.
+
+    The scan only ranks grid points, so it bins hard (one cell per sample); the refinement then uses the
+    smooth estimator. -inf below ``min_weight`` overlapping samples.
+    """
+    fixed = _shift_windows(canvas, moving.shape, shifts).reshape(len(shifts), -1).astype(np.int32)
+    cells = fixed * bins + moving.ravel() + (np.arange(len(shifts), dtype=np.int32) * bins * bins)[:, None]
+    cells = cells[fixed >= 0]
+    joint = np.bincount(cells, minlength=len(shifts) * bins * bins).reshape(len(shifts), bins, bins)
+    total = joint.sum(axis=(1, 2)).astype(np.float64)
+    p = joint / np.maximum(total, 1.0)[:, None, None]
+
+    def entropy(probabilities: np.ndarray, axes: tuple[int, ...]) -> np.ndarray:
+        return -np.sum(probabilities * np.log(np.where(probabilities > 0.0, probabilities, 1.0)), axis=axes)
+
+    h_fixed, h_moving, h_joint = entropy(p.sum(axis=2), (1,)), entropy(p.sum(axis=1), (1,)), entropy(p, (1, 2))
+    positive = h_joint > 0.0
+    safe_joint = np.where(positive, h_joint, 1.0)
+    values = (h_fixed + h_moving) / safe_joint if use_nmi else (h_fixed + h_moving - h_joint) / np.log(log_base)
+    return np.where((total >= min_weight) & positive, values, -np.inf)
 
 
 def _bin_indices(quantized: np.ndarray) -> np.ndarray:
@@ -75,22 +81,27 @@ def _distinct_best(candidates: list[Candidate], count: int, width: int, height: 
 
 
 _PEAKS_PER_CANVAS = 20  # best shifts kept per (rotation, scale) before choosing distinct candidates
+_PROPOSALS_PER_CANVAS = 6  # best shifts by gradient fields per (rotation, scale) that MI and NMI then score
 
 
-def _best_shifts(values: np.ndarray, base: np.ndarray, margin: int) -> list[Candidate]:
-    """The ``_PEAKS_PER_CANVAS`` best finite entries of one canvas's shift map as candidates, best first.
+def _best_shifts(values: np.ndarray, count: int = _PEAKS_PER_CANVAS) -> np.ndarray:
+    """The (row, column) indices of the ``count`` best finite entries of a shift map, best first.
 
-    Entry (row, column) of ``values`` is the shift d = (column - margin, row - margin) applied after ``base``.
     Keeping a few per canvas instead of every shift spares sorting and comparing tens of thousands of
     candidates of which only the few best distinct ones are kept.
     """
+    best = np.argsort(values, axis=None)[::-1][:count]
+    best = best[np.isfinite(values.ravel()[best])]
+    return np.stack(np.unravel_index(best, values.shape), axis=1)
+
+
+def _shift_candidates(base: np.ndarray, shifts: np.ndarray, values: np.ndarray, margin: int) -> list[Candidate]:
+    """Candidates ``base`` followed by the shift d = (column - margin, row - margin) of each (row, column)."""
     candidates = []
-    for index in np.argsort(values, axis=None)[::-1][:_PEAKS_PER_CANVAS]:
-        row, column = np.unravel_index(index, values.shape)
-        if not np.isfinite(values[row, column]):
-            break
-        shift = np.array([[1.0, 0.0, column - margin], [0.0, 1.0, row - margin], [0.0, 0.0, 1.0]])
-        candidates.append(Candidate(base @ shift, float(values[row, column])))
+    for (row, column), value in zip(shifts, values):
+        if np.isfinite(value):
+            shift = np.array([[1.0, 0.0, column - margin], [0.0, 1.0, row - margin], [0.0, 0.0, 1.0]])
+            candidates.append(Candidate(base @ shift, float(value)))
     return candidates
 
 
@@ -141,6 +152,10 @@ def coarse_search(
     The transform is H(u) = c_f + s R(theta) (u - c_m + d), with c_f and c_m
     the image centres and d the shift in moving pixels; the sampled fixed
     image for shift d is the d-offset window of the canvas warped with d = 0.
+    The shifts scored by MI or NMI are the ``_PROPOSALS_PER_CANVAS`` best of
+    each canvas by the structure-tensor similarity of the two images'
+    normalised gradient fields (:func:`gradient_field_search`'s score), which
+    is blind to contrast, like MI.
     """
     if max_shift < 0:
         raise ValueError(f"The search range must be non-negative; got max_shift={max_shift}.")
@@ -150,14 +165,18 @@ def coarse_search(
     margin = int(max_shift)
     canvas_to_moving = np.array([[1.0, 0.0, -margin], [0.0, 1.0, -margin], [0.0, 0.0, 1.0]])
     moving_bins = _bin_indices(moving)
+    fixed_epsilon = gradient_epsilon(fixed)
+    moving_x, moving_y = normalized_gradient_field(moving, gradient_epsilon(moving))
     candidates = []
     for angle in angles:
         for factor in scale_factors:
             base = similarity_about_centres(moving_centre, fixed_centre, scale * factor, angle, np.zeros(2))
             canvas = sample_fixed(fixed, base @ canvas_to_moving, width + 2 * margin, height + 2 * margin)
-            values = _scan_shifts(_bin_indices(canvas), moving_bins, margin, bins, log_base, metric == "nmi",
-                                  min_overlap * moving.size)
-            candidates += _best_shifts(values, base, margin)
+            proposals = _best_shifts(tensor_similarity_map(*_field_canvas(canvas, fixed_epsilon), moving_x, moving_y,
+                                                           min_overlap * moving.size), _PROPOSALS_PER_CANVAS)
+            values = _hard_binned_scores(_bin_indices(canvas), moving_bins, proposals, bins, log_base,
+                                         metric == "nmi", min_overlap * moving.size)
+            candidates += _shift_candidates(base, proposals, values, margin)
     return _distinct_best(candidates, count, width, height, spacing=1.5)
 
 
@@ -215,5 +234,6 @@ def gradient_field_search(
             canvas = sample_fixed(fixed, base @ canvas_to_moving, width + 2 * margin, height + 2 * margin)
             values = tensor_similarity_map(*_field_canvas(canvas, fixed_epsilon), moving_x, moving_y,
                                            min_overlap * moving.size)
-            candidates += _best_shifts(values, base, margin)
+            shifts = _best_shifts(values)
+            candidates += _shift_candidates(base, shifts, values[shifts[:, 0], shifts[:, 1]], margin)
     return _distinct_best(candidates, count, width, height, spacing=1.5)

@@ -4,8 +4,10 @@ import pytest
 from services.registration.mutual_information import (
     information_from_histogram,
     joint_histogram,
+    moving_window,
     mutual_information,
     quantize,
+    windowed_joint_histogram,
 )
 
 
@@ -22,6 +24,24 @@ def test_histogram_of_bin_centred_values_equals_the_hard_histogram():
     fixed[0, 0], moving[0, 0] = 7, 7  # both span 0..7, so quantising to 8 bins keeps the integers
     expected, _, _ = np.histogram2d(fixed.ravel(), moving.ravel(), bins=8, range=[[-0.5, 7.5], [-0.5, 7.5]])
     np.testing.assert_allclose(joint_histogram(fixed, moving, bins=8), expected)
+
+
+def test_fractional_values_are_spread_over_the_four_nearest_cells_with_bilinear_weights():
+    rng = np.random.default_rng(5)
+    fixed = (rng.random(300) * 7).astype(np.float32)
+    moving = (rng.random(300) * 7).astype(np.float32)
+    fixed[:20] = -1.0  # invalid samples are skipped
+    moving[[0, 30]] = 7.0  # the top value goes wholly to the top bin
+    expected = np.zeros((8, 8))
+    for a, b in zip(fixed, moving):
+        if a < 0:
+            continue
+        row, column = min(int(a), 6), min(int(b), 6)
+        up, right = a - row, b - column
+        for cell_row, row_weight in ((row, 1 - up), (row + 1, up)):
+            for cell_column, column_weight in ((column, 1 - right), (column + 1, right)):
+                expected[cell_row, cell_column] += row_weight * column_weight
+    np.testing.assert_allclose(windowed_joint_histogram(fixed, moving_window(moving, 8), 8), expected, atol=1e-5)
 
 
 def test_mi_matches_the_entropy_definition_on_discrete_images():

@@ -1,7 +1,7 @@
 import numpy as np
 import pytest
 
-from services.registration.mutual_information import quantize
+from services.registration.mutual_information import moving_window, quantize
 from services.registration.objective import information, sample_fixed, score
 
 
@@ -40,6 +40,8 @@ def test_score_is_minus_infinity_below_the_minimum_overlap():
     fixed_samples[:, :12] = -1.0  # 40 % overlap
     mi, nmi, weight = information(fixed_samples, moving, 8, 2.0)
     assert weight == pytest.approx(160.0)
-    assert score(fixed_samples, moving, 8, 2.0, "nmi", 0.3) == pytest.approx(nmi)
-    assert score(fixed_samples, moving, 8, 2.0, "mi", 0.3) == pytest.approx(mi)
-    assert score(fixed_samples, moving, 8, 2.0, "mi", 0.5) == -np.inf
+    window = moving_window(moving, 8)
+    assert information(fixed_samples, window, 8, 2.0) == pytest.approx((mi, nmi, weight))
+    assert score(fixed_samples, window, 8, 2.0, "nmi", 0.3) == pytest.approx(nmi)
+    assert score(fixed_samples, window, 8, 2.0, "mi", 0.3) == pytest.approx(mi)
+    assert score(fixed_samples, window, 8, 2.0, "mi", 0.5) == -np.inf

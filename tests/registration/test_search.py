@@ -50,3 +50,24 @@ def test_gradient_field_search_finds_the_move_of_a_contrast_inverted_image():
                                        8, count=3)
     assert len(candidates) == 3 and candidates[0].value >= candidates[1].value
     assert corner_error(truth, candidates[0].matrix, 80, 64) < 0.75
+
+
+def test_the_shifts_scored_by_mi_are_those_the_gradient_fields_rank_best_and_their_hard_binned_mi_is_exact():
+    from services.registration.search import _hard_binned_scores
+
+    rng = np.random.default_rng(4)
+    canvas = rng.integers(0, 4, size=(12, 14)).astype(np.int16)
+    canvas[0, :] = -1  # outside the fixed image
+    moving = rng.integers(0, 4, size=(8, 9)).astype(np.int16)
+    shifts = np.array([[0, 0], [2, 3], [4, 5]])
+    scores = _hard_binned_scores(canvas, moving, shifts, 4, 2.0, False, 10)
+    for (dy, dx), value in zip(shifts, scores):
+        window = canvas[dy:dy + 8, dx:dx + 9]
+        inside = window >= 0
+        joint = np.histogram2d(window[inside], moving[inside], bins=4, range=[[-0.5, 3.5], [-0.5, 3.5]])[0]
+        p = joint / joint.sum()
+        pa, pb = p.sum(axis=1), p.sum(axis=0)
+        expected = sum(-(q[q > 0] * np.log2(q[q > 0])).sum() for q in (pa, pb)) + (p[p > 0] * np.log2(p[p > 0])).sum()
+        assert value == pytest.approx(expected)
+    too_little = _hard_binned_scores(canvas, moving, shifts, 4, 2.0, False, 70)
+    assert too_little[0] == -np.inf and np.all(np.isfinite(too_little[1:]))  # 63 of 72 inside at (0, 0), else 72

@@ -1,0 +1,46 @@
+import numpy as np
+import pytest
+
+from services.registration.newton import maximize
+
+
+def test_a_concave_quadratic_is_maximised_by_newton_steps():
+    peak = np.array([0.7, -0.4, 0.3])
+    curvature = np.array([[2.0, 0.5, 0.0], [0.5, 1.0, 0.2], [0.0, 0.2, 3.0]])
+    calls = []
+
+    def function(p):
+        calls.append(p)
+        return 5.0 - 0.5 * (p - peak) @ curvature @ (p - peak)
+
+    parameters, value = maximize(function, 3, step=0.5, tolerance=1e-6, max_iterations=3)
+    np.testing.assert_allclose(parameters, peak, atol=1e-4)  # the damping's 1e-3 margin shortens each step a little
+    assert value == pytest.approx(5.0)
+    assert len(calls) <= 3 * (1 + 3 + 3 + 3 + 3)  # a 10-point model and up to 3 trials per iteration
+
+
+def test_a_peak_beyond_the_trust_radius_is_reached_in_several_steps():
+    peak = np.array([6.0, -3.0])
+
+    def function(p):  # not quadratic: a Gaussian, convex far from its peak
+        return float(np.exp(-0.02 * np.sum((p - peak) ** 2)))
+
+    parameters, value = maximize(function, 2, step=1.0, min_step=0.125, tolerance=1e-3, max_iterations=30)
+    np.testing.assert_allclose(parameters, peak, atol=0.02)
+    assert value > function(np.zeros(2))
+
+
+def test_invalid_points_are_avoided_and_the_start_is_never_made_worse():
+    def function(p):  # the peak lies beyond a wall of invalid points
+        return -np.inf if p[0] > 0.3 else float(-np.sum((p - np.array([2.0, 0.0])) ** 2))
+
+    parameters, value = maximize(function, 2, step=0.5, min_step=0.125, max_iterations=20)
+    assert parameters[0] <= 0.3 and value >= function(np.zeros(2))
+    assert parameters[0] > 0.1  # it went as far towards the peak as the wall allows, within a stencil
+
+
+def test_bad_settings_are_refused_with_a_sentence():
+    with pytest.raises(ValueError, match="min_step <= step"):
+        maximize(lambda p: 0.0, 2, step=0.5, min_step=1.0)
+    with pytest.raises(ValueError, match="at least one parameter"):
+        maximize(lambda p: 0.0, 0)
