@@ -94,7 +94,8 @@ class Settings(BaseSettings):
 
     max_image_bytes: int = Field(64 << 20, gt=0, description="Largest uploaded image (413 beyond).")
     max_upload_bytes: int = Field(
-        512 << 20, gt=0, description="Largest multipart upload, all its files together (413 payload-too-large beyond).")
+        512 << 20, gt=0, description="Largest multipart upload, all its files together (413 payload-too-large "
+                                     "beyond).")
     max_body_bytes: int = Field(
         1 << 20, gt=0, description="Largest request body that is not a multipart upload, e.g. JSON (413 "
                                    "payload-too-large beyond).")
