@@ -18,7 +18,9 @@ class BodySizeLimit:
     every other body (JSON). It is read per request, so the settings in force apply.
 
     Written here rather than taking Starlette's ``RequestBodyLimitMiddleware``: that one answers in plain text,
-    one limit per application fixed when it is built, and FastAPI turns a body cut short into a 400.
+    with one limit per application fixed when it is built. A body over the limit is cut by telling the
+    application the client left (an exception would be turned into a 400 by FastAPI's body parsing), and
+    whatever it answers then is replaced by the 413.
     """
 
     def __init__(self, app: ASGIApp, limits: Callable[[], tuple[int, int]]) -> None:
@@ -45,7 +47,7 @@ class BodySizeLimit:
             message = await receive()
             if message["type"] == "http.request":
                 received += len(message.get("body", b""))
-                if received > limit:  # the application sees the client gone, and its answer is replaced below
+                if received > limit:
                     exceeded = True
                     return {"type": "http.disconnect"}
             return message
