@@ -4,7 +4,6 @@ from __future__ import annotations
 
 from collections.abc import Callable
 
-from starlette.datastructures import Headers
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from services.problems import problem_response
@@ -12,7 +11,7 @@ from services.problems import problem_response
 
 class BodySizeLimit:
     """Pure ASGI middleware answering 413 problem+json ``payload-too-large`` for a body over its limit: at once
-    when ``Content-Length`` says so, else as soon as the bytes received pass it (chunked uploads).
+    when ``Content-Length`` says so, else (``Transfer-Encoding: chunked``) as soon as the bytes received pass it.
 
     ``limits()`` gives ``(multipart, other)``: the bound of a ``multipart/form-data`` upload in all, and of
     every other body (JSON). It is read per request, so the settings in force apply.
@@ -30,13 +29,22 @@ class BodySizeLimit:
         if scope["type"] != "http":
             await self.app(scope, receive, send)
             return
-        headers = Headers(scope=scope)
+        content_type, declared, chunked = b"", b"", False
+        for name, value in scope["headers"]:  # ASGI header names are lower-case
+            if name == b"content-type":
+                content_type = value
+            elif name == b"content-length":
+                declared = value
+            elif name == b"transfer-encoding":
+                chunked = True
         multipart_limit, body_limit = self.limits()
-        multipart = headers.get("content-type", "").lower().startswith("multipart/form-data")
+        multipart = content_type.lower().startswith(b"multipart/form-data")
         limit, what = (multipart_limit, "A multipart upload") if multipart else (body_limit, "A request body")
-        declared = headers.get("content-length", "")
         if declared.isdigit() and int(declared) > limit:
             await self._refuse(scope, receive, send, what, limit)
+            return
+        if not chunked:  # no body, or one the server delivers up to its Content-Length and no further
+            await self.app(scope, receive, send)
             return
         received, exceeded, response_started = 0, False, False
 

@@ -186,6 +186,91 @@ def test_mosquitto_stopped_jobs_go_on_and_states_arrive_when_it_returns(private_
     assert retained[0][0]["status"] == "succeeded" and retained[0][0]["job_id"] == job_id  # retained: the last one
 
 
+@pytest.mark.reliability  # a few minutes: the embedded service's start and a whole scan (make test-reliability)
+def test_a_real_scan_with_mosquitto_down_publishes_its_states_when_it_returns(private_mosquitto, tmp_path):
+    """`thermofield serve` scans the simulated part while its broker is down; an MES subscribed before gets the
+    scan job's every state, in order, when the broker returns, and the station's retained state is the last."""
+    import os
+    import signal
+    import subprocess
+    import sys
+
+    import httpx
+
+    from tests.reliability.conftest import free_port
+
+    site = f"fault-{uuid.uuid4().hex[:8]}"
+    env = os.environ | {"THERMOFIELD_DATA_DIR": str(tmp_path / "data"), "THERMOFIELD_SITE": site,
+                        "THERMOFIELD_MQTT_PORT": str(private_mosquitto.port)}
+    command = [sys.executable, "-m", "services.cli.main"]
+    port = free_port()
+    with open(tmp_path / "serve.log", "wb") as log:
+        serve = subprocess.Popen([*command, "serve", "--port", str(port), "--gateway-port", str(free_port()),
+                                  "--rerun-port", str(free_port())], env=env, stdout=log, stderr=subprocess.STDOUT,
+                                 stdin=subprocess.DEVNULL, start_new_session=True)
+    prefix = f"{site}/station1"
+    mes = _Subscriber(private_mosquitto.port, prefix, client_id=f"mes-{uuid.uuid4().hex[:8]}", persistent=True)
+    try:
+        assert _wait_for(lambda: serve.poll() is not None or _ready(f"http://127.0.0.1:{port}/readyz"), 300), \
+            (tmp_path / "serve.log").read_text()[-3000:]
+        key = subprocess.run([*command, "apikey", "create", "--scopes", "operate"], env=env, capture_output=True,
+                             text=True, timeout=120, check=True).stdout.strip()
+        with httpx.Client(base_url=f"http://127.0.0.1:{port}", headers={"Authorization": f"Bearer {key}"},
+                          timeout=30) as client:
+            before_the_stop = len(mes.received)
+            private_mosquitto.stop()
+            try:
+                accepted = client.post("/v1/scans", json={"part_id": "billet-mqtt"})
+                assert accepted.status_code == 202, accepted.text
+                job_id, scan_id = accepted.json()["job_id"], accepted.json()["scan_id"]
+                assert _wait_for(lambda: client.get(f"/v1/jobs/{job_id}").json()["status"] in ("succeeded", "failed"),
+                                 300)
+                assert client.get(f"/v1/jobs/{job_id}").json()["status"] == "succeeded"  # the scan went on
+                assert len(mes.received) == before_the_stop  # nothing arrived while the broker was down
+            finally:
+                private_mosquitto.start()
+        assert _wait_for(lambda: any(state["status"] == "succeeded" for state in mes.states(job_topic(prefix, job_id))),
+                         60), mes.received
+        time.sleep(1.0)  # any repeat would have come by now
+        late = _Subscriber(private_mosquitto.port, prefix)
+        assert _wait_for(lambda: late.states(station_topic(prefix)))
+        retained = [(state, retain) for topic, state, retain in late.received if topic == station_topic(prefix)]
+        late.close()
+    finally:
+        mes.close()
+        if serve.poll() is None:
+            os.killpg(serve.pid, signal.SIGTERM)
+            try:
+                serve.wait(30)
+            except subprocess.TimeoutExpired:
+                os.killpg(serve.pid, signal.SIGKILL)
+                serve.wait()
+    states = [state for state in mes.states(job_topic(prefix, job_id))]
+    per_job = _once_each(states)
+    assert per_job[0] == ("queued", "queued") and per_job[-1] == ("succeeded", "done"), per_job
+    statuses = [status for status, _ in per_job]
+    assert statuses == sorted(statuses, key=["queued", "running", "succeeded"].index), per_job  # never back
+    stages = [stage for _, stage in per_job]
+    assert [stage for stage in ("capture", "reconstruct", "fuse", "store") if stage in stages] == \
+        ["capture", "reconstruct", "fuse", "store"], per_job
+    assert [stages.index(stage) for stage in ("capture", "reconstruct", "fuse", "store")] == \
+        sorted(stages.index(stage) for stage in ("capture", "reconstruct", "fuse", "store")), per_job  # in order
+    fractions = [state["fraction"] for state in states if state["status"] == "running"]
+    assert fractions == sorted(fractions), fractions
+    assert [stage for _, stage in _once_each(mes.states(scan_topic(prefix, scan_id)))] == stages
+    assert len(retained) == 1 and retained[0][1], late.received
+    assert retained[0][0]["status"] == "succeeded" and retained[0][0]["scan_id"] == scan_id
+
+
+def _ready(url: str) -> bool:
+    import httpx
+
+    try:
+        return httpx.get(url, timeout=2.0).status_code == 200
+    except httpx.HTTPError:
+        return False
+
+
 def test_disk_full_while_storing_uploads(small_disk, tmp_path):
     disk = small_disk(2 << 20)
     runtime = _runtime(f"sqlite:///{tmp_path / 'service.db'}", tmp_path, artifact_dir=disk,
