@@ -37,13 +37,16 @@ class BodySizeLimit:
                 declared = value
             elif name == b"transfer-encoding":
                 chunked = True
+        if not declared and not chunked:  # no body (most requests: the polls)
+            await self.app(scope, receive, send)
+            return
         multipart_limit, body_limit = self.limits()
         multipart = content_type.lower().startswith(b"multipart/form-data")
         limit, what = (multipart_limit, "A multipart upload") if multipart else (body_limit, "A request body")
         if declared.isdigit() and int(declared) > limit:
             await self._refuse(scope, receive, send, what, limit)
             return
-        if not chunked:  # no body, or one the server delivers up to its Content-Length and no further
+        if not chunked:  # a body the server delivers up to its Content-Length and no further
             await self.app(scope, receive, send)
             return
         received, exceeded, response_started = 0, False, False
