@@ -5,10 +5,15 @@ artifact store's disk full under uploads."""
 from __future__ import annotations
 
 import json
+import os
+import signal
+import subprocess
+import sys
 import threading
 import time
 import uuid
 
+import httpx
 import paho.mqtt.client as mqtt
 import pytest
 from sqlalchemy import text
@@ -24,6 +29,7 @@ from services.simulation.presets import forging_rig
 from services.storage.artifacts import ArtifactStore
 from services.jobs.queue import JobQueue, job_broker
 from services.runtime import Runtime
+from tests.reliability.conftest import free_port
 
 PROBLEM = "application/problem+json"
 POSTGRES_URL = "postgresql+psycopg://postgres@127.0.0.1:5432/test"
@@ -190,15 +196,6 @@ def test_mosquitto_stopped_jobs_go_on_and_states_arrive_when_it_returns(private_
 def test_a_real_scan_with_mosquitto_down_publishes_its_states_when_it_returns(private_mosquitto, tmp_path):
     """`thermofield serve` scans the simulated part while its broker is down; an MES subscribed before gets the
     scan job's every state, in order, when the broker returns, and the station's retained state is the last."""
-    import os
-    import signal
-    import subprocess
-    import sys
-
-    import httpx
-
-    from tests.reliability.conftest import free_port
-
     site = f"fault-{uuid.uuid4().hex[:8]}"
     env = os.environ | {"THERMOFIELD_DATA_DIR": str(tmp_path / "data"), "THERMOFIELD_SITE": site,
                         "THERMOFIELD_MQTT_PORT": str(private_mosquitto.port)}
@@ -263,8 +260,6 @@ def test_a_real_scan_with_mosquitto_down_publishes_its_states_when_it_returns(pr
 
 
 def _ready(url: str) -> bool:
-    import httpx
-
     try:
         return httpx.get(url, timeout=2.0).status_code == 200
     except httpx.HTTPError:
