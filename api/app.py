@@ -8,6 +8,7 @@ from contextlib import asynccontextmanager
 from fastapi import FastAPI
 from fastapi.routing import APIRoute
 
+from api.bodylimit import BodySizeLimit
 from api.deps import KeyCache
 from api.metrics import ApiMetrics, MetricsMiddleware
 from api.problems import install_problem_handlers, problem_responses
@@ -49,10 +50,12 @@ def create_app(runtime: Runtime, job_queue: JobQueue) -> FastAPI:
     app.state.rate_limiter = RateLimiter(runtime.settings.rate_limit_per_s, runtime.settings.rate_limit_burst)
     app.state.metrics = ApiMetrics(runtime, outbox.pending)
     install_problem_handlers(app)
+    app.add_middleware(BodySizeLimit, limits=lambda: (runtime.settings.max_upload_bytes,
+                                                      runtime.settings.max_body_bytes))
     app.add_middleware(MetricsMiddleware, metrics=app.state.metrics)
     # each router straight under /v1 (one level of FastAPI's route matching less than a /v1 router of routers), the
     # jobs first: the polls match at once
     for module in (jobs, scans, calibrations, parts, devices, apikeys):
-        app.include_router(module.router, prefix="/v1", responses=problem_responses(401, 403, 422, 429, 503))
+        app.include_router(module.router, prefix="/v1", responses=problem_responses(401, 403, 413, 422, 429, 503))
     app.include_router(health.router)
     return app

@@ -36,7 +36,7 @@ _PROBLEM_DESCRIPTIONS = {
     403: "The API key lacks the scope.",
     404: "No such resource, or not produced yet.",
     409: "The request conflicts with the station's state.",
-    413: "An upload is too large.",
+    413: "The request body or an uploaded file is too large.",
     422: "The request or an uploaded file is invalid.",
     429: "The API key is over its rate limit; see Retry-After.",
     502: "The device gateway is unreachable.",

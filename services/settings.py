@@ -93,6 +93,12 @@ class Settings(BaseSettings):
     rate_limit_burst: int = Field(100, ge=1, description="Requests an API key may make at once above its rate.")
 
     max_image_bytes: int = Field(64 << 20, gt=0, description="Largest uploaded image (413 beyond).")
+    max_upload_bytes: int = Field(
+        512 << 20, gt=0, description="Largest multipart upload, all its files together (413 payload-too-large "
+                                     "beyond).")
+    max_body_bytes: int = Field(
+        1 << 20, gt=0, description="Largest request body that is not a multipart upload, e.g. JSON (413 "
+                                   "payload-too-large beyond).")
     min_free_bytes: int = Field(
         1 << 30, ge=0, description="Free space the artifact store needs for /readyz to say ready (a scan takes ~100 MB)."
     )

@@ -1,11 +1,12 @@
 """Limits the API keeps: idempotency keys expire after THERMOFIELD_IDEMPOTENCY_TTL_S; uploads are checked
 (size, decodable images, device sizes) before anything is stored."""
 
+import json
 import time
 
 import pytest
 
-from services.db.models import CalibrationSet, IdempotencyRecord, Job
+from services.db.models import ApiKey, CalibrationSet, IdempotencyRecord, Job
 from services.formats.rig import rig_to_json
 from services.simulation.presets import forging_rig
 
@@ -81,3 +82,59 @@ def test_the_job_queue_has_a_bound_beyond_which_new_jobs_get_503(client, auth, r
     operation = client.get("/openapi.json").json()["paths"]["/v1/scans"]["post"]
     assert "application/problem+json" in operation["responses"]["503"]["content"]
     assert "queue is full" in operation["responses"]["503"]["description"]
+
+
+def _chunks(body: bytes, size: int = 64 << 10):
+    """A body sent in chunks with no Content-Length (``Transfer-Encoding: chunked``)."""
+    for start in range(0, len(body), size):
+        yield body[start:start + size]
+
+
+def _assert_payload_too_large(response, limit: int) -> None:
+    assert response.status_code == 413, response.text
+    assert response.headers["content-type"] == PROBLEM
+    assert response.json()["type"].endswith("/payload-too-large") and f"{limit} bytes" in response.json()["detail"]
+
+
+def test_json_bodies_over_the_limit_are_refused_before_they_are_read_whole(client, auth, runtime,
+                                                                           active_calibration):
+    runtime.settings = runtime.settings.model_copy(update={"max_body_bytes": 4096})
+    padded = json.dumps({"part_id": "42", "padding": " " * 8192}).encode()
+    json_type = {"Content-Type": "application/json"}
+    for path, headers in (("/v1/scans", auth["operate"]), ("/v1/api-keys", auth["admin"]),
+                          (f"/v1/calibration-sets/{active_calibration.id}/stereo-captures", auth["admin"])):
+        declared = client.post(path, headers={**headers, **json_type}, content=padded)
+        _assert_payload_too_large(declared, 4096)
+        streamed = client.post(path, headers={**headers, **json_type}, content=_chunks(padded, 1024))
+        assert "content-length" not in streamed.request.headers and streamed.request.headers["transfer-encoding"] == \
+            "chunked"
+        _assert_payload_too_large(streamed, 4096)
+    with runtime.sessions() as session:
+        assert session.query(Job).count() == 0 and session.query(ApiKey).count() == 3  # the fixture's keys alone
+    small = client.post("/v1/scans", headers={**auth["operate"], **json_type},
+                        content=_chunks(json.dumps({"part_id": "42"}).encode(), 4))
+    assert small.status_code == 202, small.text  # chunked bodies within the limit go through
+    operation = client.get("/openapi.json").json()["paths"]["/v1/scans"]["post"]
+    assert PROBLEM in operation["responses"]["413"]["content"]
+
+
+def test_multipart_uploads_over_the_limit_are_refused_declared_or_streamed(client, auth, runtime):
+    runtime.settings = runtime.settings.model_copy(update={"max_upload_bytes": 64 << 10})
+    stored = sum(1 for _ in runtime.store.blobs())
+    rig = rig_to_json(forging_rig()).encode()
+    request = client.build_request("POST", "/v1/calibration-sets", headers=auth["admin"], data={"name": "big"},
+                                   files={"rig": ("rig.json", rig + b" " * (128 << 10))})
+    body, content_type = request.read(), request.headers["content-type"]
+    declared = client.post("/v1/calibration-sets", headers={**auth["admin"], "Content-Type": content_type},
+                           content=body)
+    _assert_payload_too_large(declared, 64 << 10)
+    streamed = client.post("/v1/calibration-sets", headers={**auth["admin"], "Content-Type": content_type},
+                           content=_chunks(body))
+    assert "content-length" not in streamed.request.headers
+    _assert_payload_too_large(streamed, 64 << 10)
+    assert sum(1 for _ in runtime.store.blobs()) == stored and not list((runtime.store.root / "incoming").glob("*"))
+    with runtime.sessions() as session:
+        assert session.query(CalibrationSet).count() == 0
+    accepted = client.post("/v1/calibration-sets", headers=auth["admin"], data={"name": "small"},
+                           files={"rig": ("rig.json", rig)})
+    assert len(rig) < 64 << 10 and accepted.status_code == 201, accepted.text

@@ -1,9 +1,12 @@
-"""Migrations on SQLite and PostgreSQL: from empty to head, down to empty and up again; an upgrade from the
-first revision with rows in every table keeps them."""
+"""Migrations on SQLite and PostgreSQL: from empty to head, down to empty and up again, the schema then equal to
+the models' (alembic's compare_metadata: tables, columns, types, nullability, defaults, indexes, keys); an upgrade
+from the first revision with rows in every table keeps them."""
 
 import uuid
 
 import pytest
+from alembic.autogenerate import compare_metadata
+from alembic.migration import MigrationContext
 from alembic.script import ScriptDirectory
 from sqlalchemy import inspect, text
 
@@ -38,18 +41,38 @@ def _tables(engine) -> set[str]:
     return set(inspector.get_table_names()) - {"alembic_version"}
 
 
+def _differences_from_the_models(engine) -> list:
+    """What ``alembic revision --autogenerate`` would write: every difference between the database's schema and
+    the models' metadata (columns with their types and server defaults, indexes, unique constraints, foreign keys)."""
+    with engine.connect() as connection:
+        context = MigrationContext.configure(connection, opts={"compare_type": True, "compare_server_default": True})
+        return compare_metadata(context, Base.metadata)
+
+
 def test_upgrade_from_empty_downgrade_and_upgrade_again(empty_engine):
     model_tables = set(Base.metadata.tables)
     revisions = [script.revision for script in ScriptDirectory(str(MIGRATIONS_DIR)).walk_revisions()]
     assert len(revisions) >= 3
     _alembic(empty_engine, "upgrade", "head")
     assert _tables(empty_engine) == model_tables
+    assert _differences_from_the_models(empty_engine) == []
     for revision in revisions[1:]:  # one step down at a time, each one exercised
         _alembic(empty_engine, "downgrade", revision)
     _alembic(empty_engine, "downgrade", "base")
     assert _tables(empty_engine) == set()
     _alembic(empty_engine, "upgrade", "head")
     assert _tables(empty_engine) == model_tables
+    assert _differences_from_the_models(empty_engine) == []  # the downgrades left nothing behind to collide with
+
+
+def test_the_schema_comparison_sees_a_missing_index(empty_engine):
+    """The comparison above can fail: an index dropped from the database is reported."""
+    _alembic(empty_engine, "upgrade", "head")
+    index = next(index for table in Base.metadata.sorted_tables for index in table.indexes)
+    with empty_engine.begin() as connection:
+        connection.execute(text(f"DROP INDEX {index.name}"))
+    kinds = {difference[0] for difference in _differences_from_the_models(empty_engine)}
+    assert "add_index" in kinds, kinds
 
 
 def test_an_upgrade_with_data_in_every_table_keeps_it(empty_engine):

@@ -1,21 +1,27 @@
-"""Retention on the real databases and a real store: which scans keep what, idempotency expiry, the sweep."""
+"""Retention on the real databases and a real store: which scans keep what, idempotency expiry, the sweep; the
+periodic task (MaintenanceThread with the settings' policy and interval) and `thermofield maintenance` as a process."""
 
 import os
+import subprocess
+import sys
 import time
 from datetime import UTC, datetime, timedelta
 
+from sqlalchemy import text
+
 from services.db.engine import make_sessions
 from services.db.models import ApiKey, CalibrationSet, IdempotencyRecord, Job, PartType, Scan
+from services.settings import Settings
 from services.storage.artifacts import ArtifactStore
-from services.storage.retention import RetentionPolicy, run_maintenance
+from services.storage.retention import MaintenanceThread, RetentionPolicy, run_maintenance
 
 NOW = datetime(2026, 6, 1, 12, 0, tzinfo=UTC)
 FIELDS = ("cloud.ply", "field.ply", "field.rrd")
 RAW = ("frames.npy", "thermal.npy", "sequence.json")
 
 
-def _scan(session, store, calibration, station, days_old, name):
-    created = NOW - timedelta(days=days_old)
+def _scan(session, store, calibration, station, days_old, name, now=NOW):
+    created = now - timedelta(days=days_old)
     artifacts = {artifact: store.put_bytes(f"{name} {artifact}".encode() * 100) for artifact in FIELDS + RAW}
     job = Job(kind="scan", status="succeeded", params={"scan_id": name}, created_at=created,
               result={"scan_id": name, "artifacts": dict(artifacts)})
@@ -81,3 +87,72 @@ def test_retention_keeps_the_newest_scans_or_days_and_raw_frames_shorter(engine,
     after = sum(path.stat().st_size for _, path in store.blobs())
     assert report.bytes_freed == before - after > 0
     assert run_maintenance(sessions, store, policy, now=NOW).blobs_deleted == 0  # idempotent
+
+
+def _two_scans_written_long_ago(sessions, store):
+    """A new and a 10-day-old scan of one station, every blob written two hours ago (past the sweep's grace)."""
+    now = datetime.now(UTC)
+    with sessions.begin() as session:
+        calibration = CalibrationSet(name="rig", station="s1", source="upload", rig_sha256=store.put_bytes(b"rig"))
+        session.add(calibration)
+        session.flush()
+        blobs = {name: _scan(session, store, calibration, "s1", days, name, now) for name, days in
+                 (("new", 0.01), ("old", 10.0))}
+    for _, path in store.blobs():
+        os.utime(path, (time.time() - 7200, time.time() - 7200))
+    return blobs
+
+
+def _kept(sessions) -> dict[str, set[str]]:
+    with sessions() as session:
+        return {scan.id: set(scan.artifacts) for scan in session.query(Scan)}
+
+
+SWEEPING = {"retention_keep_scans": 1, "retention_keep_days": 3.0, "retention_raw_frames_days": 1.0}
+
+
+def test_the_maintenance_thread_sweeps_every_interval_of_the_settings(engine, tmp_path):
+    sessions, store = make_sessions(engine), ArtifactStore(tmp_path / "artifacts")
+    blobs = _two_scans_written_long_ago(sessions, store)
+    never = Settings(data_dir=tmp_path, maintenance_interval_s=0, **SWEEPING)
+    with MaintenanceThread(sessions, store, never.retention_policy, never.maintenance_interval_s):
+        time.sleep(0.5)
+    assert _kept(sessions)["old"] == set(FIELDS + RAW)  # interval 0: never runs
+
+    settings = Settings(data_dir=tmp_path, maintenance_interval_s=0.3, **SWEEPING)
+    assert settings.retention_policy.keep_scans == 1
+    started = time.monotonic()
+    with MaintenanceThread(sessions, store, settings.retention_policy, settings.maintenance_interval_s):
+        while _kept(sessions)["old"] and time.monotonic() - started < 30:
+            time.sleep(0.05)
+        swept_after = time.monotonic() - started
+        while store.exists(blobs["old"]["frames.npy"]) and time.monotonic() - started < 30:
+            time.sleep(0.05)
+        # new blobs past the grace period, written while the thread runs, are swept by a later run
+        late = store.put_bytes(b"an orphan written after the first run")
+        os.utime(store.path(late), (time.time() - 7200, time.time() - 7200))
+        while store.exists(late) and time.monotonic() - started < 30:
+            time.sleep(0.05)
+    assert _kept(sessions) == {"new": set(FIELDS + RAW), "old": set()}
+    assert 0.3 <= swept_after < 30  # the first run comes after one interval, not at once
+    assert not any(store.exists(blobs["old"][name]) for name in FIELDS + RAW)
+    assert not store.exists(late)  # a second run swept it: the thread keeps running
+    assert all(store.exists(blobs["new"][name]) for name in FIELDS + RAW)
+
+
+def test_thermofield_maintenance_applies_the_environments_policy_once(engine, tmp_path):
+    sessions, store = make_sessions(engine), ArtifactStore(tmp_path / "artifacts")
+    blobs = _two_scans_written_long_ago(sessions, store)
+    environment = {**os.environ, "THERMOFIELD_DATABASE_URL": engine.url.render_as_string(hide_password=False),
+                   "THERMOFIELD_ARTIFACT_DIR": str(store.root), "THERMOFIELD_RETENTION_KEEP_SCANS": "1",
+                   "THERMOFIELD_RETENTION_KEEP_DAYS": "3", "THERMOFIELD_RETENTION_RAW_FRAMES_DAYS": "1"}
+    if engine.dialect.name == "postgresql":
+        with engine.connect() as connection:
+            environment["THERMOFIELD_DATABASE_SCHEMA"] = connection.execute(text("SHOW search_path")).scalar()
+    done = subprocess.run([sys.executable, "-m", "services.cli.main", "maintenance"], env=environment,
+                          capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.startswith("thermofield: 1 scans expired") and "6 blobs" in done.stdout, done.stdout
+    assert _kept(sessions) == {"new": set(FIELDS + RAW), "old": set()}
+    assert not any(store.exists(blobs["old"][name]) for name in FIELDS + RAW)
+    assert all(store.exists(blobs["new"][name]) for name in FIELDS + RAW)

@@ -87,13 +87,16 @@ def private_postgres():
 
 
 class PrivateMosquitto:
-    """A ``mosquitto`` of the test's own (no persistence: a restart loses what it retained)."""
+    """A ``mosquitto`` of the test's own. It persists its sessions, subscriptions, queued messages and retained
+    messages to its directory when stopped (SIGTERM, as its service manager does), so a subscriber's persistent
+    session outlives a restart, as on a production broker; :meth:`kill` crashes it instead (nothing saved)."""
 
     def __init__(self, directory: Path) -> None:
         self.port = free_port()
         self.config = directory / "mosquitto.conf"
         directory.mkdir(parents=True, exist_ok=True)
-        self.config.write_text(f"listener {self.port} 127.0.0.1\nallow_anonymous true\npersistence false\n")
+        self.config.write_text(f"listener {self.port} 127.0.0.1\nallow_anonymous true\npersistence true\n"
+                               f"persistence_location {directory}/\nautosave_interval 0\nuser root\n")
         self.process: subprocess.Popen | None = None
 
     def start(self) -> None:
@@ -102,6 +105,12 @@ class PrivateMosquitto:
         wait_for_port(self.port)
 
     def stop(self) -> None:
+        if self.process is not None and self.process.poll() is None:
+            self.process.terminate()
+            self.process.wait(10)
+        wait_for_port(self.port, up=False)
+
+    def kill(self) -> None:
         if self.process is not None and self.process.poll() is None:
             self.process.kill()
             self.process.wait(10)
@@ -115,7 +124,7 @@ def private_mosquitto(tmp_path):
     try:
         yield broker
     finally:
-        broker.stop()
+        broker.kill()
 
 
 RABBITMQ_BIN = Path("/usr/lib/rabbitmq/bin")

@@ -5,9 +5,15 @@ artifact store's disk full under uploads."""
 from __future__ import annotations
 
 import json
+import os
+import signal
+import subprocess
+import sys
+import threading
 import time
 import uuid
 
+import httpx
 import paho.mqtt.client as mqtt
 import pytest
 from sqlalchemy import text
@@ -15,7 +21,7 @@ from sqlalchemy import text
 from services.db.apikeys import create_api_key
 from services.db.engine import make_engine, make_sessions, migrate
 from services.db.models import IdempotencyRecord, Job
-from services.events.mqtt import EventPublisher, station_topic
+from services.events.mqtt import EventPublisher, job_topic, scan_topic, station_topic
 from services.formats.rig import rig_to_json
 from services.jobs.tracker import JobTracker
 from services.settings import Settings
@@ -23,6 +29,7 @@ from services.simulation.presets import forging_rig
 from services.storage.artifacts import ArtifactStore
 from services.jobs.queue import JobQueue, job_broker
 from services.runtime import Runtime
+from tests.reliability.conftest import free_port
 
 PROBLEM = "application/problem+json"
 POSTGRES_URL = "postgresql+psycopg://postgres@127.0.0.1:5432/test"
@@ -85,14 +92,51 @@ def test_postgres_stopped_and_restarted(private_postgres, tmp_path):
         assert session.query(Job).count() == 1 and session.query(IdempotencyRecord).count() == 1
 
 
-def _listen(port: int, prefix: str, received: list) -> mqtt.Client:
-    client = mqtt.Client(mqtt.CallbackAPIVersion.VERSION2)
-    client.on_message = lambda c, u, message: received.append(
-        (message.topic, json.loads(message.payload), bool(message.retain)))
-    client.connect("127.0.0.1", port)
-    client.subscribe(f"{prefix}/#", qos=1)
-    client.loop_start()
-    return client
+class _Subscriber:
+    """An MES-like subscriber: QoS 1 on the station's tree, reconnecting by itself, optionally with a persistent
+    session (fixed client id, clean session off: the broker queues its messages while it is away and keeps its
+    subscription across a restart); every message recorded as (topic, state, retained) in arrival order."""
+
+    def __init__(self, port: int, prefix: str, client_id: str = "", persistent: bool = False) -> None:
+        self.received: list[tuple[str, dict, bool]] = []
+        self.subscribed = threading.Event()
+        self.client = mqtt.Client(mqtt.CallbackAPIVersion.VERSION2, client_id=client_id,
+                                  clean_session=not persistent)
+        self.client.reconnect_delay_set(min_delay=1, max_delay=2)
+        self.client.on_connect = lambda client, userdata, flags, *_: (
+            None if flags.session_present else client.subscribe(f"{prefix}/#", qos=1))  # the broker kept it
+        self.client.on_subscribe = lambda *_: self.subscribed.set()
+        self.client.on_message = lambda c, u, message: self.received.append(
+            (message.topic, json.loads(message.payload), bool(message.retain)))
+        self.client.connect_async("127.0.0.1", port, keepalive=5)
+        self.client.loop_start()
+        assert self.subscribed.wait(30), "the subscriber never got its SUBACK"
+
+    def states(self, topic: str) -> list[dict]:
+        return [state for received_topic, state, _ in list(self.received) if received_topic == topic]
+
+    def close(self) -> None:
+        self.client.loop_stop()
+        self.client.disconnect()
+
+
+def _once_each(states: list[dict]) -> list[tuple]:
+    """(status, stage) of each state in arrival order, a repeat dropped: QoS 1 is at least once, so the broker
+    delivers again a message whose acknowledgement it had not recorded when it stopped (JobStateSubscriber
+    drops those repeats the same way)."""
+    seen: list[tuple] = []
+    for state in states:
+        key = (state["status"], state["stage"], state["fraction"], state["attempts"])
+        if key not in seen:
+            seen.append(key)
+    return [key[:2] for key in seen]
+
+
+def _wait_for(condition, timeout_s: float = 30.0) -> bool:
+    deadline = time.monotonic() + timeout_s
+    while not condition() and time.monotonic() < deadline:
+        time.sleep(0.05)
+    return condition()
 
 
 def test_mosquitto_stopped_jobs_go_on_and_states_arrive_when_it_returns(private_mosquitto, tmp_path):
@@ -100,38 +144,126 @@ def test_mosquitto_stopped_jobs_go_on_and_states_arrive_when_it_returns(private_
     migrate(engine)
     prefix = "fault/station1"
     publisher = EventPublisher("127.0.0.1", private_mosquitto.port, prefix)
+    mes = _Subscriber(private_mosquitto.port, prefix, client_id=f"mes-{uuid.uuid4().hex[:8]}", persistent=True)
     tracker = JobTracker(make_sessions(engine), publisher)
-    with tracker.sessions.begin() as session:
-        job_id = tracker.create(session, "scan", {"scan_id": "s1"}).id
-    tracker.start(job_id)
-    private_mosquitto.stop()
-    stages = ["capture", "reconstruct", "fuse", "store"]
-    for index, stage in enumerate(stages):  # the job goes on while the broker is down
-        tracker.progress(job_id, stage, index / len(stages))
-    tracker.succeed(job_id, {"artifacts": {}})
-    with tracker.sessions() as session:
-        assert session.get(Job, job_id).status == "succeeded"  # the database is the source of truth
-    private_mosquitto.start()
-    received: list = []
-    deadline = time.monotonic() + 30  # the publisher reconnects and delivers what it queued, in order
-    listener = None
     try:
-        while time.monotonic() < deadline:
-            if listener is None and publisher._client.is_connected():
-                time.sleep(2.0)  # let the queued messages go out before a late subscriber connects
-                listener = _listen(private_mosquitto.port, prefix, received)
-            if any(topic == station_topic(prefix) for topic, _, _ in received):
-                break
-            time.sleep(0.1)
-        time.sleep(0.5)
+        with tracker.sessions.begin() as session:
+            job = tracker.create(session, "scan", {"scan_id": "s1"})
+        tracker.announce(job)
+        tracker.start(job.id)
+        job_id = job.id
+        assert _wait_for(lambda: len(mes.states(station_topic(prefix))) == 2), mes.received
+        before_the_stop = len(mes.received)
+        private_mosquitto.stop()
+        stages = ["capture", "reconstruct", "fuse", "store"]
+        for index, stage in enumerate(stages):  # the job goes on while the broker is down
+            tracker.progress(job_id, stage, index / len(stages))
+        tracker.succeed(job_id, {"artifacts": {}})
+        with tracker.sessions() as session:
+            assert session.get(Job, job_id).status == "succeeded"  # the database is the source of truth
+        assert not mes.client.is_connected() and not publisher._client.is_connected()
+        time.sleep(1.0)  # the broker stays down a while, both clients retrying
+        assert len(mes.received) == before_the_stop  # nothing arrived while it was down
+    finally:
+        private_mosquitto.start()
+    try:
+        # the publisher re-sends what it queued, the broker queues it in the MES's persistent session
+        assert _wait_for(lambda: any(state["status"] == "succeeded"
+                                     for state in mes.states(job_topic(prefix, job_id)))), mes.received
+        time.sleep(0.5)  # any duplicate (QoS 1 is at least once) would have come by now
+        late = _Subscriber(private_mosquitto.port, prefix)
+        assert _wait_for(lambda: late.states(station_topic(prefix)))
     finally:
         publisher.close()
-        if listener is not None:
-            listener.loop_stop()
-            listener.disconnect()
-    retained = [(state, retain) for topic, state, retain in received if topic == station_topic(prefix)]
-    assert retained and retained[0][1], received  # a late subscriber gets the station's state, retained...
-    assert retained[0][0]["status"] == "succeeded" and retained[0][0]["job_id"] == job_id  # ... the last one
+        mes.close()
+    per_job = _once_each(mes.states(job_topic(prefix, job_id)))  # every state queued while it was down, in order
+    assert per_job == [("queued", "queued"), ("running", "starting"), *[("running", stage) for stage in stages],
+                       ("succeeded", "done")], [(topic, state["stage"]) for topic, state, _ in mes.received]
+    per_scan = [stage for _, stage in _once_each(mes.states(scan_topic(prefix, "s1")))]
+    assert per_scan == ["queued", "starting", *stages, "done"], per_scan
+    assert not any(retained for topic, _, retained in mes.received if topic != station_topic(prefix))
+    station = mes.states(station_topic(prefix))
+    assert [stage for _, stage in _once_each(station)] == per_scan and station[-1]["status"] == "succeeded"
+    repeats = len(mes.received) - 3 * len(per_scan)
+    assert 0 <= repeats <= before_the_stop, mes.received  # at most the states delivered before the stop came again
+    retained = [(state, retain) for topic, state, retain in late.received if topic == station_topic(prefix)]
+    late.close()
+    assert len(retained) == 1 and retained[0][1], late.received  # a late subscriber gets the station's state,
+    assert retained[0][0]["status"] == "succeeded" and retained[0][0]["job_id"] == job_id  # retained: the last one
+
+
+@pytest.mark.reliability  # a few minutes: the embedded service's start and a whole scan (make test-reliability)
+def test_a_real_scan_with_mosquitto_down_publishes_its_states_when_it_returns(private_mosquitto, tmp_path):
+    """`thermofield serve` scans the simulated part while its broker is down; an MES subscribed before gets the
+    scan job's every state, in order, when the broker returns, and the station's retained state is the last."""
+    site = f"fault-{uuid.uuid4().hex[:8]}"
+    env = os.environ | {"THERMOFIELD_DATA_DIR": str(tmp_path / "data"), "THERMOFIELD_SITE": site,
+                        "THERMOFIELD_MQTT_PORT": str(private_mosquitto.port)}
+    command = [sys.executable, "-m", "services.cli.main"]
+    port = free_port()
+    with open(tmp_path / "serve.log", "wb") as log:
+        serve = subprocess.Popen([*command, "serve", "--port", str(port), "--gateway-port", str(free_port()),
+                                  "--rerun-port", str(free_port())], env=env, stdout=log, stderr=subprocess.STDOUT,
+                                 stdin=subprocess.DEVNULL, start_new_session=True)
+    prefix = f"{site}/station1"
+    mes = _Subscriber(private_mosquitto.port, prefix, client_id=f"mes-{uuid.uuid4().hex[:8]}", persistent=True)
+    try:
+        assert _wait_for(lambda: serve.poll() is not None or _ready(f"http://127.0.0.1:{port}/readyz"), 300), \
+            (tmp_path / "serve.log").read_text()[-3000:]
+        key = subprocess.run([*command, "apikey", "create", "--scopes", "operate"], env=env, capture_output=True,
+                             text=True, timeout=120, check=True).stdout.strip()
+        with httpx.Client(base_url=f"http://127.0.0.1:{port}", headers={"Authorization": f"Bearer {key}"},
+                          timeout=30) as client:
+            before_the_stop = len(mes.received)
+            private_mosquitto.stop()
+            try:
+                accepted = client.post("/v1/scans", json={"part_id": "billet-mqtt"})
+                assert accepted.status_code == 202, accepted.text
+                job_id, scan_id = accepted.json()["job_id"], accepted.json()["scan_id"]
+                assert _wait_for(lambda: client.get(f"/v1/jobs/{job_id}").json()["status"] in ("succeeded", "failed"),
+                                 300)
+                assert client.get(f"/v1/jobs/{job_id}").json()["status"] == "succeeded"  # the scan went on
+                assert len(mes.received) == before_the_stop  # nothing arrived while the broker was down
+            finally:
+                private_mosquitto.start()
+        assert _wait_for(lambda: any(state["status"] == "succeeded" for state in mes.states(job_topic(prefix, job_id))),
+                         60), mes.received
+        time.sleep(1.0)  # any repeat would have come by now
+        late = _Subscriber(private_mosquitto.port, prefix)
+        assert _wait_for(lambda: late.states(station_topic(prefix)))
+        retained = [(state, retain) for topic, state, retain in late.received if topic == station_topic(prefix)]
+        late.close()
+    finally:
+        mes.close()
+        if serve.poll() is None:
+            os.killpg(serve.pid, signal.SIGTERM)
+            try:
+                serve.wait(30)
+            except subprocess.TimeoutExpired:
+                os.killpg(serve.pid, signal.SIGKILL)
+                serve.wait()
+    states = [state for state in mes.states(job_topic(prefix, job_id))]
+    per_job = _once_each(states)
+    assert per_job[0] == ("queued", "queued") and per_job[-1] == ("succeeded", "done"), per_job
+    statuses = [status for status, _ in per_job]
+    assert statuses == sorted(statuses, key=["queued", "running", "succeeded"].index), per_job  # never back
+    stages = [stage for _, stage in per_job]
+    assert [stage for stage in ("capture", "reconstruct", "fuse", "store") if stage in stages] == \
+        ["capture", "reconstruct", "fuse", "store"], per_job
+    assert [stages.index(stage) for stage in ("capture", "reconstruct", "fuse", "store")] == \
+        sorted(stages.index(stage) for stage in ("capture", "reconstruct", "fuse", "store")), per_job  # in order
+    fractions = [state["fraction"] for state in states if state["status"] == "running"]
+    assert fractions == sorted(fractions), fractions
+    assert [stage for _, stage in _once_each(mes.states(scan_topic(prefix, scan_id)))] == stages
+    assert len(retained) == 1 and retained[0][1], late.received
+    assert retained[0][0]["status"] == "succeeded" and retained[0][0]["scan_id"] == scan_id
+
+
+def _ready(url: str) -> bool:
+    try:
+        return httpx.get(url, timeout=2.0).status_code == 200
+    except httpx.HTTPError:
+        return False
 
 
 def test_disk_full_while_storing_uploads(small_disk, tmp_path):
