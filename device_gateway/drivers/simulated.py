@@ -240,13 +240,11 @@ class SimulatedStation:
         return sensor_levels(self._clean_frame(view, pattern), effects, self.camera_noise)
 
     def render_ahead(self, patterns: np.ndarray) -> None:
-        """Render a cold scene's noiseless images under ``patterns`` now rather than in the first capture, and
-        keep the noise of as many frames drawn ahead."""
+        """Render a cold scene's noiseless images under ``patterns`` now rather than in the first capture."""
         if not self.hot:
             view = self.view()
             for pattern in patterns:
                 self._clean_frame(view, np.asarray(pattern, dtype=np.uint8))
-            self.camera_noise.keep_ahead(len(patterns))
 
     def _clean_frame(self, view: ViewGeometry, pattern: np.ndarray) -> np.ndarray:
         """The cold scene's pixel irradiance under ``pattern`` before exposure and noise, computed once."""
@@ -315,6 +313,7 @@ class SimulatedCamera(_SimulatedDevice, CameraDriver):
     def __init__(self, station: SimulatedStation, name: str) -> None:
         super().__init__(station, name)
         self._exposure_us = 1000.0 if station.hot else REFERENCE_EXPOSURE_US
+        self._frames_per_capture = 0  # known once prepared: that many frames' noise is drawn ahead while open
 
     @property
     def exposure_us(self) -> float:
@@ -334,14 +333,21 @@ class SimulatedCamera(_SimulatedDevice, CameraDriver):
     def open(self) -> None:
         self.station.view()
         self._open = True
+        self._draw_noise_ahead()
 
     def prepare(self, patterns: np.ndarray) -> None:
         self._require_open()
         self.station.render_ahead(patterns)
+        self._frames_per_capture = len(patterns)
+        self._draw_noise_ahead()
 
     def close(self) -> None:
         super().close()
         self.station.camera_noise.stop()
+
+    def _draw_noise_ahead(self) -> None:
+        if self._frames_per_capture and not self.station.hot:  # a hot scene's frames are rendered whole per frame
+            self.station.camera_noise.keep_ahead(self._frames_per_capture)
 
     def grab(self, timeout_s: float) -> Frame:
         self._require_open()

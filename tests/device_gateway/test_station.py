@@ -139,7 +139,9 @@ def test_noise_drawn_ahead_gives_the_frames_noise_drawn_in_line_would(small_rig,
                     assert noise._changed.wait_for(lambda: len(noise._ready) == len(patterns), timeout=30)
             captures.append([station.capture(sequence, patterns).frames for _ in range(2)])
             station.close()  # stops the drawing; the images drawn ahead are the next frames'
-            station.open()
+            assert simulated.camera_noise._drawer is None
+            station.open()  # and draws ahead again, when prepared
+            assert (simulated.camera_noise._drawer is not None) == ahead
             captures[-1].append(station.capture(sequence, patterns).frames)
         finally:
             station.close()
