@@ -39,7 +39,7 @@ from services.pipeline.field import fuse_field
 from services.pipeline.inspect import report_digest
 from services.pipeline.reconstruct import reconstruct_capture
 from services.pipeline.register import register_scan
-from services.pipeline.scan import StageClock, capture_artifacts, outcome_artifacts, process_scan
+from services.pipeline.scan import StageClock, capture_artifacts, cloud_artifacts, field_artifacts, process_scan
 from services.pipeline.summary import field_summary, glow_summary
 from services.pipeline.warmup import warm_up
 from services.runtime import Runtime, current_runtime
@@ -81,8 +81,9 @@ def scan(job_id: str) -> dict[str, Any]:
         writer.put(capture_artifacts(frames=capture.frames, sequence=capture.sequence, thermal=capture.thermal,
                                      exposure=capture.exposure))
         outcome = process_scan(frames=capture.frames, sequence=capture.sequence, thermal=capture.thermal, rig=rig,
-                               tables=runtime.tables, exposure=capture.exposure, part=part, clock=clock)
-        writer.put_made(lambda: outcome_artifacts(outcome))
+                               tables=runtime.tables, exposure=capture.exposure, part=part, clock=clock,
+                               on_cloud=lambda cloud: writer.put_made(lambda: cloud_artifacts(cloud)))
+        writer.put_made(lambda: field_artifacts(outcome))
         clock.start("stream", 0.7)
         captured_at = float(capture.frame_timestamps[0]) if len(capture.frame_timestamps) else None
         deviation = None if outcome.inspection is None else outcome.inspection.deviation

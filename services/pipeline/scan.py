@@ -62,19 +62,23 @@ class ScanOutcome:
 
 def process_scan(*, frames: np.ndarray, sequence: Sequence, thermal: np.ndarray, rig: Rig,
                  tables: TriangulationTables, exposure: dict[str, Any] | None = None,
-                 part: PreparedPart | None = None, clock: StageClock | None = None) -> ScanOutcome:
+                 part: PreparedPart | None = None, clock: StageClock | None = None,
+                 on_cloud: Callable[[PointCloud], None] | None = None) -> ScanOutcome:
     """Reconstruct the capture, fuse the thermal frames (F, h, w) of the rig's thermal camera, summarise and,
     given the scan's part type, inspect the field (:func:`services.pipeline.inspect.inspect_part`).
 
     ``exposure`` is the capture's exposure record (the gateway's: mode, exposures, ``saturation_level``);
     the summary holds the field's and what a hot part's glow did (``glow``). A field the part cannot be
-    inspected in does not fail the scan: ``inspection_error`` says why.
+    inspected in does not fail the scan: ``inspection_error`` says why. ``on_cloud`` is given the
+    reconstruction's cloud before the fusion starts (which does not change it), e.g. to store it meanwhile.
     """
     exposure = exposure or {}
     clock = clock or StageClock()
     clock.start("reconstruct", 0.3)
     reconstruction = reconstruct_capture(frames=frames, sequence=sequence, rig=rig, tables=tables,
                                          saturation_level=exposure.get("saturation_level"), source="the scan")
+    if on_cloud is not None:
+        on_cloud(reconstruction.cloud)
     clock.start("fuse", 0.55)
     field_ = fuse_field(cloud=reconstruction.cloud, rig=rig, thermal=[(None, thermal)], source="the scan")
     inspection, inspection_error = None, None
@@ -99,9 +103,10 @@ def npy_bytes(stack: np.ndarray) -> bytes:
 
 def scan_artifacts(*, frames: np.ndarray, sequence: Sequence, thermal: np.ndarray, outcome: ScanOutcome,
                    exposure: dict[str, Any] | None = None) -> dict[str, bytes]:
-    """The files a scan keeps: its :func:`capture_artifacts` and :func:`outcome_artifacts`."""
+    """The files a scan keeps: its :func:`capture_artifacts`, :func:`cloud_artifacts` and
+    :func:`field_artifacts`."""
     return {**capture_artifacts(frames=frames, sequence=sequence, thermal=thermal, exposure=exposure),
-            **outcome_artifacts(outcome)}
+            **cloud_artifacts(outcome.cloud), **field_artifacts(outcome)}
 
 
 def capture_artifacts(*, frames: np.ndarray, sequence: Sequence, thermal: np.ndarray,
@@ -116,8 +121,13 @@ def capture_artifacts(*, frames: np.ndarray, sequence: Sequence, thermal: np.nda
     }
 
 
-def outcome_artifacts(outcome: ScanOutcome) -> dict[str, bytes]:
-    """The files of the scan's results: ``cloud.ply``, ``field.ply`` and, when inspected, ``report.json`` and
-    ``deviation.ply``."""
+def cloud_artifacts(cloud: PointCloud) -> dict[str, bytes]:
+    """The file of the scan's reconstruction, known before the fusion: ``cloud.ply``."""
+    return {"cloud.ply": cloud_to_ply(cloud)}
+
+
+def field_artifacts(outcome: ScanOutcome) -> dict[str, bytes]:
+    """The files of the scan's results after the reconstruction: ``field.ply`` and, when inspected,
+    ``report.json`` and ``deviation.ply``."""
     inspected = {} if outcome.inspection is None else inspection_artifacts(outcome.inspection)
-    return {"cloud.ply": cloud_to_ply(outcome.cloud), "field.ply": cloud_to_ply(outcome.field), **inspected}
+    return {"field.ply": cloud_to_ply(outcome.field), **inspected}

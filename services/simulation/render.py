@@ -16,6 +16,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from functools import cache
+from typing import Protocol
 
 import cv2
 import numpy as np
@@ -416,9 +417,16 @@ def defocus(irradiance: np.ndarray, effects: CameraEffects) -> np.ndarray:
     return irradiance
 
 
-def sensor_levels(irradiance: np.ndarray, effects: CameraEffects, rng: np.random.Generator) -> np.ndarray:
+class StandardNormalSource(Protocol):
+    """Where a frame's sensor noise comes from: a numpy Generator, or deviates drawn ahead of the frame."""
+
+    def standard_normal(self, size: tuple[int, ...], dtype: type) -> np.ndarray: ...
+
+
+def sensor_levels(irradiance: np.ndarray, effects: CameraEffects, rng: StandardNormalSource) -> np.ndarray:
     """Quantised grey levels of a defocused pixel irradiance image: exposure, gamma, Gaussian read and shot
-    noise, rounding and saturation (see ``CameraEffects``)."""
+    noise, rounding and saturation (see ``CameraEffects``). The noise is one ``rng.standard_normal`` image
+    (float32) per frame, scaled per pixel."""
     grey = np.multiply(np.asarray(irradiance, dtype=np.float32), np.float32(effects.exposure))  # then in place
     np.maximum(grey, 0, out=grey)
     if effects.gamma != 1:

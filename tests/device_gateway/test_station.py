@@ -108,12 +108,11 @@ def test_filming_a_sequence_again_gives_the_frames_a_fresh_rendering_would(small
     effects = simulated.options.camera_effects
     effects = dataclasses.replace(effects, exposure=effects.exposure * simulated.camera.exposure_us
                                   / REFERENCE_EXPOSURE_US)
+    rng = np.random.default_rng(np.random.SeedSequence(7).spawn(1)[0])  # the camera noise's own generator
     try:
         captures = []
         for _ in range(2):  # the first renders every pattern, the second reuses their noiseless images
-            rng = np.random.default_rng()
             station.open()
-            rng.bit_generator.state = simulated._rng.bit_generator.state
             captures.append(station.capture(sequence, patterns).frames)
             expected = render_frames(simulated.view(), patterns, rng, effects, simulated.options.projector_effects)
             np.testing.assert_array_equal(captures[-1], expected)
@@ -121,3 +120,39 @@ def test_filming_a_sequence_again_gives_the_frames_a_fresh_rendering_would(small
         station.close()
     assert np.any(captures[0] != captures[1])  # fresh noise in every frame
     assert np.abs(captures[0].astype(int) - captures[1]).mean() < 2  # one grey level of noise, the same scene
+
+
+def test_noise_drawn_ahead_gives_the_frames_noise_drawn_in_line_would(small_rig, sequence_and_patterns):
+    from device_gateway.drivers.simulated import SimulatedStation, SimulationOptions
+
+    sequence, patterns = sequence_and_patterns
+    captures = []
+    for ahead in (False, True):
+        simulated = SimulatedStation(rig=small_rig, options=SimulationOptions(seed=3))
+        station = Station(simulated.camera, simulated.thermal, simulated.projector)
+        try:
+            station.open()
+            if ahead:
+                simulated.camera.prepare(patterns)
+                noise = simulated.camera_noise
+                with noise._changed:  # the next capture's noise is drawn while the gateway waits
+                    assert noise._changed.wait_for(lambda: len(noise._ready) == len(patterns), timeout=30)
+            captures.append([station.capture(sequence, patterns).frames for _ in range(2)])
+            station.close()  # stops the drawing; the images drawn ahead are the next frames'
+            assert simulated.camera_noise._drawer is None
+            station.open()  # and draws ahead again, when prepared
+            assert (simulated.camera_noise._drawer is not None) == ahead
+            captures[-1].append(station.capture(sequence, patterns).frames)
+        finally:
+            station.close()
+    for in_line, drawn_ahead in zip(*captures):
+        np.testing.assert_array_equal(drawn_ahead, in_line)
+    assert np.any(captures[1][0] != captures[1][1])  # each capture has fresh noise
+
+
+def test_the_camera_noise_source_refuses_another_shape(small_rig):
+    from device_gateway.drivers.simulated import SimulatedStation
+
+    noise = SimulatedStation(rig=small_rig).camera_noise
+    with pytest.raises(ValueError, match="float32 of shape"):
+        noise.standard_normal((noise.shape[0] + 1, noise.shape[1]), np.float32)
