@@ -109,6 +109,9 @@ class Settings(BaseSettings):
     retention_keep_scans: int = Field(100, ge=0, description="Scans per station that keep their artifacts, newest first.")
     retention_keep_days: float = Field(7.0, ge=0, description="Days a scan keeps its artifacts (whatever its rank).")
     retention_raw_frames_days: float = Field(1.0, ge=0, description="Days a scan keeps its raw frames.")
+    retention_blob_grace_s: float = Field(
+        3600.0, ge=0, description="Seconds a blob no row names is kept before the sweep deletes it (a scan in flight "
+                                  "stores its blobs before its row names them): what an expired scan's files wait.")
     maintenance_interval_s: float = Field(
         3600.0, ge=0, description="Seconds between retention runs in the API processes (0: never)."
     )
@@ -133,7 +136,7 @@ class Settings(BaseSettings):
 
         return RetentionPolicy(keep_scans=self.retention_keep_scans, keep_days=self.retention_keep_days,
                                raw_frames_days=self.retention_raw_frames_days,
-                               idempotency_ttl_s=self.idempotency_ttl_s)
+                               idempotency_ttl_s=self.idempotency_ttl_s, blob_grace_s=self.retention_blob_grace_s)
 
     @property
     def topic_prefix(self) -> str:

@@ -156,3 +156,15 @@ def test_thermofield_maintenance_applies_the_environments_policy_once(engine, tm
     assert _kept(sessions) == {"new": set(FIELDS + RAW), "old": set()}
     assert not any(store.exists(blobs["old"][name]) for name in FIELDS + RAW)
     assert all(store.exists(blobs["new"][name]) for name in FIELDS + RAW)
+
+
+def test_the_blob_grace_period_is_the_settings(engine, tmp_path):
+    """An unreferenced blob younger than THERMOFIELD_RETENTION_BLOB_GRACE_S is kept, an older one swept."""
+    sessions, store = make_sessions(engine), ArtifactStore(tmp_path / "artifacts")
+    policy = Settings(data_dir=tmp_path, retention_blob_grace_s=100).retention_policy
+    assert policy.blob_grace_s == 100
+    young, old = store.put_bytes(b"an orphan 50 s old"), store.put_bytes(b"an orphan 150 s old")
+    for digest, age in ((young, 50), (old, 150)):
+        os.utime(store.path(digest), (time.time() - age, time.time() - age))
+    run_maintenance(sessions, store, policy)
+    assert store.exists(young) and not store.exists(old)

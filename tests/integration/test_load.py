@@ -119,6 +119,10 @@ def _footprint(pid: int) -> tuple[int, int]:
     return sum(p.memory_info().rss for p in processes), sum(p.num_fds() for p in processes)
 
 
+def _tree_bytes(directory: Path) -> int:
+    return sum(path.stat().st_size for path in directory.rglob("*") if path.is_file())
+
+
 def _peak(samples: list[dict], name: str, index: int) -> int:
     return max(sample[name][index] for sample in samples)
 
@@ -130,6 +134,10 @@ def test_soak_of_repeated_scans(e2e, deployment):
     scan's temporaries returned to the system or kept by the allocator), so two single samples could differ by
     20 % with nothing leaking; a leak raises the peaks, a bounded plateau does not."""
     seconds = float(os.environ.get("THERMOFIELD_SOAK_SECONDS", "600"))
+    # retention on, as a plant runs it: without it 10 minutes of scans fill tens of GB (about 100 MB a scan)
+    deployment |= {"THERMOFIELD_RETENTION_KEEP_SCANS": "20", "THERMOFIELD_RETENTION_KEEP_DAYS": "0",
+                   "THERMOFIELD_RETENTION_BLOB_GRACE_S": "60", "THERMOFIELD_MAINTENANCE_INTERVAL_S": "30"}
+    store = Path(deployment["THERMOFIELD_ARTIFACT_DIR"])
     api_url, key = _start(e2e, deployment)
     pids = {name: process.pid for name, process in e2e.processes.running if name in ("api", "worker")}
     with httpx.Client(base_url=api_url, headers={"Authorization": f"Bearer {key}"}, timeout=60) as client:
@@ -144,9 +152,13 @@ def test_soak_of_repeated_scans(e2e, deployment):
             finals = [_wait_done(client, job["job_id"]) for job in batch]
             assert all(final["status"] == "succeeded" for final in finals), finals
             count += len(batch)
-            samples.append({name: _footprint(pid) for name, pid in pids.items()})
+            samples.append({name: _footprint(pid) for name, pid in pids.items()} | {"store": _tree_bytes(store)})
     window = max(1, len(samples) // 5)
     first, last = samples[:window], samples[-window:]
+    steady = samples[window:2 * window]  # the second fifth: past the first sweeps (grace 60 s + interval 30 s)
+    store_mb = {"peak_second_fifth": round(max(s["store"] for s in steady) / 1e6),
+                "peak_last_fifth": round(max(s["store"] for s in last) / 1e6),
+                "end": round(samples[-1]["store"] / 1e6)}
     growth = {name: {"rss_mb_peak_first": round(_peak(first, name, 0) / 1e6, 1),
                      "rss_mb_peak_last": round(_peak(last, name, 0) / 1e6, 1),
                      "rss_growth": round(_peak(last, name, 0) / _peak(first, name, 0) - 1, 4),
@@ -154,7 +166,8 @@ def test_soak_of_repeated_scans(e2e, deployment):
                                         round(max(s[name][0] for s in samples) / 1e6, 1)],
                      "fds_peak_first": _peak(first, name, 1), "fds_peak_last": _peak(last, name, 1)} for name in pids}
     _record("soak", {"seconds": seconds, "scans": count, "samples": len(samples), "window_samples": window,
-                     "processes": growth, "machine": _machine()})
+                     "processes": growth, "store_mb": store_mb, "machine": _machine()})
     for name, figures in growth.items():
         assert figures["rss_growth"] < 0.10, (name, figures)
         assert figures["fds_peak_last"] <= figures["fds_peak_first"] + 2, (name, figures)  # a pooled connection or two
+    assert store_mb["peak_last_fifth"] <= 1.5 * store_mb["peak_second_fifth"], store_mb  # bounded by retention
