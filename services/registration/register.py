@@ -52,8 +52,8 @@ _FINEST_REFINEMENT = {"mi": (0.25, 0.125, 0.02, 1e-5), "nmi": (0.25, 0.125, 0.02
 _MAX_ITERATIONS = 40  # NGF's step convergence may take more than 20 models; MI and NMI stop well before 20
 # MI and NMI (affine models) climb by quasi-Newton steps on their analytic gradient instead: the longest step and
 # the step tolerance, in pixels of corner motion at the level, per kind of level as above, and the gain stop.
-_COARSE_ASCENT, _FINE_ASCENT, _FINEST_ASCENT = (2.0, 0.05), (1.0, 0.02), (0.5, 0.01)
-_ASCENT_GAIN = 1e-6
+_COARSE_ASCENT, _FINE_ASCENT, _FINEST_ASCENT = (2.0, 0.05), (1.0, 0.02), (0.25, 0.005)
+_ASCENT_GAIN = 1e-8
 _FIELD_SIGMA = 1.0  # Gaussian smoothing (pixels) before gradient fields are taken
 DEFAULT_PREPROCESSING = {"mi": "gradient", "nmi": "gradient", "ngf": "none"}  # NGF takes its own gradients
 
