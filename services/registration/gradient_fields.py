@@ -68,6 +68,13 @@ def normalized_gradient_field(image: np.ndarray, epsilon: float) -> tuple[np.nda
     return gx / norm, gy / norm
 
 
+def _window_sums(image: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+    """Sums of ``image`` over every ``shape``-sized window (the correlation with a box), from its integral image."""
+    height, width = shape
+    total = cv2.integral(image, sdepth=cv2.CV_64F)
+    return (total[height:, width:] - total[:-height, width:] - total[height:, :-width] + total[:-height, :-width])
+
+
 def tensor_similarity_map(
     fixed_x: np.ndarray, fixed_y: np.ndarray, fixed_valid: np.ndarray, moving_x: np.ndarray, moving_y: np.ndarray,
     min_weight: float,
@@ -90,15 +97,15 @@ def tensor_similarity_map(
     (2m + 1, 2m + 1) array; entry (dy, dx) compares moving pixel u with
     canvas pixel u + (dx, dy).
     """
-    def correlate(image: np.ndarray, template: np.ndarray) -> np.ndarray:
-        return cv2.matchTemplate(image, template, cv2.TM_CCORR)
-
     fxx, fxy, fyy = fixed_x * fixed_x, fixed_x * fixed_y, fixed_y * fixed_y
     mxx, mxy, myy = moving_x * moving_x, moving_x * moving_y, moving_y * moving_y
-    numerator = correlate(fxx, mxx) + 2.0 * correlate(fxy, mxy) + correlate(fyy, myy)
-    fixed_power = correlate((fxx + fyy) ** 2, np.ones_like(mxx))
-    moving_power = correlate(fixed_valid, (mxx + myy) ** 2)
-    overlap = correlate(fixed_valid, np.ones_like(mxx))
+    # n_m . n_f squared summed over the three tensor components at once: matchTemplate sums over channels
+    root2 = np.float32(np.sqrt(2.0))
+    numerator = cv2.matchTemplate(cv2.merge([fxx, root2 * fxy, fyy]), cv2.merge([mxx, root2 * mxy, myy]),
+                                  cv2.TM_CCORR)
+    fixed_power = _window_sums((fxx + fyy) ** 2, moving_x.shape)
+    moving_power = cv2.matchTemplate(fixed_valid, (mxx + myy) ** 2, cv2.TM_CCORR)
+    overlap = _window_sums(fixed_valid, moving_x.shape)
     denominator = np.sqrt(np.maximum(fixed_power, 0.0) * np.maximum(moving_power, 0.0))
     values = np.where(denominator > 0.0, numerator / np.where(denominator > 0.0, denominator, 1.0), 0.0)
     return np.where(overlap >= min_weight, values, -np.inf)
