@@ -80,39 +80,6 @@ def update_matrix(model: str, parameters: np.ndarray, width: int, height: int) -
     return _about_point(linear, centre, p[:2])
 
 
-def update_jacobian(model: str, parameters: np.ndarray, width: int, height: int) -> np.ndarray:
-    """The derivatives dG/dp_k of :func:`update_matrix` at ``parameters``, (n, 3, 3), for the affine models.
-
-    Notes
-    -----
-    G(p) = [[L, c + t - L c], [0, 0, 1]] with c the image centre, so dG/dp_k = [[dL, dt - dL c], [0, 0, 0]]:
-    dt is a unit vector for the translation, dL = L J / r for the rotation (J the 90-degree rotation),
-    L / r for the log-scale and the unit matrices over r for the affine terms (r the half-diagonal).
-    """
-    _check_model(model)
-    if model == "homography":
-        raise ValueError("The update's Jacobian is for translation, rigid, similarity and affine models.")
-    p = np.asarray(parameters, dtype=np.float64).ravel()
-    centre = np.array([(width - 1) / 2.0, (height - 1) / 2.0])
-    radius = 0.5 * float(np.hypot(width, height))
-    linear = update_matrix(model, p, width, height)[:2, :2]
-    derivatives = [(np.zeros((2, 2)), np.array([1.0, 0.0])), (np.zeros((2, 2)), np.array([0.0, 1.0]))]
-    if model in ("rigid", "similarity"):
-        derivatives.append((linear @ np.array([[0.0, -1.0], [1.0, 0.0]]) / radius, np.zeros(2)))
-    if model == "similarity":
-        derivatives.append((linear / radius, np.zeros(2)))
-    if model == "affine":
-        for index in range(4):
-            unit = np.zeros(4)
-            unit[index] = 1.0 / radius
-            derivatives.append((unit.reshape(2, 2), np.zeros(2)))
-    jacobian = np.zeros((len(derivatives), 3, 3))
-    for k, (linear_derivative, shift_derivative) in enumerate(derivatives):
-        jacobian[k, :2, :2] = linear_derivative
-        jacobian[k, :2, 2] = shift_derivative - linear_derivative @ centre
-    return jacobian
-
-
 def similarity_about_centres(
     moving_centre: np.ndarray, fixed_centre: np.ndarray, scale: float, angle: float, shift: np.ndarray
 ) -> np.ndarray:

@@ -36,7 +36,6 @@ class MovingWindow:
         self._valid = np.empty(size, bool)
         self._cell = np.empty(size, np.intp)
         self._weights = np.empty(size, np.float64)  # np.bincount converts other weights to float64
-        self._slope = np.empty(size, np.float64)
 
 
 def moving_window(moving: np.ndarray, bins: int) -> MovingWindow:
@@ -44,13 +43,13 @@ def moving_window(moving: np.ndarray, bins: int) -> MovingWindow:
     moving = np.ravel(moving).astype(np.float32)
     valid = (moving >= 0.0).astype(np.float32)
     column = np.clip(moving.astype(np.intp), 0, bins - 2)
-    up = np.minimum(moving - column, 1.0).astype(np.float64) * valid
+    up = np.minimum(moving - column, 1.0).astype(np.float64) * valid  # float64: np.bincount converts other weights
     return MovingWindow(column, valid - up, up)
 
 
-def _fixed_window(fixed: np.ndarray, window: MovingWindow, bins: int) -> None:
-    """The fixed samples' lower bins (as joint cells with the moving column) and weights, in the window's arrays."""
-    fixed = np.ravel(fixed)
+def windowed_joint_histogram(fixed: np.ndarray, window: MovingWindow, bins: int) -> np.ndarray:
+    """Bilinear-Parzen joint histogram of a fixed image scaled to [0, bins - 1] (negatives skipped) and a window."""
+    fixed = np.ravel(np.asarray(fixed, dtype=np.float32))
     if fixed.size != window.column.size:
         raise ValueError(f"The fixed samples ({fixed.size}) must match the moving window's pixels "
                          f"({window.column.size}).")
@@ -60,28 +59,19 @@ def _fixed_window(fixed: np.ndarray, window: MovingWindow, bins: int) -> None:
     np.minimum(up, 1.0, out=up)
     valid = np.greater_equal(fixed, 0.0, out=window._valid)  # invalid samples weigh nothing
     np.multiply(up, valid, out=up)
-    np.subtract(valid, up, out=window._fixed_down)
-    np.multiply(row, bins, out=window._cell, casting="unsafe")
-    np.add(window._cell, window.column, out=window._cell)
+    down = np.subtract(valid, up, out=window._fixed_down)
+    cell = np.multiply(row, bins, out=window._cell, casting="unsafe")
+    np.add(cell, window.column, out=cell)
 
-
-def _window_histogram(window: MovingWindow, bins: int) -> np.ndarray:
-    """The joint histogram of the fixed samples last put in the window by :func:`_fixed_window`."""
     def counts(fixed_weight: np.ndarray, moving_weight: np.ndarray) -> np.ndarray:
         np.multiply(fixed_weight, moving_weight, out=window._weights)
-        return np.bincount(window._cell, window._weights, bins * bins).reshape(bins, bins)
+        return np.bincount(cell, window._weights, bins * bins).reshape(bins, bins)
 
-    histogram = counts(window._fixed_down, window.down)
-    histogram[1:, :] += counts(window._fixed_up, window.down)[:-1, :]  # the row above each sample's lower bin
-    histogram[:, 1:] += counts(window._fixed_down, window.up)[:, :-1]  # the column above
-    histogram[1:, 1:] += counts(window._fixed_up, window.up)[:-1, :-1]
+    histogram = counts(down, window.down)
+    histogram[1:, :] += counts(up, window.down)[:-1, :]  # the row above each sample's lower bin
+    histogram[:, 1:] += counts(down, window.up)[:, :-1]  # the column above
+    histogram[1:, 1:] += counts(up, window.up)[:-1, :-1]
     return histogram
-
-
-def windowed_joint_histogram(fixed: np.ndarray, window: MovingWindow, bins: int) -> np.ndarray:
-    """Bilinear-Parzen joint histogram of a fixed image scaled to [0, bins - 1] (negatives skipped) and a window."""
-    _fixed_window(np.asarray(fixed, dtype=np.float32), window, bins)
-    return _window_histogram(window, bins)
 
 
 def quantized_joint_histogram(fixed: np.ndarray, moving: np.ndarray, bins: int) -> np.ndarray:
@@ -116,91 +106,6 @@ def quantized_information(
     if h_joint <= 0.0:
         return 0.0, 1.0, total
     return (h_fixed + h_moving - h_joint) / np.log(log_base), (h_fixed + h_moving) / h_joint, total
-
-
-def information_slope(
-    fixed: np.ndarray, window: MovingWindow, bins: int, log_base: float, metric: str
-) -> tuple[float, float, np.ndarray]:
-    """MI or NMI of fixed samples against a moving window, the overlap weight, and the value's slope per sample.
-
-    Parameters
-    ----------
-    fixed : array
-        Fixed samples scaled to [0, bins - 1], negatives invalid, as many as the window's pixels.
-    window : MovingWindow
-        The moving image's :func:`moving_window`.
-    bins : int
-        Bins per image.
-    log_base : float
-        Logarithm base of MI.
-    metric : {"mi", "nmi"}
-        The value differentiated.
-
-    Returns
-    -------
-    value : float
-        MI (in units of ``log_base``) or NMI.
-    weight : float
-        Summed weight of the overlapping samples.
-    slope : (N,) float64 array
-        d value / d f_s for each fixed sample f_s; 0 where invalid. It is the window's work array,
-        overwritten by the next call.
-
-    Notes
-    -----
-    With p = h / W the normalised joint histogram (W, the overlap weight, does not change under a small
-    move) and the bilinear window, a sample f with lower bin r and moving weights w_m(c) moves weight from
-    cell (r, c) to (r + 1, c) as f grows, so
-
-        d value / d f = (1 / W) sum_c w_m(c) (D[r + 1, c] - D[r, c]),   D = d value / d p,
-
-    where, up to terms that depend on the column c only and cancel in the difference,
-    D_ij = (log p_ij - log p_i) / log(base) for MI = H(A) + H(B) - H(A, B) (p_i the fixed marginal; the
-    moving marginal does not change), and D_ij = (NMI log p_ij - log p_i) / H(A, B) for
-    NMI = (H(A) + H(B)) / H(A, B). Chained with the image gradient and the transform's Jacobian this is
-    the analytic gradient of Mattes et al. [1]_ and Thevenaz and Unser [2]_ for a first-order B-spline window.
-    Empty cells contribute nothing (as in ITK's Mattes metric): a sample exactly on a bin edge would
-    otherwise have an infinite slope towards the empty neighbour.
-
-    References
-    ----------
-    .. [1] D. Mattes et al., "PET-CT image registration in the chest using free-form deformations",
-       IEEE TMI 22(1), 2003.
-    .. [2] P. Thevenaz, M. Unser, "Optimization of mutual information for multiresolution image
-       registration", IEEE TIP 9(12), 2000.
-    """
-    if metric not in ("mi", "nmi"):
-        raise ValueError(f"The slope is defined for MI and NMI; got the metric {metric!r}.")
-    _fixed_window(np.asarray(fixed, dtype=np.float32), window, bins)
-    histogram = _window_histogram(window, bins)
-    total, h_fixed, h_moving, h_joint = joint_entropies(histogram)
-    slope = window._slope
-    if h_joint <= 0.0:
-        slope[:] = 0.0
-        return (0.0 if metric == "mi" else 1.0), total, slope
-    p = histogram / total
-    occupied = p > 0.0
-    log_joint = np.log(p, where=occupied, out=np.zeros_like(p))
-    fixed_marginal = p.sum(axis=1)
-    log_fixed = np.log(fixed_marginal, where=fixed_marginal > 0.0, out=np.zeros_like(fixed_marginal))[:, None]
-    if metric == "mi":
-        value = (h_fixed + h_moving - h_joint) / np.log(log_base)
-        derivative = (log_joint - log_fixed) / np.log(log_base)
-    else:
-        value = (h_fixed + h_moving) / h_joint
-        derivative = (value * log_joint - log_fixed) / h_joint
-    derivative[~occupied] = 0.0
-    step = np.diff(derivative, axis=0) / total  # D[r + 1, c] - D[r, c] per unit of weight, rows 0 .. bins - 2
-    lower, upper = np.zeros((bins, bins)), np.zeros((bins, bins))
-    lower[:-1] = step  # indexed by the sample's cell (r, c): its lower moving bin c...
-    upper[:-1, :-1] = step[:, 1:]  # ...and the bin c + 1 above it
-    np.take(lower.ravel(), window._cell, out=slope)
-    slope *= window.down
-    np.take(upper.ravel(), window._cell, out=window._weights)
-    window._weights *= window.up
-    slope += window._weights
-    slope *= window._valid
-    return float(value), total, slope
 
 
 def information_from_histogram(joint: np.ndarray, log_base: float = DEFAULT_LOG_BASE) -> tuple[float, float]:

@@ -24,11 +24,10 @@ import cv2
 import numpy as np
 
 from services.registration.gradient_fields import gradient_epsilon, normalized_gradient_field
-from services.registration.models import MODELS, PARAMETER_COUNTS, update_jacobian, update_matrix
-from services.registration.mutual_information import DEFAULT_BINS, DEFAULT_LOG_BASE, quantize
+from services.registration.models import MODELS, PARAMETER_COUNTS, update_matrix
 from services.registration.newton import maximize
-from services.registration.objective import METRICS, ParzenObjective, field_score, information, sample_fixed
-from services.registration.quasi_newton import maximize_with_gradient
+from services.registration.mutual_information import DEFAULT_BINS, DEFAULT_LOG_BASE, moving_window, quantize
+from services.registration.objective import METRICS, field_score, information, sample_fixed, score
 from services.registration.preprocess import PREPROCESSING, preprocess
 from services.registration.search import coarse_search, gradient_field_search
 
@@ -50,10 +49,6 @@ _FINE_REFINEMENT = (0.5, 0.125, 0.02, 1e-5)  # the levels below
 _FINEST_REFINEMENT = {"mi": (0.25, 0.125, 0.02, 1e-5), "nmi": (0.25, 0.125, 0.02, 1e-5),
                       "ngf": (1.0, 1.0, 0.005, 0.0)}
 _MAX_ITERATIONS = 40  # NGF's step convergence may take more than 20 models; MI and NMI stop well before 20
-# MI and NMI (affine models) climb by quasi-Newton steps on their analytic gradient instead: the longest step and
-# the step tolerance, in pixels of corner motion at the level, per kind of level as above, and the gain stop.
-_COARSE_ASCENT, _FINE_ASCENT, _FINEST_ASCENT = (2.0, 0.05), (1.0, 0.02), (0.25, 0.005)
-_ASCENT_GAIN = 1e-8
 _FIELD_SIGMA = 1.0  # Gaussian smoothing (pixels) before gradient fields are taken
 DEFAULT_PREPROCESSING = {"mi": "gradient", "nmi": "gradient", "ngf": "none"}  # NGF takes its own gradients
 
@@ -122,52 +117,39 @@ def _level_matrix(matrix: np.ndarray, level: int) -> np.ndarray:
 
 def _level_objective(
     fixed: np.ndarray, moving: np.ndarray, bins: int, log_base: float, metric: str, min_overlap: float
-) -> ParzenObjective | Callable[[np.ndarray], float]:
-    """The objective of one pyramid level: for MI and NMI a :class:`ParzenObjective` of quantised images, for
-    NGF a function of the fixed image sampled on the moving grid (both images smoothed grey ones)."""
+) -> Callable[[np.ndarray], float]:
+    """The objective of one pyramid level, as a function of the fixed image sampled on the moving grid.
+
+    ``fixed`` and ``moving`` are quantised images for MI and NMI, smoothed grey images for NGF.
+    """
     if metric == "ngf":
         fixed_epsilon = gradient_epsilon(fixed)
         moving_x, moving_y = normalized_gradient_field(moving, gradient_epsilon(moving))
         return lambda samples: field_score(samples, fixed_epsilon, moving_x, moving_y, min_overlap)
-    return ParzenObjective(fixed, moving, bins, log_base, metric, min_overlap)
+    window = moving_window(moving, bins)
+    return lambda samples: score(samples, window, bins, log_base, metric, min_overlap)
 
 
 def _refine(
-    fixed: np.ndarray, moving: np.ndarray, start: np.ndarray, model: str,
-    objective: ParzenObjective | Callable[[np.ndarray], float], stencil: tuple[float, float, float, float],
-    ascent: tuple[float, float], cubic: bool = False,
+    fixed: np.ndarray, moving: np.ndarray, start: np.ndarray, model: str, objective: Callable[[np.ndarray], float],
+    stencil: tuple[float, float, float, float], cubic: bool = False,
 ) -> tuple[np.ndarray, float]:
-    """Maximise the objective over ``start @ G(p)``; returns the matrix and its objective value.
+    """Maximise the objective over ``start @ G(p)`` (:func:`services.registration.newton.maximize`).
 
-    MI and NMI of the affine models climb by quasi-Newton steps on the analytic gradient
-    (:func:`services.registration.quasi_newton.maximize_with_gradient`), ``ascent`` giving the longest step and
-    the step tolerance; the others by Newton steps on finite-difference models
-    (:func:`services.registration.newton.maximize`), ``stencil`` giving the first and smallest
-    finite-difference step and the step tolerance, in pixels of corner motion, and the relative-gain stop.
-    ``cubic`` samples the fixed image by bicubic instead of bilinear interpolation for NGF
-    (:func:`services.registration.objective.sample_fixed`).
+    ``stencil`` is the first and smallest finite-difference step and the step tolerance, in pixels of corner
+    motion, and the relative-gain stop; ``cubic`` samples the fixed image by bicubic instead of bilinear interpolation
+    (:func:`services.registration.objective.sample_fixed`). Returns the matrix and its objective value.
     """
     height, width = moving.shape
-    count = PARAMETER_COUNTS[model]
-    if isinstance(objective, ParzenObjective) and model != "homography":
-        def value_and_gradient(parameters: np.ndarray) -> tuple[float, np.ndarray]:
-            value, gradient = objective.value_and_gradient(start @ update_matrix(model, parameters, width, height))
-            jacobian = start @ update_jacobian(model, parameters, width, height)  # d(start G(p)) / dp_k
-            return value, np.einsum("rc,krc->k", gradient, jacobian[:, :2])
-
-        radius, tolerance = ascent
-        parameters, best = maximize_with_gradient(value_and_gradient, count, radius, tolerance, _ASCENT_GAIN,
-                                                  _MAX_ITERATIONS)
-        return start @ update_matrix(model, parameters, width, height), best
+    samples = np.empty((height, width), np.float32)  # reused by every bilinear evaluation
 
     def value(parameters: np.ndarray) -> float:
-        matrix = start @ update_matrix(model, parameters, width, height)
-        if isinstance(objective, ParzenObjective):
-            return objective.value(matrix)
-        return objective(sample_fixed(fixed, matrix, width, height, cubic))
+        return objective(sample_fixed(fixed, start @ update_matrix(model, parameters, width, height), width, height,
+                                      cubic, samples))
 
     step, min_step, tolerance, relative_gain = stencil
-    parameters, best = maximize(value, count, step, min_step, tolerance, relative_gain, _MAX_ITERATIONS)
+    parameters, best = maximize(value, PARAMETER_COUNTS[model], step, min_step, tolerance, relative_gain,
+                                _MAX_ITERATIONS)
     return start @ update_matrix(model, parameters, width, height), best
 
 
@@ -317,22 +299,20 @@ def register(
 
     cubic = metric == "ngf"  # bilinear sampling blurs by how far off the grid it samples; NGF's gradients feel it
     refined = [_refine(coarse_fixed, coarse_moving, candidate.matrix, _coarse_model(model), objectives[levels],
-                       _COARSE_REFINEMENT, _COARSE_ASCENT, cubic) for candidate in candidates]
+                       _COARSE_REFINEMENT, cubic) for candidate in candidates]
     chosen_level = levels
     if metric == "ngf" and levels >= 2:  # choose among the candidates one level finer, where edges are sharper
         chosen_level = levels - 1
         refined = [_refine(fixed_pyramid[chosen_level], moving_pyramid[chosen_level],
                            _level_matrix(_level_matrix(candidate, -levels), chosen_level), _coarse_model(model),
-                           objectives[chosen_level], _CHOICE_REFINEMENT, _FINE_ASCENT, cubic)
-                   for candidate, _ in refined]
+                           objectives[chosen_level], _CHOICE_REFINEMENT, cubic) for candidate, _ in refined]
     matrix = _level_matrix(max(refined, key=lambda item: item[1])[0], -chosen_level)
     for level in range(chosen_level - 1, -1, -1):
         level_start = _level_matrix(matrix, level)
         level_model = "affine" if model == "homography" and level > 0 else model
-        finest = level == 0
         level_matrix, _ = _refine(fixed_pyramid[level], moving_pyramid[level], level_start, level_model,
-                                  objectives[level], _FINEST_REFINEMENT[metric] if finest else _FINE_REFINEMENT,
-                                  _FINEST_ASCENT if finest else _FINE_ASCENT, cubic)
+                                  objectives[level],
+                                  _FINEST_REFINEMENT[metric] if level == 0 else _FINE_REFINEMENT, cubic)
         matrix = _level_matrix(level_matrix, -level)
 
     fixed_quantized, moving_quantized = (quantize(fixed_levels[0], bins), quantize(moving_levels[0], bins)) if (

@@ -8,7 +8,6 @@ from services.registration.models import (
     corner_error,
     image_corners,
     similarity_about_centres,
-    update_jacobian,
     update_matrix,
 )
 
@@ -63,21 +62,3 @@ def test_bad_model_or_parameter_count_is_refused():
         update_matrix("elastic", [0.0], 10, 10)
     with pytest.raises(ValueError, match="4 parameters"):
         update_matrix("similarity", [0.0, 0.0], 10, 10)
-
-
-@pytest.mark.parametrize("model", ["translation", "rigid", "similarity", "affine"])
-def test_the_update_jacobian_matches_central_differences_of_the_update(model):
-    rng = np.random.default_rng(7)
-    parameters = rng.normal(0.0, 3.0, PARAMETER_COUNTS[model])
-    jacobian = update_jacobian(model, parameters, 320, 256)
-    for index in range(PARAMETER_COUNTS[model]):
-        step = np.zeros_like(parameters)
-        step[index] = 1e-5
-        expected = (update_matrix(model, parameters + step, 320, 256)
-                    - update_matrix(model, parameters - step, 320, 256)) / 2e-5
-        np.testing.assert_allclose(jacobian[index], expected, atol=1e-7)
-
-
-def test_the_homography_has_no_update_jacobian():
-    with pytest.raises(ValueError, match="translation, rigid, similarity and affine"):
-        update_jacobian("homography", np.zeros(8), 320, 256)

@@ -3,12 +3,10 @@ import pytest
 
 from services.registration.mutual_information import (
     information_from_histogram,
-    information_slope,
     joint_histogram,
     moving_window,
     mutual_information,
     quantize,
-    quantized_information,
     windowed_joint_histogram,
 )
 
@@ -121,32 +119,3 @@ def test_bad_input_is_refused_with_a_sentence(call, message):
 
 def test_empty_histogram_has_zero_information():
     assert information_from_histogram(np.zeros((4, 4))) == (0.0, 1.0)
-
-
-@pytest.mark.parametrize("metric", ["mi", "nmi"])
-def test_the_slope_per_sample_is_the_derivative_of_the_value(metric):
-    rng = np.random.default_rng(8)
-    moving = quantize(rng.random((60, 70)), 16)
-    fixed = np.clip(moving + rng.normal(0.0, 1.5, moving.shape), 0.2, 14.8).astype(np.float32)
-    fixed[:5] = -1.0  # invalid samples have no slope
-    window = moving_window(moving, 16)
-    value, weight, slope = information_slope(fixed, window, 16, 2.0, metric)
-    slope = slope.copy()
-    expected_value = quantized_information(fixed, moving, 16, 2.0)[0 if metric == "mi" else 1]
-    assert weight == pytest.approx(55 * 70) and value == pytest.approx(expected_value, rel=1e-6)
-    assert np.all(slope[: 5 * 70] == 0.0)
-    fraction = np.modf(fixed.ravel())[0]
-    samples = rng.choice(np.flatnonzero((fixed.ravel() >= 0.0) & (fraction > 0.05) & (fraction < 0.95)), 5)
-    for sample in samples:  # one sample moved by less than its distance to a bin edge, where the slope jumps
-        moved = fixed.copy()
-        moved.ravel()[sample] += 0.01
-        plus = information_slope(moved, window, 16, 2.0, metric)[0]
-        moved.ravel()[sample] -= 0.02
-        minus = information_slope(moved, window, 16, 2.0, metric)[0]
-        assert slope[sample] == pytest.approx((plus - minus) / 0.02, rel=1e-3)
-
-
-def test_the_slope_is_only_for_mi_and_nmi():
-    window = moving_window(np.zeros((4, 4), np.float32), 8)
-    with pytest.raises(ValueError, match="MI and NMI"):
-        information_slope(np.zeros((4, 4), np.float32), window, 8, 2.0, "ngf")

@@ -2,7 +2,7 @@ import numpy as np
 import pytest
 
 from services.registration.mutual_information import moving_window, quantize
-from services.registration.objective import ParzenObjective, information, sample_fixed, score
+from services.registration.objective import information, sample_fixed, score
 
 
 def test_samples_outside_the_fixed_image_are_negative_and_inside_ones_exact():
@@ -45,38 +45,3 @@ def test_score_is_minus_infinity_below_the_minimum_overlap():
     assert score(fixed_samples, window, 8, 2.0, "nmi", 0.3) == pytest.approx(nmi)
     assert score(fixed_samples, window, 8, 2.0, "mi", 0.3) == pytest.approx(mi)
     assert score(fixed_samples, window, 8, 2.0, "mi", 0.5) == -np.inf
-
-
-def _smooth_pair() -> tuple[np.ndarray, np.ndarray]:
-    """A smooth fixed image and a moving image that is a non-monotonic function of a shifted crop of it."""
-    y, x = np.mgrid[0:120, 0:160].astype(np.float32)
-
-    def scene(x, y):
-        return np.sin(x / 9.0) * np.cos(y / 7.0) + 0.3 * np.sin((x + y) / 13.0)
-
-    return quantize(scene(x, y), 16), quantize(np.cos(1.3 * scene(x[:100, :140] + 3, y[:100, :140] + 2)), 16)
-
-
-@pytest.mark.parametrize("metric", ["mi", "nmi"])
-def test_the_analytic_gradient_matches_finite_differences(metric):
-    fixed, moving = _smooth_pair()
-    objective = ParzenObjective(fixed, moving, 16, 2.0, metric, 0.3)
-    matrix = np.array([[1.0, 0.01, 2.5], [-0.01, 1.0, 1.6], [0.0, 0.0, 1.0]])
-    value, gradient = objective.value_and_gradient(matrix)
-    assert value == pytest.approx(objective.value(matrix))
-    for row, column, size in ((0, 2, 1.0), (1, 2, 1.0), (0, 0, 140.0), (0, 1, 100.0), (1, 0, 140.0), (1, 1, 100.0)):
-        step = np.zeros((3, 3))
-        step[row, column] = 0.1 / size  # a tenth of a pixel at the far side of the image
-        difference = (objective.value(matrix + step) - objective.value(matrix - step)) / (2 * step[row, column])
-        assert gradient[row, column] == pytest.approx(difference, rel=0.04, abs=1e-3 * np.abs(gradient).max())
-
-
-def test_the_parzen_objective_is_minus_infinity_below_the_overlap_and_refuses_other_metrics():
-    fixed, moving = _smooth_pair()
-    far = np.array([[1.0, 0.0, 100.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]])  # 60 of 140 columns on the fixed image
-    objective = ParzenObjective(fixed, moving, 16, 2.0, "nmi", 0.5)
-    assert objective.value(far) == -np.inf and objective.value_and_gradient(far)[0] == -np.inf
-    with pytest.raises(ValueError, match="affine"):
-        objective.value_and_gradient(np.array([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [1e-3, 0.0, 1.0]]))
-    with pytest.raises(ValueError, match="MI or NMI"):
-        ParzenObjective(fixed, moving, 16, 2.0, "ngf", 0.3)
