@@ -119,3 +119,20 @@ def test_bad_input_is_refused_with_a_sentence(call, message):
 
 def test_empty_histogram_has_zero_information():
     assert information_from_histogram(np.zeros((4, 4))) == (0.0, 1.0)
+
+
+def test_histograms_against_one_window_do_not_depend_on_the_previous_ones():
+    rng = np.random.default_rng(9)
+    moving = quantize(rng.random((30, 40)), 8)
+    first, second = (quantize(rng.random((30, 40)), 8) for _ in range(2))
+    second[:10] = -1.0
+    window = moving_window(moving, 8)  # its work arrays are reused by every histogram
+    expected = windowed_joint_histogram(first, moving_window(moving, 8), 8)
+    windowed_joint_histogram(second, window, 8)
+    np.testing.assert_array_equal(windowed_joint_histogram(first, window, 8), expected)
+
+
+def test_fixed_samples_must_match_the_window():
+    window = moving_window(np.zeros((4, 4), np.float32), 8)
+    with pytest.raises(ValueError, match="must match the moving window's pixels"):
+        windowed_joint_histogram(np.zeros((4, 5), np.float32), window, 8)
