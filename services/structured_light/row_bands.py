@@ -18,13 +18,14 @@ BAND_PIXELS = 1 << 16
 _Result = TypeVar("_Result")
 
 
-def _threads() -> int:
+def thread_count() -> int:
+    """Threads of the pool: one per CPU this process may run on, at most 8."""
     return max(1, min(8, len(os.sched_getaffinity(0))))
 
 
 @lru_cache(maxsize=1)
 def _pool() -> ThreadPoolExecutor:
-    return ThreadPoolExecutor(max_workers=_threads(), thread_name_prefix="row-band")
+    return ThreadPoolExecutor(max_workers=thread_count(), thread_name_prefix="row-band")
 
 
 def row_bands(height: int, width: int, band_pixels: int = BAND_PIXELS) -> list[slice]:
@@ -37,7 +38,11 @@ def map_row_bands(function: Callable[[slice], _Result], height: int, width: int,
                   band_pixels: int = BAND_PIXELS) -> list[_Result]:
     """``function(rows)`` for each of :func:`row_bands`, on the process's pool of one thread per CPU;
     the results in band order. ``function`` must only write rows of its own band."""
-    bands = row_bands(height, width, band_pixels)
-    if len(bands) == 1 or _threads() == 1:
+    return map_bands(function, row_bands(height, width, band_pixels))
+
+
+def map_bands(function: Callable[[slice], _Result], bands: list[slice]) -> list[_Result]:
+    """``function(rows)`` for each band of rows, on the pool; the results in band order."""
+    if len(bands) == 1 or thread_count() == 1:
         return [function(rows) for rows in bands]
     return list(_pool().map(function, bands))
