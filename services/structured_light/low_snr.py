@@ -126,9 +126,9 @@ def _refined_values(padded_coordinates, padded_modulation, rows, cols, centre, s
     fitted = (count >= _MIN_NEIGHBOURS) & (determinant > 0.0)
     # The outlier test's sigma, scaled by the fit's reduced chi-square when the plane misfits (a curved
     # coordinate field at a limb), so that model error is not taken for a decoding error.
-    residual = values64 - intercept[:, None] - slope_u[:, None] * dx - slope_v[:, None] * dy
-    chi_square = np.where(kept, weights * residual * residual, 0.0).sum(axis=1)
     with np.errstate(divide="ignore", invalid="ignore"):
+        residual = values64 - intercept[:, None] - slope_u[:, None] * dx - slope_v[:, None] * dy
+        chi_square = np.where(kept, weights * residual * residual, 0.0).sum(axis=1)
         reduced = chi_square / (noise_scale * noise_scale * (count - 3))
     inflation = np.where(reduced > 1.0, np.sqrt(np.maximum(reduced, 1.0)), 1.0)
     accepted = fitted & (np.abs(centre[again] - intercept) <= _OUTLIER_SIGMAS * sigma[again] * inflation)
