@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from services.geometry.rigid import rigid_transform
+
 
 def opencv_distortion_terms(dist: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Split OpenCV distortion coefficients into the 12 polynomial terms and the 3x3 sensor-tilt matrix.
@@ -85,8 +87,7 @@ def project_with_distortion(points: np.ndarray, K: np.ndarray, dist: np.ndarray,
                             t: np.ndarray) -> np.ndarray:
     """Pixels of world points (NaN behind the device) by :func:`distorted_pixels`; see ``camera.project_points``."""
     terms, tilt = opencv_distortion_terms(dist)
-    device = np.asarray(points, dtype=np.float64) @ np.asarray(R, dtype=np.float64).T
-    device += np.asarray(t, dtype=np.float64).ravel()
+    device = rigid_transform(points, R, np.asarray(t, dtype=np.float64).ravel())
     with np.errstate(divide="ignore", invalid="ignore"):
         z = np.where(device[:, 2] > 0.0, device[:, 2], np.nan)
         u, v = distorted_pixels(device[:, 0] / z, device[:, 1] / z, np.asarray(K, dtype=np.float64), terms, tilt)

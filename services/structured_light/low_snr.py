@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import cv2
 import numpy as np
 
 from services.structured_light.row_bands import map_bands
@@ -70,15 +71,19 @@ def _neighbour_difference_medians(padded: np.ndarray, rows: np.ndarray, cols: np
     return _finite_medians(horizontal, 0.0), _finite_medians(vertical, 0.0)
 
 
+def _row_moments(rows: np.ndarray, basis: np.ndarray) -> np.ndarray:
+    """rows @ basis.T by OpenCV: numpy hands it to the multithreaded BLAS, which on a busy machine spins its
+    threads for tens of times the work (see ``services.geometry.rigid``)."""
+    return cv2.transform(np.ascontiguousarray(rows).reshape(len(rows), 1, -1), basis).reshape(len(rows), -1)
+
+
 def _plane_fits(values, weights, dx, dy, kept):
     """Weighted least-squares planes v = a + b dx + c dy through each row's ``kept`` values: the
     intercepts a, the slopes b and c, and the determinant of the normal equations (0 or less: no fit)."""
     w = np.where(kept, weights, 0.0)
     v = np.where(kept, values, 0.0)
-    s00, s01, s02 = w.sum(axis=1), w @ dx, w @ dy
-    s11, s12, s22 = w @ (dx * dx), w @ (dx * dy), w @ (dy * dy)
-    wv = w * v
-    b0, b1, b2 = wv.sum(axis=1), wv @ dx, wv @ dy
+    s00, s01, s02, s11, s12, s22 = _row_moments(w, np.stack([np.ones_like(dx), dx, dy, dx * dx, dx * dy, dy * dy])).T
+    b0, b1, b2 = _row_moments(w * v, np.stack([np.ones_like(dx), dx, dy])).T
     m00, m01, m02 = s11 * s22 - s12 * s12, s01 * s22 - s12 * s02, s01 * s12 - s11 * s02
     determinant = s00 * m00 - s01 * m01 + s02 * m02
     with np.errstate(divide="ignore", invalid="ignore"):

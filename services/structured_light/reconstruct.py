@@ -149,26 +149,32 @@ def remove_speckles(coordinates: np.ndarray, max_step: float, max_speckle_px: in
     return kept
 
 
-def _normals_at(points: np.ndarray, width: int, pixels: np.ndarray, camera_centre: np.ndarray) -> np.ndarray:
-    """(N, 3) float32 normals (see :func:`surface_normals`) at flat pixel indices of the flat (H * W, 3)
-    point map ``points``: four gathers of the neighbours, where the whole map's slices would compute
-    normals for every pixel, decoded or not."""
-    height = len(points) // width
-    row, col = np.divmod(pixels, width)
-    border = (row == 0) | (row == height - 1) | (col == 0) | (col == width - 1)
-    a = np.take(points, np.minimum(pixels + 1, len(points) - 1), axis=0)
-    a -= np.take(points, np.maximum(pixels - 1, 0), axis=0)
-    b = np.take(points, np.minimum(pixels + width, len(points) - 1), axis=0)
+def _normals_at(points: np.ndarray, width: int, pixels: np.ndarray, row: np.ndarray, col: np.ndarray,
+                centre: np.ndarray, camera_centre: np.ndarray, out: np.ndarray) -> None:
+    """Normals (see :func:`surface_normals`) into the (3, N) ``out`` at flat pixel indices ``pixels`` (at
+    ``row``, ``col``, points ``centre``) of the flat (H * W, 3) point map ``points``: gathers of the four
+    neighbours, where slices of the whole map would compute normals for every pixel, decoded or not."""
+    last = len(points) - 1
+    a = np.take(points, np.minimum(pixels + 1, last), axis=0)  # the border's neighbours are clipped or
+    a -= np.take(points, np.maximum(pixels - 1, 0), axis=0)  # wrapped; their normals are NaN below
+    b = np.take(points, np.minimum(pixels + width, last), axis=0)
     b -= np.take(points, np.maximum(pixels - width, 0), axis=0)
-    normals = np.cross(a, b)  # border pixels read clipped or wrapped neighbours, and are NaN below
-    norm = np.sqrt(np.einsum("ij,ij->i", normals, normals))
-    towards_camera = np.asarray(camera_centre, np.float32) - np.take(points, pixels, axis=0)
-    facing = np.einsum("ij,ij->i", normals, towards_camera)
+    (ax, ay, az), (bx, by, bz) = a.T, b.T
+    nx, ny, nz = out
+    np.multiply(ay, bz, out=nx)
+    nx -= az * by
+    np.multiply(az, bx, out=ny)
+    ny -= ax * bz
+    np.multiply(ax, by, out=nz)
+    nz -= ay * bx
+    norm = np.sqrt(nx * nx + ny * ny + nz * nz)
+    towards_camera = np.float32(camera_centre) - centre
+    facing = nx * towards_camera[:, 0] + ny * towards_camera[:, 1] + nz * towards_camera[:, 2]
     with np.errstate(divide="ignore", invalid="ignore"):
         scale = np.where(facing >= 0, np.float32(1.0), np.float32(-1.0)) / norm
-    scale[border | ~(norm > 0.0)] = np.nan  # also NaN: a neighbour is missing
-    normals *= scale[:, None]
-    return normals
+    height = len(points) // width
+    scale[(row == 0) | (row == height - 1) | (col == 0) | (col == width - 1) | ~(norm > 0.0)] = np.nan
+    out *= scale  # NaN also where a neighbour is missing
 
 
 def surface_normals(points_map: np.ndarray, camera_centre: np.ndarray) -> np.ndarray:
@@ -191,15 +197,15 @@ def surface_normals(points_map: np.ndarray, camera_centre: np.ndarray) -> np.nda
     n = (P(u+1, v) - P(u-1, v)) x (P(u, v+1) - P(u, v-1)), normalised and flipped so that
     n . (C - P) > 0.
     """
-    points_map = np.ascontiguousarray(points_map, dtype=np.float32)
+    points = np.ascontiguousarray(points_map, dtype=np.float32).reshape(-1, 3)
     height, width = points_map.shape[:2]
-    return _normals_at(points_map.reshape(-1, 3), width, np.arange(height * width),
-                       camera_centre).reshape(points_map.shape)
+    pixels = np.arange(height * width)
+    normals = np.empty((3, len(pixels)), dtype=np.float32)
+    _normals_at(points, width, pixels, *np.divmod(pixels, width), points, camera_centre, normals)
+    return np.ascontiguousarray(normals.T).reshape(points_map.shape)
 
 
 _CLOUD_FIELDS = ("x", "y", "z", "nx", "ny", "nz", "u", "v", "projector", "quality", "modulation", "intensity")
-
-
 _CLOUD_CHUNK_POINTS = 1 << 16  # points gathered per task on the thread pool
 
 
@@ -215,9 +221,10 @@ def _cloud(points_map: np.ndarray, camera_centre: np.ndarray, coordinates: np.nd
 
     def gather_chunk(chunk: slice) -> None:
         here = pixels[chunk]
-        columns[0:3, chunk] = np.take(points, here, axis=0).T
-        columns[3:6, chunk] = _normals_at(points, width, here, camera_centre).T
+        centre = np.take(points, here, axis=0)
+        columns[0:3, chunk] = centre.T
         v, u = np.divmod(here, width)
+        _normals_at(points, width, here, v, u, centre, camera_centre, columns[3:6, chunk])
         columns[6, chunk], columns[7, chunk] = u, v
         for row, image in enumerate(properties, start=8):
             columns[row, chunk] = np.take(image, here)

@@ -14,6 +14,7 @@ import numpy as np
 from services.geometry.camera import normalized_coordinates, pixel_grid
 from services.geometry.camera_model import CameraModel
 from services.geometry.distortion import distorted_pixels, opencv_distortion_terms
+from services.geometry.rigid import rigid_transform
 from services.structured_light.row_bands import map_row_bands
 
 _NEWTON_ITERATIONS = 12
@@ -146,9 +147,9 @@ def triangulate(
     centre, origin, rotation, camera_to_world = _geometry(camera_R, camera_t, projector_R, projector_t)
     terms, tilt = opencv_distortion_terms(projector_dist)
     rays = np.column_stack([camera_rays.astype(np.float64), np.ones(len(camera_rays))])
-    s = _exact_ray_parameters(rays @ rotation.T, projector_coordinates, origin, np.asarray(projector_K, np.float64),
-                              terms, tilt, _AXES[axis])
-    return (centre + s[:, None] * (rays @ camera_to_world.T)).astype(np.float32)
+    s = _exact_ray_parameters(rigid_transform(rays, rotation, np.zeros(3)), projector_coordinates, origin,
+                              np.asarray(projector_K, np.float64), terms, tilt, _AXES[axis])
+    return (centre + s[:, None] * rigid_transform(rays, camera_to_world, np.zeros(3))).astype(np.float32)
 
 
 _LINE_NODES = 256  # epipolar lines sampled across the camera's view; the cell check guards the accuracy
@@ -211,7 +212,7 @@ def _reference_coordinate(origin: np.ndarray, axis: int) -> float:
 def _line_intercepts(rays, origin, rotation, reference, axis):
     """Other normalised coordinate at which the epipolar line of each ray o + s d (projector frame)
     crosses coded coordinate ``reference``: the line is l = o x d in homogeneous coordinates."""
-    d = rays.astype(np.float64) @ rotation[:, :2].T + rotation[:, 2]
+    d = cv2.transform(rays.astype(np.float64).reshape(-1, 1, 2), rotation).reshape(-1, 3)  # rotation @ (x, y, 1)
     line = np.cross(origin, d)
     l_coded, l_other = (line[:, 0], line[:, 1]) if axis == 0 else (line[:, 1], line[:, 0])
     with np.errstate(divide="ignore", invalid="ignore"):
@@ -361,8 +362,8 @@ _CELL_CORNERS: dict[int, tuple[TriangulationTable, np.ndarray]] = {}
 
 
 def _affine(pixel: np.ndarray, matrix: np.ndarray) -> np.ndarray:
-    """matrix @ (line, x, y, 1) of each ``pixel_geometry`` row, by OpenCV (several times numpy's speed on
-    rows of three), in the dtype of ``pixel``."""
+    """matrix @ (line, x, y, 1) of each ``pixel_geometry`` row, by OpenCV, in the dtype of ``pixel`` (see
+    :func:`~services.geometry.rigid.rigid_transform` for why not numpy's matmul)."""
     return cv2.transform(pixel.reshape(-1, 1, 3), matrix).reshape(len(pixel), -1)
 
 
@@ -392,9 +393,9 @@ def _ray_parameters(table: TriangulationTable, coordinate: np.ndarray, pixel: np
         s[~((s > 0.0) & (o[2] + s * d_z > 0.0))] = np.nan
     exact = np.flatnonzero(np.isnan(n))
     if exact.size:  # outside the table or where it interpolates too coarsely: the exact solver
-        rays = np.column_stack([pixel[exact, _RAY_X:].astype(np.float64), np.ones(exact.size)])
-        s[exact] = _exact_ray_parameters(rays @ table.rotation.T, coordinate[exact], o, table.projector_K,
-                                         table.distortion_terms, table.tilt, axis)
+        s[exact] = _exact_ray_parameters(_affine(pixel[exact], np.column_stack([np.zeros(3), table.rotation])),
+                                         coordinate[exact], o, table.projector_K, table.distortion_terms, table.tilt,
+                                         axis)
     return s
 
 
