@@ -189,21 +189,25 @@ def refine_low_snr(coordinates: np.ndarray, modulation: np.ndarray, noise_scale:
         raise ValueError("coordinates and modulation must have the same shape.")
     if radius < 1:
         raise ValueError(f"The window radius must be at least 1 pixel; got {radius}.")
-    coordinates = np.asarray(coordinates, dtype=np.float32)
-    modulation = np.asarray(modulation, dtype=np.float32)
+    coordinates = np.ascontiguousarray(coordinates, dtype=np.float32)
+    modulation = np.ascontiguousarray(modulation, dtype=np.float32)
     with np.errstate(divide="ignore", invalid="ignore"):
         weak = noise_scale / modulation > threshold  # NaN modulation: not refined
-    rows, cols = np.nonzero(np.isfinite(coordinates) & weak)
+    pixels = np.flatnonzero(np.isfinite(coordinates) & weak)
     refined = coordinates.copy()
-    if rows.size == 0:
+    if pixels.size == 0:
         return refined
-    padded_coordinates = np.pad(coordinates, radius, constant_values=np.nan)
-    padded_modulation = np.pad(modulation, radius, constant_values=np.nan)
+    padded_coordinates, padded_modulation = (
+        cv2.copyMakeBorder(image, radius, radius, radius, radius, cv2.BORDER_CONSTANT, value=np.nan)
+        for image in (coordinates, modulation))
 
     def refine_chunk(chunk: slice) -> None:
-        r, c = rows[chunk], cols[chunk]
-        refined[r, c] = _refined_values(padded_coordinates, padded_modulation, r, c, coordinates[r, c].astype(np.float64),
-                                        noise_scale / modulation[r, c].astype(np.float64), float(noise_scale), int(radius), float(max_step))
+        here = pixels[chunk]
+        rows, cols = np.divmod(here, coordinates.shape[1])
+        refined.reshape(-1)[here] = _refined_values(
+            padded_coordinates, padded_modulation, rows, cols, np.take(coordinates, here).astype(np.float64),
+            noise_scale / np.take(modulation, here).astype(np.float64), float(noise_scale), int(radius),
+            float(max_step))
 
-    map_bands(refine_chunk, [slice(first, first + _CHUNK_PIXELS) for first in range(0, rows.size, _CHUNK_PIXELS)])
+    map_bands(refine_chunk, [slice(first, first + _CHUNK_PIXELS) for first in range(0, pixels.size, _CHUNK_PIXELS)])
     return refined

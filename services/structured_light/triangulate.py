@@ -367,16 +367,18 @@ def _affine(pixel: np.ndarray, matrix: np.ndarray) -> np.ndarray:
     return cv2.transform(pixel.reshape(-1, 1, 3), matrix).reshape(len(pixel), -1)
 
 
-def _ray_parameters(table: TriangulationTable, coordinate: np.ndarray, pixel: np.ndarray) -> np.ndarray:
-    """Ray parameters of decoded pixels (``coordinate`` and their ``pixel_geometry`` rows) by the table:
-    the bilinear lookup of the (small) offset in float32, the rest in float64."""
+def _ray_parameters(table: TriangulationTable, corners: np.ndarray, coordinate: np.ndarray,
+                    pixel: np.ndarray) -> np.ndarray:
+    """Ray parameters of decoded pixels (``coordinate`` and their ``pixel_geometry`` rows) by the table
+    (and its :func:`_cell_corners`): the bilinear lookup of the (small) offset in float32, the rest in
+    float64."""
     axis = _AXES[table.axis]
     cells, lines = table.exact_cells.shape
     fq = pixel[:, _LINE].astype(np.float32)
     with np.errstate(invalid="ignore"):
         q, c = fq.astype(np.int32), (coordinate + np.float32(1.0)).astype(np.int32)
         inside = (fq >= 0.0) & (fq < lines) & (coordinate >= -1.0) & (coordinate < cells - 1)  # False where NaN
-    corner = np.take(_cell_corners(table), np.where(inside, c * lines + q, cells * lines), axis=0)
+    corner = np.take(corners, np.where(inside, c * lines + q, cells * lines), axis=0)
     # both differences are exact in float32 (Sterbenz), so the lookup adds no rounding to the coordinate
     wq, wc = fq - q, coordinate - (c - 1)
     top = corner[:, 0] + wq * (corner[:, 1] - corner[:, 0])
@@ -399,11 +401,12 @@ def _ray_parameters(table: TriangulationTable, coordinate: np.ndarray, pixel: np
     return s
 
 
-def _triangulate_pixels(table: TriangulationTable, coordinate: np.ndarray, pixel: np.ndarray) -> np.ndarray:
+def _triangulate_pixels(table: TriangulationTable, corners: np.ndarray, coordinate: np.ndarray,
+                        pixel: np.ndarray) -> np.ndarray:
     """(N, 3) float32 world points of decoded pixels, from their coordinates and ``pixel_geometry`` rows
     (computed in float64, then rounded once)."""
     pixel = pixel.astype(np.float64)
-    s = _ray_parameters(table, coordinate, pixel)
+    s = _ray_parameters(table, corners, coordinate, pixel)
     to_world = np.zeros((3, 4))
     to_world[:, 1:] = table.camera_to_world
     points = _affine(pixel, to_world)  # the ray direction in the world
@@ -440,6 +443,7 @@ def triangulate_map(table: TriangulationTable, coordinates: np.ndarray) -> np.nd
     coordinates = np.ascontiguousarray(coordinates, dtype=np.float32).reshape(-1)
     geometry = table.pixel_geometry.reshape(-1, 3)
     points_map = np.empty((height * width, 3), dtype=np.float32)
+    corners = _cell_corners(table)
 
     def triangulate_band(rows: slice) -> None:
         band = slice(rows.start * width, rows.stop * width)
@@ -447,7 +451,8 @@ def triangulate_map(table: TriangulationTable, coordinates: np.ndarray) -> np.nd
         out.fill(np.nan)
         decoded = np.flatnonzero(np.isfinite(coordinates[band]))
         if decoded.size:
-            points = _triangulate_pixels(table, coordinates[band][decoded], np.take(geometry[band], decoded, axis=0))
+            points = _triangulate_pixels(table, corners, coordinates[band][decoded],
+                                         np.take(geometry[band], decoded, axis=0))
             np.put(out.view(_POINT).reshape(-1), decoded, points.view(_POINT))
 
     map_row_bands(triangulate_band, height, width)
