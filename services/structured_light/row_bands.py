@@ -28,6 +28,9 @@ def _pool() -> ThreadPoolExecutor:
     return ThreadPoolExecutor(max_workers=thread_count(), thread_name_prefix="row-band")
 
 
+os.register_at_fork(after_in_child=_pool.cache_clear)  # a forked child has none of the parent's threads
+
+
 def row_bands(height: int, width: int, band_pixels: int = BAND_PIXELS) -> list[slice]:
     """Consecutive slices of rows of an image, each of about ``band_pixels`` pixels (at least one row)."""
     rows = max(1, band_pixels // max(1, width))
