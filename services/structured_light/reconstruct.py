@@ -14,8 +14,8 @@ from services.structured_light.decode import DecodedCapture, decode
 from services.structured_light.glow import WINDOW_SIGMA_PX as GLOW_WINDOW_SIGMA_PX
 from services.structured_light.glow import GlowReport, decode_glowing
 from services.structured_light.low_snr import estimate_camera_noise, phase_noise_scale, refine_low_snr
-from services.structured_light.row_bands import map_bands, thread_count
 from services.structured_light.outline import ASSUMED_CAMERA_BLUR_PX, estimate_camera_blur, outline_corrected
+from services.structured_light.row_bands import map_bands, thread_count
 from services.structured_light.triangulate import TriangulationTable, triangulate_map, triangulation_table
 
 
@@ -168,8 +168,8 @@ def _normals_at(points: np.ndarray, width: int, pixels: np.ndarray, row: np.ndar
     np.multiply(ax, by, out=nz)
     nz -= ay * bx
     norm = np.sqrt(nx * nx + ny * ny + nz * nz)
-    towards_camera = np.float32(camera_centre) - centre
-    facing = nx * towards_camera[:, 0] + ny * towards_camera[:, 1] + nz * towards_camera[:, 2]
+    # n . (C - P), per column: numpy broadcasts over rows of three slowly
+    facing = sum(n * (np.float32(c) - p) for n, c, p in zip(out, camera_centre, centre.T, strict=True))
     with np.errstate(divide="ignore", invalid="ignore"):
         scale = np.where(facing >= 0, np.float32(1.0), np.float32(-1.0)) / norm
     height = len(points) // width
