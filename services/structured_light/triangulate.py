@@ -362,8 +362,9 @@ _CELL_CORNERS: dict[int, tuple[TriangulationTable, np.ndarray]] = {}
 
 
 def _affine(pixel: np.ndarray, matrix: np.ndarray) -> np.ndarray:
-    """matrix @ (line, x, y, 1) of each ``pixel_geometry`` row, by OpenCV, in the dtype of ``pixel`` (see
-    :func:`~services.geometry.rigid.rigid_transform` for why not numpy's matmul)."""
+    """(3, 4) ``matrix`` @ (line, x, y, 1) of each ``pixel_geometry`` row, by OpenCV, in the dtype of ``pixel``
+    (see :func:`~services.geometry.rigid.rigid_transform` for why not numpy's matmul; OpenCV's three-row
+    transform is also twenty times faster than its two-row one)."""
     return cv2.transform(pixel.reshape(-1, 1, 3), matrix).reshape(len(pixel), -1)
 
 
@@ -385,19 +386,16 @@ def _ray_parameters(table: TriangulationTable, corners: np.ndarray, coordinate: 
     bottom = corner[:, 2] + wq * (corner[:, 3] - corner[:, 2])
     n = (coordinate.astype(np.float64) - table.projector_K[axis, 2]) / table.projector_K[axis, axis]
     n += top + wc * (bottom - top)
-    direction = np.zeros((2, 4))
-    direction[:, 1:] = table.rotation[[axis, 2]]
-    d = _affine(pixel, direction)  # the ray's coded and z components, projector frame
-    d_axis, d_z = d[:, 0], d[:, 1]
+    d = _affine(pixel, np.column_stack([np.zeros(3), table.rotation]))  # the ray in the projector frame
+    d_axis, d_z = d[:, axis], d[:, 2]
     o = table.origin
     with np.errstate(divide="ignore", invalid="ignore"):
         s = (n * o[2] - o[axis]) / (d_axis - n * d_z)
         s[~((s > 0.0) & (o[2] + s * d_z > 0.0))] = np.nan
     exact = np.flatnonzero(np.isnan(n))
     if exact.size:  # outside the table or where it interpolates too coarsely: the exact solver
-        s[exact] = _exact_ray_parameters(_affine(pixel[exact], np.column_stack([np.zeros(3), table.rotation])),
-                                         coordinate[exact], o, table.projector_K, table.distortion_terms, table.tilt,
-                                         axis)
+        s[exact] = _exact_ray_parameters(d[exact], coordinate[exact], o, table.projector_K, table.distortion_terms,
+                                         table.tilt, axis)
     return s
 
 
