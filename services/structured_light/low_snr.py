@@ -89,11 +89,13 @@ def _plane_fits(values, weights, dx, dy, kept):
     with np.errstate(divide="ignore", invalid="ignore"):
         intercept = (b0 * m00 - s01 * (b1 * s22 - s12 * b2) + s02 * (b1 * s12 - s11 * b2)) / determinant
         slope_u = (s00 * (b1 * s22 - s12 * b2) - b0 * m01 + s02 * (s01 * b2 - b1 * s02)) / determinant
-        slope_v = (s00 * (s11 * b2 - b1 * s12) - s01 * (s01 * b2 - b1 * s02) + b0 * (s01 * s12 - s11 * s02)) / determinant
+        slope_v = (s00 * (s11 * b2 - b1 * s12) - s01 * (s01 * b2 - b1 * s02)
+                   + b0 * (s01 * s12 - s11 * s02)) / determinant
     return intercept, slope_u, slope_v, determinant
 
 
-def _refined_values(padded_coordinates, padded_modulation, rows, cols, centre, sigma, noise_scale, radius, max_step):
+def _refined_values(padded_coordinates, padded_modulation, rows, cols, centre, sigma, noise_scale, radius,
+                    max_step):
     """The refined coordinate of each weak pixel (NaN where rejected): the plain then the detrended fit,
     as :func:`refine_low_snr` describes."""
     size = 2 * radius + 1
