@@ -98,7 +98,12 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--repeats", type=int, default=7)
     parser.add_argument("--out", type=Path, help="also write the table as Markdown")
+    parser.add_argument("--only", choices=["reconstruct"],
+                        help="time only this command and its baseline (reconstruct: against the numpy decoder)")
     args = parser.parse_args()
+    if args.only == "reconstruct":
+        _reconstruct_only(args.repeats, args.out)
+        return
     from benchmarks.bench_registration import simpleitk_register
 
     with tempfile.TemporaryDirectory() as scratch:
@@ -147,6 +152,35 @@ def main() -> None:
     print(text)
     if args.out:
         args.out.write_text(text + "\n")
+
+
+def _reconstruct_only(repeats: int, out: Path | None) -> None:
+    """``--only reconstruct``: the later runs of ``thermofield reconstruct`` against the numpy decoder."""
+    with tempfile.TemporaryDirectory() as scratch:
+        work = Path(scratch)
+        env = os.environ | {"PYTHONPATH": str(ROOT), "XDG_CACHE_HOME": str(work / "cache")}
+        rig, capture, _ = _make_capture(work)
+        reconstruct = _thermofield("reconstruct", "--rig", rig, "--captures", capture, "--out", work / "c.ply")
+        baseline = [sys.executable, str(ROOT / "benchmarks" / "numpy_decoder.py"), str(rig), str(capture),
+                    str(work / "b.ply")]
+        first_reconstruct = _seconds(reconstruct, env)
+        times: dict[str, list[float]] = {"reconstruct": [], "numpy decoder": []}
+        for _ in range(repeats):
+            times["reconstruct"].append(_seconds(reconstruct, env))
+            times["numpy decoder"].append(_seconds(baseline, env))
+    median = {name: statistics.median(values) for name, values in times.items()}
+    load = os.getloadavg()
+    text = "\n".join([
+        f"Medians of {repeats} runs, whole processes; load average {load[0]:.1f} / {load[1]:.1f} / {load[2]:.1f} "
+        f"(1/5/15 min) on {os.cpu_count()} cores while it ran.", "",
+        "| what | seconds | ratio in the same run | target |", "|---|---|---|---|",
+        f"| `thermofield reconstruct`, first run (builds the table) | {first_reconstruct:.3f} |  |  |",
+        f"| `thermofield reconstruct`, later runs (table from the cache) | {median['reconstruct']:.3f} | "
+        f"{median['reconstruct'] / median['numpy decoder']:.2f}x the numpy decoder | at most 1x |",
+        f"| `python benchmarks/numpy_decoder.py` (baseline) | {median['numpy decoder']:.3f} |  |  |"])
+    print(text)
+    if out:
+        out.write_text(text + "\n")
 
 
 if __name__ == "__main__":

@@ -25,16 +25,20 @@ def as_cloud(cloud: PointCloud | Mapping[str, np.ndarray]) -> PointCloud:
     return cloud if isinstance(cloud, PointCloud) else PointCloud(dict(cloud))
 
 
-def cloud_to_ply(cloud: PointCloud | Mapping[str, np.ndarray]) -> bytes:
+def _ply_data(cloud: PointCloud) -> PlyData:
     """The binary little-endian PLY of a cloud's per-vertex properties, units and comments."""
-    cloud = as_cloud(cloud)
     vertices = np.empty(len(cloud), dtype=[(name, values.dtype.newbyteorder("<").str)
                                            for name, values in cloud.items()])
     for name, values in cloud.items():
         vertices[name] = values
     comments = [*cloud.comments, *(f"{_UNIT_COMMENT}{name} {unit}" for name, unit in cloud.units.items())]
+    return PlyData([PlyElement.describe(vertices, "vertex")], text=False, byte_order="<", comments=comments)
+
+
+def cloud_to_ply(cloud: PointCloud | Mapping[str, np.ndarray]) -> bytes:
+    """The binary little-endian PLY of a cloud's per-vertex properties, units and comments."""
     buffer = io.BytesIO()
-    PlyData([PlyElement.describe(vertices, "vertex")], text=False, byte_order="<", comments=comments).write(buffer)
+    _ply_data(as_cloud(cloud)).write(buffer)
     return buffer.getvalue()
 
 
@@ -59,16 +63,17 @@ def cloud_from_ply(data: bytes, source: str = "PLY") -> PointCloud:
 
 def write_cloud(path: str | Path, cloud: PointCloud | Mapping[str, np.ndarray],
                 comments: list[str] | None = None) -> None:
-    """Write a cloud as a binary PLY; the file appears atomically (written beside the target and renamed).
+    """Write a cloud as a binary PLY (as :func:`cloud_to_ply`); the file appears atomically (written beside the
+    target and renamed).
 
     ``comments`` replace the cloud's own when given.
     """
     cloud = as_cloud(cloud)
     if comments is not None:
         cloud = cloud.with_properties(comments=tuple(comments))
-    data = cloud_to_ply(cloud)
-    with atomic_output(path) as temporary:
-        temporary.write_bytes(data)
+    ply = _ply_data(cloud)
+    with atomic_output(path) as temporary, temporary.open("wb") as file:
+        ply.write(file)  # straight from the vertex array, without the bytes of cloud_to_ply
 
 
 def read_cloud(path: str | Path) -> PointCloud:

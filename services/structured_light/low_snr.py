@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
-import numba
+import cv2
 import numpy as np
+
+from services.structured_light.row_bands import map_bands
 
 _MIN_NEIGHBOURS = 6
 _OUTLIER_SIGMAS = 4.0
@@ -47,129 +49,101 @@ def estimate_camera_noise(modulation: np.ndarray, quality: np.ndarray, steps: in
     return float(np.sqrt(np.median(steps * b**2 * (1 - q) / (2 * q * (steps - 3)))))
 
 
-@numba.njit(cache=True, inline="always")
-def _median_in_place(values, n):
-    """Median of values[:n], sorting them in place: an insertion sort of at most 25 values costs less
-    than the copy that ``np.median`` allocates per call."""
-    for i in range(1, n):
-        value = values[i]
-        j = i - 1
-        while j >= 0 and values[j] > value:
-            values[j + 1] = values[j]
-            j -= 1
-        values[j + 1] = value
-    return values[n // 2] if n % 2 else 0.5 * (values[n // 2 - 1] + values[n // 2])
+def _finite_medians(values: np.ndarray, default: float = np.nan) -> np.ndarray:
+    """Median of the finite values of each row (the mean of the middle two for an even count); ``default``
+    for a row without one. Sorting puts NaN last, so the finite values lead each sorted row."""
+    ordered = np.sort(values, axis=1)
+    count = np.count_nonzero(np.isfinite(ordered), axis=1)
+    rows = np.arange(len(values))
+    upper = ordered[rows, np.minimum(count // 2, values.shape[1] - 1)].astype(np.float64)
+    lower = ordered[rows, np.maximum(count - 1, 0) // 2].astype(np.float64)
+    return np.where(count > 0, 0.5 * (lower + upper), default)
 
 
-@numba.njit(cache=True, inline="always")
-def _median_neighbour_differences(coordinates, row, col, radius, buffer):
-    """The window's median coordinate differences between horizontal and between vertical neighbours."""
-    height, width = coordinates.shape
-    m = 0
-    for r in range(max(0, row - radius), min(height, row + radius + 1)):
-        for c in range(max(0, col - radius), min(width - 1, col + radius)):
-            if np.isfinite(coordinates[r, c]) and np.isfinite(coordinates[r, c + 1]):
-                buffer[m] = coordinates[r, c + 1] - coordinates[r, c]
-                m += 1
-    slope_x = _median_in_place(buffer, m) if m > 0 else 0.0
-    m = 0
-    for r in range(max(0, row - radius), min(height - 1, row + radius)):
-        for c in range(max(0, col - radius), min(width, col + radius + 1)):
-            if np.isfinite(coordinates[r, c]) and np.isfinite(coordinates[r + 1, c]):
-                buffer[m] = coordinates[r + 1, c] - coordinates[r, c]
-                m += 1
-    slope_y = _median_in_place(buffer, m) if m > 0 else 0.0
-    return slope_x, slope_y
+def _neighbour_difference_medians(padded: np.ndarray, rows: np.ndarray, cols: np.ndarray,
+                                  radius: int) -> tuple[np.ndarray, np.ndarray]:
+    """Per pixel, the window's median coordinate differences between horizontal and between vertical
+    neighbours (0 where there are none), from the NaN-padded coordinates."""
+    size = 2 * radius + 1
+    window = np.lib.stride_tricks.sliding_window_view(padded, (size, size))[rows, cols]
+    horizontal = (window[:, :, 1:] - window[:, :, :-1]).reshape(len(rows), -1)
+    vertical = (window[:, 1:, :] - window[:, :-1, :]).reshape(len(rows), -1)
+    return _finite_medians(horizontal, 0.0), _finite_medians(vertical, 0.0)
 
 
-# Hand-written with numba: a robust weighted plane fit per weak pixel has no vectorised library form.
-@numba.njit(parallel=True, cache=True)
-def _refine_kernel(coordinates, modulation, noise_scale, threshold, radius, max_step, out):
-    height, width = coordinates.shape
-    window = (2 * radius + 1) ** 2
-    for row in numba.prange(height):
-        values = np.empty(window, dtype=np.float32)
-        ordered = np.empty(window, dtype=np.float32)
-        differences = np.empty(window, dtype=np.float32)
-        dxs = np.empty(window)
-        dys = np.empty(window)
-        ws = np.empty(window)
-        trend = np.empty(window)
-        for col in range(width):
-            centre = coordinates[row, col]
-            out[row, col] = centre
-            sigma = noise_scale / modulation[row, col]  # NaN modulation: not refined
-            if not (np.isfinite(centre) and sigma > threshold):
-                continue
-            n = 0
-            lowest, highest = np.inf, -np.inf
-            for r in range(max(0, row - radius), min(height, row + radius + 1)):
-                for c in range(max(0, col - radius), min(width, col + radius + 1)):
-                    value = coordinates[r, c]
-                    if np.isfinite(value):
-                        values[n] = value
-                        dxs[n] = c - col
-                        dys[n] = r - row
-                        ws[n] = modulation[r, c] * modulation[r, c] if np.isfinite(modulation[r, c]) else 0.0
-                        ordered[n] = value
-                        lowest, highest = min(lowest, value), max(highest, value)
-                        n += 1
-            # Decoding errors jump by a period from the locally linear field. First the plain test against the
-            # window's median; where it leaves too few neighbours or calls the pixel an outlier (a steep or
-            # curved field at a limb changes by more than max_step across the window), the detrended one.
-            for i in range(n):
-                trend[i] = 0.0
-            # In a window spanning at most max_step every value passes whatever the median: skip sorting.
-            median = _median_in_place(ordered, n) if highest - lowest > max_step else lowest
-            for detrended in (False, True):
-                if detrended:
-                    slope_x, slope_y = _median_neighbour_differences(coordinates, row, col, radius, differences)
-                    for i in range(n):
-                        trend[i] = slope_x * dxs[i] + slope_y * dys[i]
-                        ordered[i] = values[i] - trend[i]
-                    median = _median_in_place(ordered, n)
-                s00 = s01 = s02 = s11 = s12 = s22 = b0 = b1 = b2 = 0.0
-                kept = 0
-                for i in range(n):
-                    if abs(values[i] - trend[i] - median) > max_step:
-                        continue
-                    w, x, y, v = ws[i], dxs[i], dys[i], values[i]
-                    s00 += w
-                    s01 += w * x
-                    s02 += w * y
-                    s11 += w * x * x
-                    s12 += w * x * y
-                    s22 += w * y * y
-                    b0 += w * v
-                    b1 += w * x * v
-                    b2 += w * y * v
-                    kept += 1
-                determinant = (s00 * (s11 * s22 - s12 * s12) - s01 * (s01 * s22 - s12 * s02)
-                               + s02 * (s01 * s12 - s11 * s02))
-                out[row, col] = np.nan
-                if kept < _MIN_NEIGHBOURS or not determinant > 0.0:
-                    continue
-                intercept = (b0 * (s11 * s22 - s12 * s12) - s01 * (b1 * s22 - s12 * b2)
-                             + s02 * (b1 * s12 - s11 * b2)) / determinant
-                # The outlier test's sigma, scaled by the fit's reduced chi-square when the plane misfits (a
-                # curved coordinate field at a limb), so that model error is not taken for a decoding error.
-                inflation = 1.0
-                if detrended and kept > 3:
-                    slope_u = (s00 * (b1 * s22 - s12 * b2) - b0 * (s01 * s22 - s12 * s02)
-                               + s02 * (s01 * b2 - b1 * s02)) / determinant
-                    slope_v = (s00 * (s11 * b2 - b1 * s12) - s01 * (s01 * b2 - b1 * s02)
-                               + b0 * (s01 * s12 - s11 * s02)) / determinant
-                    chi_square = 0.0
-                    for i in range(n):
-                        if abs(values[i] - trend[i] - median) <= max_step:
-                            residual = values[i] - intercept - slope_u * dxs[i] - slope_v * dys[i]
-                            chi_square += ws[i] * residual * residual
-                    reduced = chi_square / (noise_scale * noise_scale * (kept - 3))
-                    if reduced > 1.0:
-                        inflation = np.sqrt(reduced)
-                if abs(centre - intercept) <= _OUTLIER_SIGMAS * sigma * inflation:
-                    out[row, col] = intercept
-                    break
+def _row_moments(rows: np.ndarray, basis: np.ndarray) -> np.ndarray:
+    """rows @ basis.T by OpenCV: numpy hands it to the multithreaded BLAS, which on a busy machine spins its
+    threads for tens of times the work (see ``services.geometry.rigid``)."""
+    return cv2.transform(np.ascontiguousarray(rows).reshape(len(rows), 1, -1), basis).reshape(len(rows), -1)
+
+
+def _plane_fits(values, weights, dx, dy, kept):
+    """Weighted least-squares planes v = a + b dx + c dy through each row's ``kept`` values: the
+    intercepts a, the slopes b and c, and the determinant of the normal equations (0 or less: no fit)."""
+    w = np.where(kept, weights, 0.0)
+    v = np.where(kept, values, 0.0)
+    s00, s01, s02, s11, s12, s22 = _row_moments(w, np.stack([np.ones_like(dx), dx, dy, dx * dx, dx * dy, dy * dy])).T
+    b0, b1, b2 = _row_moments(w * v, np.stack([np.ones_like(dx), dx, dy])).T
+    m00, m01, m02 = s11 * s22 - s12 * s12, s01 * s22 - s12 * s02, s01 * s12 - s11 * s02
+    determinant = s00 * m00 - s01 * m01 + s02 * m02
+    with np.errstate(divide="ignore", invalid="ignore"):
+        intercept = (b0 * m00 - s01 * (b1 * s22 - s12 * b2) + s02 * (b1 * s12 - s11 * b2)) / determinant
+        slope_u = (s00 * (b1 * s22 - s12 * b2) - b0 * m01 + s02 * (s01 * b2 - b1 * s02)) / determinant
+        slope_v = (s00 * (s11 * b2 - b1 * s12) - s01 * (s01 * b2 - b1 * s02)
+                   + b0 * (s01 * s12 - s11 * s02)) / determinant
+    return intercept, slope_u, slope_v, determinant
+
+
+def _refined_values(padded_coordinates, padded_modulation, rows, cols, centre, sigma, noise_scale, radius,
+                    max_step):
+    """The refined coordinate of each weak pixel (NaN where rejected): the plain then the detrended fit,
+    as :func:`refine_low_snr` describes."""
+    size = 2 * radius + 1
+    window = np.lib.stride_tricks.sliding_window_view
+    values = window(padded_coordinates, (size, size))[rows, cols].reshape(len(rows), -1)
+    modulation = window(padded_modulation, (size, size))[rows, cols].reshape(len(rows), -1)
+    finite = np.isfinite(values)
+    # the weights B^2, rounded to float32 as the modulation is
+    weights = np.where(finite & np.isfinite(modulation), modulation * modulation, 0).astype(np.float64)
+    offsets = np.arange(-radius, radius + 1, dtype=np.float64)
+    dy, dx = np.repeat(offsets, size), np.tile(offsets, size)
+    values64 = values.astype(np.float64)
+    refined = np.full(len(rows), np.nan)
+    # Decoding errors jump by a period from the locally linear field. First the plain test against the
+    # window's median; where it leaves too few neighbours or calls the pixel an outlier (a steep or curved
+    # field at a limb changes by more than max_step across the window), the detrended one.
+    with np.errstate(invalid="ignore"):
+        kept = np.abs(values64 - _finite_medians(values)[:, None]) <= max_step
+    intercept, _, _, determinant = _plane_fits(values64, weights, dx, dy, kept)
+    count = kept.sum(axis=1)
+    plain = (count >= _MIN_NEIGHBOURS) & (determinant > 0.0) & (np.abs(centre - intercept) <= _OUTLIER_SIGMAS * sigma)
+    refined[plain] = intercept[plain]
+    again = np.flatnonzero(~plain)
+    if again.size == 0:
+        return refined
+    slope_x, slope_y = _neighbour_difference_medians(padded_coordinates, rows[again], cols[again], radius)
+    trend = slope_x[:, None] * dx + slope_y[:, None] * dy
+    values64 = values64[again]
+    detrended = (values64 - trend).astype(np.float32)
+    with np.errstate(invalid="ignore"):
+        kept = np.abs(values64 - trend - _finite_medians(detrended)[:, None]) <= max_step
+    weights = weights[again]
+    intercept, slope_u, slope_v, determinant = _plane_fits(values64, weights, dx, dy, kept)
+    count = kept.sum(axis=1)
+    fitted = (count >= _MIN_NEIGHBOURS) & (determinant > 0.0)
+    # The outlier test's sigma, scaled by the fit's reduced chi-square when the plane misfits (a curved
+    # coordinate field at a limb), so that model error is not taken for a decoding error.
+    with np.errstate(divide="ignore", invalid="ignore"):
+        residual = values64 - intercept[:, None] - slope_u[:, None] * dx - slope_v[:, None] * dy
+        chi_square = np.where(kept, weights * residual * residual, 0.0).sum(axis=1)
+        reduced = chi_square / (noise_scale * noise_scale * (count - 3))
+    inflation = np.where(reduced > 1.0, np.sqrt(np.maximum(reduced, 1.0)), 1.0)
+    accepted = fitted & (np.abs(centre[again] - intercept) <= _OUTLIER_SIGMAS * sigma[again] * inflation)
+    refined[again[accepted]] = intercept[accepted]
+    return refined
+
+
+_CHUNK_PIXELS = 1 << 13  # weak pixels refined per task on the thread pool
 
 
 def refine_low_snr(coordinates: np.ndarray, modulation: np.ndarray, noise_scale: float, *,
@@ -217,7 +191,25 @@ def refine_low_snr(coordinates: np.ndarray, modulation: np.ndarray, noise_scale:
         raise ValueError("coordinates and modulation must have the same shape.")
     if radius < 1:
         raise ValueError(f"The window radius must be at least 1 pixel; got {radius}.")
-    refined = np.empty(coordinates.shape, dtype=np.float32)
-    _refine_kernel(np.ascontiguousarray(coordinates, dtype=np.float32), np.ascontiguousarray(modulation, dtype=np.float32),
-                   float(noise_scale), float(threshold), int(radius), float(max_step), refined)
+    coordinates = np.ascontiguousarray(coordinates, dtype=np.float32)
+    modulation = np.ascontiguousarray(modulation, dtype=np.float32)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        weak = noise_scale / modulation > threshold  # NaN modulation: not refined
+    pixels = np.flatnonzero(np.isfinite(coordinates) & weak)
+    refined = coordinates.copy()
+    if pixels.size == 0:
+        return refined
+    padded_coordinates, padded_modulation = (
+        cv2.copyMakeBorder(image, radius, radius, radius, radius, cv2.BORDER_CONSTANT, value=np.nan)
+        for image in (coordinates, modulation))
+
+    def refine_chunk(chunk: slice) -> None:
+        here = pixels[chunk]
+        rows, cols = np.divmod(here, coordinates.shape[1])
+        refined.reshape(-1)[here] = _refined_values(
+            padded_coordinates, padded_modulation, rows, cols, np.take(coordinates, here).astype(np.float64),
+            noise_scale / np.take(modulation, here).astype(np.float64), float(noise_scale), int(radius),
+            float(max_step))
+
+    map_bands(refine_chunk, [slice(first, first + _CHUNK_PIXELS) for first in range(0, pixels.size, _CHUNK_PIXELS)])
     return refined

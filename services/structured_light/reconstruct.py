@@ -4,18 +4,18 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-import numba
+import cv2
 import numpy as np
 
 from services.formats.sequence import Sequence
 from services.geometry.camera_model import CameraModel
 from services.geometry.cloud import PointCloud
-from services.numba_options import SAFE_FASTMATH
 from services.structured_light.decode import DecodedCapture, decode
 from services.structured_light.glow import WINDOW_SIGMA_PX as GLOW_WINDOW_SIGMA_PX
 from services.structured_light.glow import GlowReport, decode_glowing
 from services.structured_light.low_snr import estimate_camera_noise, phase_noise_scale, refine_low_snr
 from services.structured_light.outline import ASSUMED_CAMERA_BLUR_PX, estimate_camera_blur, outline_corrected
+from services.structured_light.row_bands import map_bands, thread_count
 from services.structured_light.triangulate import TriangulationTable, triangulate_map, triangulation_table
 
 
@@ -70,67 +70,39 @@ def _refined_coordinates(decoded: DecodedCapture, sequence: Sequence, axis: str,
                           max_step=finest.period / 4)
 
 
-# Hand-written with numba: OpenCV's filterSpeckles is the same flood fill, but serial and on 16-bit
-# integers; here it runs on the float coordinates in horizontal bands, one per thread.
-@numba.njit(cache=True)
-def _band_speckles(coordinates, top, bottom, first, last, max_step, max_speckle_px, out):
-    """Flood-fill rows top..bottom of the coordinates and write rows first..last of ``out``, NaN on the
-    regions of at most ``max_speckle_px`` pixels."""
-    width = coordinates.shape[1]
-    values = coordinates[top:bottom].ravel()
-    n = values.size
-    labels = np.zeros(n, np.int32)
-    region_size = np.empty(n + 1, np.int32)  # room for the most regions: an array grown in the loop costs 5x
-    stack = np.empty(n, np.int32)  # flat indices of the pixels to visit, and their columns
-    stack_col = np.empty(n, np.int32)
-    regions = 0
-    for row in range(first, last):
-        for col in range(width):
-            seed = (row - top) * width + col
-            value = values[seed]
-            out[row, col] = value
-            if not np.isfinite(value):
-                continue
-            label = labels[seed]
-            if label == 0:
-                regions += 1
-                label = regions
-                labels[seed], stack[0], stack_col[0] = label, seed, col
-                depth, size = 1, 0
-                while depth > 0:
-                    depth -= 1
-                    p, c = stack[depth], stack_col[depth]
-                    size += 1
-                    here = values[p]
-                    # the four neighbours, joined where their coordinates differ by at most max_step (not NaN)
-                    q = p - width
-                    if p >= width and labels[q] == 0 and abs(values[q] - here) <= max_step:
-                        labels[q], stack[depth], stack_col[depth] = label, q, c
-                        depth += 1
-                    q = p + width
-                    if q < n and labels[q] == 0 and abs(values[q] - here) <= max_step:
-                        labels[q], stack[depth], stack_col[depth] = label, q, c
-                        depth += 1
-                    q = p - 1
-                    if c > 0 and labels[q] == 0 and abs(values[q] - here) <= max_step:
-                        labels[q], stack[depth], stack_col[depth] = label, q, c - 1
-                        depth += 1
-                    q = p + 1
-                    if c + 1 < width and labels[q] == 0 and abs(values[q] - here) <= max_step:
-                        labels[q], stack[depth], stack_col[depth] = label, q, c + 1
-                        depth += 1
-                region_size[label] = size
-            if region_size[label] <= max_speckle_px:
-                out[row, col] = np.nan
+def _speckle_mask(coordinates: np.ndarray, max_step: float, max_speckle_px: int) -> np.ndarray:
+    """Where the coordinates lie in regions of at most ``max_speckle_px`` pixels.
+
+    OpenCV labels the regions (its ``filterSpeckles`` does the same flood fill, but on 16-bit integers):
+    on a grid of twice the resolution whose even cells are the pixels and whose cells between two pixels
+    are set where these join, 4-connected components are the regions.
+    """
+    height, width = coordinates.shape
+    graph = np.zeros((2 * height - 1, 2 * width - 1), np.uint8)
+    graph[::2, ::2] = np.isfinite(coordinates)
+    with np.errstate(invalid="ignore"):  # NaN never joins
+        graph[::2, 1::2] = np.abs(np.diff(coordinates, axis=1)) <= max_step
+        graph[1::2, ::2] = np.abs(np.diff(coordinates, axis=0)) <= max_step
+    count, labels = cv2.connectedComponentsWithAlgorithm(graph, 4, cv2.CV_32S, cv2.CCL_BOLELLI)
+    pixel_labels = labels[::2, ::2]
+    speckles = np.bincount(pixel_labels.ravel(), minlength=count) <= max_speckle_px
+    speckles[0] = False  # the background: NaN already
+    return speckles[pixel_labels]
 
 
-@numba.njit(parallel=True, cache=True)
-def _speckles_kernel(coordinates, bands, max_step, max_speckle_px, out):
+def _speckles_in_bands(coordinates: np.ndarray, bands: int, max_step: float, max_speckle_px: int,
+                       out: np.ndarray) -> None:
+    """:func:`remove_speckles` into ``out``, the image labelled in ``bands`` bands of rows on the thread
+    pool, each with ``max_speckle_px`` rows of context on either side."""
     height = coordinates.shape[0]
-    for band in numba.prange(bands):
-        first, last = band * height // bands, (band + 1) * height // bands
-        _band_speckles(coordinates, max(0, first - max_speckle_px), min(height, last + max_speckle_px),
-                       first, last, max_step, max_speckle_px, out)
+
+    def band_without_speckles(rows: slice) -> None:
+        top, bottom = max(0, rows.start - max_speckle_px), min(height, rows.stop + max_speckle_px)
+        speckles = _speckle_mask(coordinates[top:bottom], max_step, max_speckle_px)
+        out[rows] = np.where(speckles[rows.start - top:rows.stop - top], np.float32(np.nan), coordinates[rows])
+
+    map_bands(band_without_speckles,
+              [slice(band * height // bands, (band + 1) * height // bands) for band in range(bands)])
 
 
 def remove_speckles(coordinates: np.ndarray, max_step: float, max_speckle_px: int = 25) -> np.ndarray:
@@ -155,7 +127,8 @@ def remove_speckles(coordinates: np.ndarray, max_step: float, max_speckle_px: in
     Pixels are grouped by 4-connected flood fill where neighbours differ by at most ``max_step``; a
     decoding error (a misread high Gray bit, an unwrapping slip) produces an island that differs from its
     surroundings by at least a period and is removed, like OpenCV's speckle filter for disparity maps
-    (``filterSpeckles``) [1]_. The image is filled in horizontal bands in parallel, each with
+    (``filterSpeckles``) [1]_, here labelled by OpenCV's connected components on a grid that holds the
+    pixels and the joins between them. The image is labelled in horizontal bands in parallel, each with
     ``max_speckle_px`` rows of context on either side, which gives exactly the whole image's result: a
     speckle spans at most that many rows, so it lies whole within the context of any band it touches, and a
     larger region that leaves the context spans more rows than that inside it.
@@ -171,42 +144,37 @@ def remove_speckles(coordinates: np.ndarray, max_step: float, max_speckle_px: in
     if max_speckle_px < 1:
         raise ValueError(f"max_speckle_px must be at least 1 pixel; got {max_speckle_px}.")
     kept = np.empty_like(coordinates)
-    bands = min(numba.get_num_threads(), coordinates.shape[0] // (4 * max_speckle_px) + 1)
-    _speckles_kernel(coordinates, bands, float(max_step), int(max_speckle_px), kept)
+    bands = min(thread_count(), coordinates.shape[0] // (4 * max_speckle_px) + 1)
+    _speckles_in_bands(coordinates, bands, float(max_step), int(max_speckle_px), kept)
     return kept
 
 
-# Hand-written with numba: normals are needed only at the valid pixels, and numpy's cross products over
-# the whole map cost several times more.
-@numba.njit(cache=True, inline="always")
-def _normal_at(points_map, row, col, camera_centre, out):
-    """Central-difference normal at one pixel of an organised point map, facing the camera; NaN when a
-    neighbour is missing or the pixel is on the border."""
-    height, width = points_map.shape[:2]
-    out[0] = out[1] = out[2] = np.nan
-    if row == 0 or col == 0 or row == height - 1 or col == width - 1:
-        return
-    ax = points_map[row, col + 1, 0] - points_map[row, col - 1, 0]
-    ay = points_map[row, col + 1, 1] - points_map[row, col - 1, 1]
-    az = points_map[row, col + 1, 2] - points_map[row, col - 1, 2]
-    bx = points_map[row + 1, col, 0] - points_map[row - 1, col, 0]
-    by = points_map[row + 1, col, 1] - points_map[row - 1, col, 1]
-    bz = points_map[row + 1, col, 2] - points_map[row - 1, col, 2]
-    nx, ny, nz = ay * bz - az * by, az * bx - ax * bz, ax * by - ay * bx
+def _normals_at(points: np.ndarray, width: int, pixels: np.ndarray, row: np.ndarray, col: np.ndarray,
+                centre: np.ndarray, camera_centre: np.ndarray, out: np.ndarray) -> None:
+    """Normals (see :func:`surface_normals`) into the (3, N) ``out`` at flat pixel indices ``pixels`` (at
+    ``row``, ``col``, points ``centre``) of the flat (H * W, 3) point map ``points``: gathers of the four
+    neighbours, where slices of the whole map would compute normals for every pixel, decoded or not."""
+    last = len(points) - 1
+    a = np.take(points, np.minimum(pixels + 1, last), axis=0)  # the border's neighbours are clipped or
+    a -= np.take(points, np.maximum(pixels - 1, 0), axis=0)  # wrapped; their normals are NaN below
+    b = np.take(points, np.minimum(pixels + width, last), axis=0)
+    b -= np.take(points, np.maximum(pixels - width, 0), axis=0)
+    (ax, ay, az), (bx, by, bz) = a.T, b.T
+    nx, ny, nz = out
+    np.multiply(ay, bz, out=nx)
+    nx -= az * by
+    np.multiply(az, bx, out=ny)
+    ny -= ax * bz
+    np.multiply(ax, by, out=nz)
+    nz -= ay * bx
     norm = np.sqrt(nx * nx + ny * ny + nz * nz)
-    if not norm > 0.0:  # also NaN: a neighbour is missing
-        return
-    facing = (nx * (camera_centre[0] - points_map[row, col, 0]) + ny * (camera_centre[1] - points_map[row, col, 1])
-              + nz * (camera_centre[2] - points_map[row, col, 2]))
-    scale = (1.0 if facing >= 0 else -1.0) / norm
-    out[0], out[1], out[2] = scale * nx, scale * ny, scale * nz
-
-
-@numba.njit(parallel=True, cache=True, fastmath=SAFE_FASTMATH)
-def _normals_kernel(points_map, camera_centre, out):
-    for row in numba.prange(points_map.shape[0]):
-        for col in range(points_map.shape[1]):
-            _normal_at(points_map, row, col, camera_centre, out[row, col])
+    # n . (C - P), per column: numpy broadcasts over rows of three slowly
+    facing = sum(n * (np.float32(c) - p) for n, c, p in zip(out, camera_centre, centre.T, strict=True))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        scale = np.where(facing >= 0, np.float32(1.0), np.float32(-1.0)) / norm
+    height = len(points) // width
+    scale[(row == 0) | (row == height - 1) | (col == 0) | (col == width - 1) | ~(norm > 0.0)] = np.nan
+    out *= scale  # NaN also where a neighbour is missing
 
 
 def surface_normals(points_map: np.ndarray, camera_centre: np.ndarray) -> np.ndarray:
@@ -229,52 +197,40 @@ def surface_normals(points_map: np.ndarray, camera_centre: np.ndarray) -> np.nda
     n = (P(u+1, v) - P(u-1, v)) x (P(u, v+1) - P(u, v-1)), normalised and flipped so that
     n . (C - P) > 0.
     """
-    normals = np.empty(points_map.shape, dtype=np.float32)
-    _normals_kernel(np.ascontiguousarray(points_map, dtype=np.float32), np.asarray(camera_centre, np.float64),
-                    normals)
-    return normals
+    points = np.ascontiguousarray(points_map, dtype=np.float32).reshape(-1, 3)
+    height, width = points_map.shape[:2]
+    pixels = np.arange(height * width)
+    normals = np.empty((3, len(pixels)), dtype=np.float32)
+    _normals_at(points, width, pixels, *np.divmod(pixels, width), points, camera_centre, normals)
+    return np.ascontiguousarray(normals.T).reshape(points_map.shape)
 
 
 _CLOUD_FIELDS = ("x", "y", "z", "nx", "ny", "nz", "u", "v", "projector", "quality", "modulation", "intensity")
-
-
-# Hand-written with numba: the cloud is gathered from the maps in one parallel pass, each row written
-# from its offset, where numpy would gather twelve arrays one by one through an index array.
-@numba.njit(parallel=True, cache=True, fastmath=SAFE_FASTMATH)
-def _row_point_counts(points_map, counts):
-    for row in numba.prange(points_map.shape[0]):
-        n = 0
-        for col in range(points_map.shape[1]):
-            n += np.isfinite(points_map[row, col, 0])
-        counts[row] = n
-
-
-@numba.njit(parallel=True, cache=True, fastmath=SAFE_FASTMATH)
-def _cloud_kernel(points_map, row_starts, camera_centre, coordinates, quality, modulation, intensity, out):
-    for row in numba.prange(points_map.shape[0]):
-        i = row_starts[row]
-        normal = np.empty(3, dtype=np.float32)
-        for col in range(points_map.shape[1]):
-            if not np.isfinite(points_map[row, col, 0]):
-                continue
-            _normal_at(points_map, row, col, camera_centre, normal)
-            out[0, i], out[1, i], out[2, i] = points_map[row, col, 0], points_map[row, col, 1], points_map[row, col, 2]
-            out[3, i], out[4, i], out[5, i] = normal[0], normal[1], normal[2]
-            out[6, i], out[7, i] = col, row
-            out[8, i], out[9, i] = coordinates[row, col], quality[row, col]
-            out[10, i], out[11, i] = modulation[row, col], intensity[row, col]
-            i += 1
+_CLOUD_CHUNK_POINTS = 1 << 16  # points gathered per task on the thread pool
 
 
 def _cloud(points_map: np.ndarray, camera_centre: np.ndarray, coordinates: np.ndarray,
            decoded: DecodedCapture) -> PointCloud:
     """The reconstructed pixels of the point map with their normals and decoding properties, in raster order."""
-    counts = np.empty(points_map.shape[0], dtype=np.int64)
-    _row_point_counts(points_map, counts)
-    row_starts = np.concatenate([[0], np.cumsum(counts)])
-    columns = np.empty((len(_CLOUD_FIELDS), row_starts[-1]), dtype=np.float32)
-    _cloud_kernel(points_map, row_starts, camera_centre, coordinates, decoded.quality, decoded.modulation,
-                  decoded.intensity, columns)
+    height, width = points_map.shape[:2]
+    points = points_map.reshape(-1, 3)
+    pixels = np.flatnonzero(np.isfinite(points[:, 0]))
+    columns = np.empty((len(_CLOUD_FIELDS), len(pixels)), dtype=np.float32)
+    properties = [np.ascontiguousarray(image, dtype=np.float32).reshape(-1)
+                  for image in (coordinates, decoded.quality, decoded.modulation, decoded.intensity)]
+
+    def gather_chunk(chunk: slice) -> None:
+        here = pixels[chunk]
+        centre = np.take(points, here, axis=0)
+        columns[0:3, chunk] = centre.T
+        v, u = np.divmod(here, width)
+        _normals_at(points, width, here, v, u, centre, camera_centre, columns[3:6, chunk])
+        columns[6, chunk], columns[7, chunk] = u, v
+        for row, image in enumerate(properties, start=8):
+            columns[row, chunk] = np.take(image, here)
+
+    map_bands(gather_chunk, [slice(first, first + _CLOUD_CHUNK_POINTS)
+                             for first in range(0, len(pixels), _CLOUD_CHUNK_POINTS)])
     return PointCloud(dict(zip(_CLOUD_FIELDS, columns, strict=True)))
 
 

@@ -8,13 +8,14 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-import numba
+import cv2
 import numpy as np
 
 from services.geometry.camera import normalized_coordinates, pixel_grid
 from services.geometry.camera_model import CameraModel
-from services.geometry.distortion import distorted_pixel, opencv_distortion_terms
-from services.numba_options import SAFE_FASTMATH
+from services.geometry.distortion import distorted_pixels, opencv_distortion_terms
+from services.geometry.rigid import rigid_transform
+from services.structured_light.row_bands import map_row_bands
 
 _NEWTON_ITERATIONS = 12
 _NEWTON_TOLERANCE_PX = 1e-5  # a hundredth of the decoding noise
@@ -34,59 +35,43 @@ def camera_ray_table(K: np.ndarray, dist: np.ndarray, width: int, height: int) -
     return table.astype(np.float32)
 
 
-# Hand-written with numba because each point needs a few Newton steps of the full OpenCV distortion
-# model; cv2.projectPoints per step costs about 10x more on a million points.
-@numba.njit(cache=True, inline="always")
-def _project_coordinate(X, Y, Z, fx, fy, cx, cy, k, tilt, axis):
-    u, v = distorted_pixel(X / Z, Y / Z, fx, fy, cx, cy, k, tilt)
+def _coded_pixel(X, Y, Z, K, terms, tilt, axis):
+    """Distorted projector coordinate along ``axis`` of points in the projector frame."""
+    u, v = distorted_pixels(X / Z, Y / Z, K, terms, tilt)
     return u if axis == 0 else v
 
 
-@numba.njit(cache=True, inline="always")
-def _exact_ray_parameter(dx, dy, dz, coordinate, origin, fx, fy, cx, cy, k, tilt, axis):
-    """Ray parameter s where o + s d (projector frame) meets the coded line through the full distortion
-    model; NaN if it does not in front of both devices."""
-    focal = fx if axis == 0 else fy
-    centre = cx if axis == 0 else cy
-    d_axis = dx if axis == 0 else dy
-    o_axis = origin[0] if axis == 0 else origin[1]
+def _exact_ray_parameters(d, coordinates, origin, K, terms, tilt, axis):
+    """Ray parameters s where o + s d (projector frame, one ray per row of ``d``) meet their coded lines
+    through the full distortion model; NaN where they do not in front of both devices.
+
+    Quasi-Newton on whole arrays: each step works on the rays not yet converged or given up.
+    """
+    focal, centre = K[axis, axis], K[axis, 2]
+    d_axis, d_z = d[:, axis], d[:, 2]
+    o_axis, o_z = origin[axis], origin[2]
+    coordinates = coordinates.astype(np.float64)
     # start on the undistorted projector plane through the coded line
-    n = (coordinate - centre) / focal
-    denominator = d_axis - n * dz
-    s = np.nan
-    if denominator != 0.0:
-        s = (n * origin[2] - o_axis) / denominator
-    for _ in range(_NEWTON_ITERATIONS):
-        if not (s > 0.0):
-            return np.nan
-        Z = origin[2] + s * dz
-        if Z <= 0.0:
-            return np.nan
-        A = o_axis + s * d_axis
-        f = _project_coordinate(origin[0] + s * dx, origin[1] + s * dy, Z, fx, fy, cx, cy, k, tilt, axis) - coordinate
-        # quasi-Newton: the slope of the undistorted projection, which differs from the true slope
-        # by the (small) distortion, so each step still gains a factor of about 1 / distortion
-        slope = focal * (d_axis * Z - A * dz) / (Z * Z)
-        if slope == 0.0:
-            return np.nan
-        s -= f / slope
-        if abs(f) < _NEWTON_TOLERANCE_PX:
-            break
+    n = (coordinates - centre) / focal
+    with np.errstate(divide="ignore", invalid="ignore"):
+        s = (n * o_z - o_axis) / (d_axis - n * d_z)
+        active = np.flatnonzero(np.isfinite(s))
+        s[~np.isfinite(s)] = np.nan
+        for _ in range(_NEWTON_ITERATIONS):
+            if active.size == 0:
+                break
+            si, da, dz = s[active], d_axis[active], d_z[active]
+            Z = o_z + si * dz
+            A = o_axis + si * da
+            f = _coded_pixel(origin[0] + si * d[active, 0], origin[1] + si * d[active, 1], Z, K, terms, tilt,
+                             axis) - coordinates[active]
+            # quasi-Newton: the slope of the undistorted projection, which differs from the true slope by
+            # the (small) distortion, so each step still gains a factor of about 1 / distortion
+            slope = focal * (da * Z - A * dz) / (Z * Z)
+            behind = ~(si > 0.0) | ~(Z > 0.0) | (slope == 0.0)
+            s[active] = np.where(behind, np.nan, si - f / slope)
+            active = active[~behind & ~(np.abs(f) < _NEWTON_TOLERANCE_PX)]
     return s
-
-
-@numba.njit(parallel=True, cache=True)
-def _triangulate_kernel(rays, coordinates, origin, rotation, camera_to_world, centre_world,
-                        fx, fy, cx, cy, k, tilt, axis, out):
-    for i in numba.prange(rays.shape[0]):
-        x, y = rays[i, 0], rays[i, 1]
-        s = _exact_ray_parameter(rotation[0, 0] * x + rotation[0, 1] * y + rotation[0, 2],
-                                 rotation[1, 0] * x + rotation[1, 1] * y + rotation[1, 2],
-                                 rotation[2, 0] * x + rotation[2, 1] * y + rotation[2, 2],
-                                 coordinates[i], origin, fx, fy, cx, cy, k, tilt, axis)
-        for j in range(3):
-            out[i, j] = centre_world[j] + s * (camera_to_world[j, 0] * x + camera_to_world[j, 1] * y
-                                               + camera_to_world[j, 2])
 
 
 def _geometry(camera_R, camera_t, projector_R, projector_t):
@@ -161,11 +146,10 @@ def triangulate(
         )
     centre, origin, rotation, camera_to_world = _geometry(camera_R, camera_t, projector_R, projector_t)
     terms, tilt = opencv_distortion_terms(projector_dist)
-    K = np.asarray(projector_K, dtype=np.float64)
-    points = np.empty((camera_rays.shape[0], 3), dtype=np.float32)
-    _triangulate_kernel(camera_rays, projector_coordinates, origin, rotation, camera_to_world, centre,
-                        K[0, 0], K[1, 1], K[0, 2], K[1, 2], terms, tilt, _AXES[axis], points)
-    return points
+    rays = np.column_stack([camera_rays.astype(np.float64), np.ones(len(camera_rays))])
+    s = _exact_ray_parameters(rigid_transform(rays, rotation, np.zeros(3)), projector_coordinates, origin,
+                              np.asarray(projector_K, np.float64), terms, tilt, _AXES[axis])
+    return (centre + s[:, None] * rigid_transform(rays, camera_to_world, np.zeros(3))).astype(np.float32)
 
 
 _LINE_NODES = 256  # epipolar lines sampled across the camera's view; the cell check guards the accuracy
@@ -225,84 +209,73 @@ def _reference_coordinate(origin: np.ndarray, axis: int) -> float:
     return epipole - 2.0 if epipole >= 0 else epipole + 2.0
 
 
-# Hand-written with numba: no library inverts OpenCV's distortion along an epipolar line or triangulates
-# against such a table, and per-pixel numpy would need a dozen full-image temporaries.
-@numba.njit(cache=True, inline="always")
-def _line_intercept(d_x, d_y, d_z, o_x, o_y, o_z, reference, axis):
-    """Other normalised coordinate at which the epipolar line of the ray o + s d (projector frame) crosses
-    coded coordinate ``reference``: the line is l = o x d in homogeneous coordinates."""
-    l_x = o_y * d_z - o_z * d_y
-    l_y = o_z * d_x - o_x * d_z
-    l_w = o_x * d_y - o_y * d_x
-    l_coded, l_other = (l_x, l_y) if axis == 0 else (l_y, l_x)
-    return -(l_coded * reference + l_w) / l_other if l_other != 0.0 else np.nan
+def _line_intercepts(rays, origin, rotation, reference, axis):
+    """Other normalised coordinate at which the epipolar line of each ray o + s d (projector frame)
+    crosses coded coordinate ``reference``: the line is l = o x d in homogeneous coordinates."""
+    d = cv2.transform(rays.astype(np.float64).reshape(-1, 1, 2), rotation).reshape(-1, 3)  # rotation @ (x, y, 1)
+    line = np.cross(origin, d)
+    l_coded, l_other = (line[:, 0], line[:, 1]) if axis == 0 else (line[:, 1], line[:, 0])
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return np.where(l_other != 0.0, -(l_coded * reference + line[:, 2]) / l_other, np.nan)
 
 
-@numba.njit(parallel=True, cache=True)
-def _line_intercepts_kernel(rays, origin, rotation, reference, axis, out):
-    for i in numba.prange(rays.shape[0]):
-        x, y = np.float64(rays[i, 0]), np.float64(rays[i, 1])
-        d_x = rotation[0, 0] * x + rotation[0, 1] * y + rotation[0, 2]
-        d_y = rotation[1, 0] * x + rotation[1, 1] * y + rotation[1, 2]
-        d_z = rotation[2, 0] * x + rotation[2, 1] * y + rotation[2, 2]
-        out[i] = _line_intercept(d_x, d_y, d_z, origin[0], origin[1], origin[2], reference, axis)
-
-
-@numba.njit(cache=True, inline="always")
-def _coded_pixel_on_line(n, slope, intercept, fx, fy, cx, cy, k, tilt, axis):
-    other = intercept + slope * n
+def _coded_pixel_on_line(n, slope, base, K, terms, tilt, axis):
+    other = base + slope * n
     if axis == 0:
-        return distorted_pixel(n, other, fx, fy, cx, cy, k, tilt)[0]
-    return distorted_pixel(other, n, fx, fy, cx, cy, k, tilt)[1]
+        return distorted_pixels(n, other, K, terms, tilt)[0]
+    return distorted_pixels(other, n, K, terms, tilt)[1]
 
 
-@numba.njit(cache=True)
-def _line_offset(coordinate, intercept, reference, origin, fx, fy, cx, cy, k, tilt, axis):
-    """Undistorted minus pinhole normalised coded coordinate of the point of one epipolar line that the
-    projector shows at ``coordinate``, by Newton's method; NaN if it does not converge."""
+def _line_offsets(coordinates, intercepts, reference, origin, K, terms, tilt, axis):
+    """Undistorted minus pinhole normalised coded coordinate of the points of epipolar lines (named by
+    ``intercepts``) that the projector shows at ``coordinates`` (arrays broadcast together), by Newton's
+    method on whole arrays; NaN where it does not converge."""
     o_coded, o_other = (origin[0], origin[1]) if axis == 0 else (origin[1], origin[0])
     towards_epipole = o_coded - reference * origin[2]
+    coordinates, intercepts = np.broadcast_arrays(np.asarray(coordinates, np.float64),
+                                                  np.asarray(intercepts, np.float64))
+    offsets = np.full(coordinates.shape, np.nan)
     if towards_epipole == 0.0:
-        return np.nan
-    pinhole = (coordinate - (cx if axis == 0 else cy)) / (fx if axis == 0 else fy)
+        return offsets
+    pinhole = ((coordinates - K[axis, 2]) / K[axis, axis]).ravel()
     # the line through (reference, intercept) and the epipole: other = intercept + slope * (n - reference)
-    slope = (o_other - intercept * origin[2]) / towards_epipole
-    base = intercept - slope * reference
-    n, step = pinhole, 1e-7
-    for _ in range(_LINE_SOLVER_ITERATIONS):
-        f = _coded_pixel_on_line(n, slope, base, fx, fy, cx, cy, k, tilt, axis) - coordinate
-        if abs(f) < _LINE_SOLVER_TOLERANCE_PX:
-            return n - pinhole
-        derivative = (_coded_pixel_on_line(n + step, slope, base, fx, fy, cx, cy, k, tilt, axis)
-                      - _coded_pixel_on_line(n - step, slope, base, fx, fy, cx, cy, k, tilt, axis)) / (2 * step)
-        if not derivative != 0.0:
-            return np.nan
-        n -= f / derivative
-    return np.nan
+    slope = ((o_other - intercepts * origin[2]) / towards_epipole).ravel()
+    base = intercepts.ravel() - slope * reference
+    target = coordinates.ravel()
+    n, step = pinhole.copy(), 1e-7
+    active = np.arange(n.size)
+    result = offsets.reshape(-1)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        for _ in range(_LINE_SOLVER_ITERATIONS):
+            if active.size == 0:
+                break
+            ni, si, bi = n[active], slope[active], base[active]
+            f = _coded_pixel_on_line(ni, si, bi, K, terms, tilt, axis) - target[active]
+            converged = np.abs(f) < _LINE_SOLVER_TOLERANCE_PX
+            result[active[converged]] = ni[converged] - pinhole[active[converged]]
+            derivative = (_coded_pixel_on_line(ni + step, si, bi, K, terms, tilt, axis)
+                          - _coded_pixel_on_line(ni - step, si, bi, K, terms, tilt, axis)) / (2 * step)
+            going = ~converged & (derivative != 0.0) & np.isfinite(derivative)
+            n[active] = ni - f / derivative
+            active = active[going]
+    return offsets
 
 
-@numba.njit(parallel=True, cache=True)
-def _line_offsets_kernel(first_line, line_step, reference, origin, fx, fy, cx, cy, k, tilt, axis, offsets,
-                         exact_cells):
-    for c in numba.prange(offsets.shape[0]):
-        for q in range(offsets.shape[1]):
-            offsets[c, q] = _line_offset(c - 1.0, first_line + q * line_step, reference, origin, fx, fy, cx, cy, k,
-                                         tilt, axis)
-    tolerance = _TABLE_TOLERANCE_PX / (fx if axis == 0 else fy)
-    for c in numba.prange(exact_cells.shape[0]):
-        for q in range(exact_cells.shape[1]):
-            # bilinear interpolation of a smooth function errs most at the centre or the edge midpoints
-            centre = _line_offset(c - 0.5, first_line + (q + 0.5) * line_step, reference, origin, fx, fy, cx, cy,
-                                  k, tilt, axis)
-            along_c = _line_offset(c - 0.5, first_line + q * line_step, reference, origin, fx, fy, cx, cy, k,
-                                   tilt, axis)
-            along_q = _line_offset(c - 1.0, first_line + (q + 0.5) * line_step, reference, origin, fx, fy, cx, cy,
-                                   k, tilt, axis)
-            error = max(abs(0.25 * (offsets[c, q] + offsets[c, q + 1] + offsets[c + 1, q] + offsets[c + 1, q + 1])
-                            - centre),
-                        abs(0.5 * (offsets[c, q] + offsets[c + 1, q]) - along_c),
-                        abs(0.5 * (offsets[c, q] + offsets[c, q + 1]) - along_q))
-            exact_cells[c, q] = not error <= tolerance
+def _exact_cells(offsets, first_line, line_step, reference, origin, K, terms, tilt, axis):
+    """Cells where bilinear interpolation of ``offsets`` misses the exact offset at the cell's centre or
+    edge midpoints (where a smooth function's bilinear interpolation errs most) by more than the
+    tolerance, or any of these is NaN."""
+    cells, lines = offsets.shape[0] - 1, offsets.shape[1] - 1
+    c = np.arange(cells)[:, None] - 1.0
+    q = first_line + np.arange(lines)[None, :] * line_step
+    centre = _line_offsets(c + 0.5, q + 0.5 * line_step, reference, origin, K, terms, tilt, axis)
+    along_c = _line_offsets(c + 0.5, q, reference, origin, K, terms, tilt, axis)
+    along_q = _line_offsets(c, q + 0.5 * line_step, reference, origin, K, terms, tilt, axis)
+    o = offsets.astype(np.float64)
+    error = np.maximum.reduce([np.abs(0.25 * (o[:-1, :-1] + o[:-1, 1:] + o[1:, :-1] + o[1:, 1:]) - centre),
+                               np.abs(0.5 * (o[:-1, :-1] + o[1:, :-1]) - along_c),
+                               np.abs(0.5 * (o[:-1, :-1] + o[:-1, 1:]) - along_q)])
+    return ~(error <= _TABLE_TOLERANCE_PX / K[axis, axis])
 
 
 def triangulation_table(camera: CameraModel, projector: CameraModel, axis: str) -> TriangulationTable:
@@ -347,8 +320,7 @@ def triangulation_table(camera: CameraModel, projector: CameraModel, axis: str) 
     rays = camera_ray_table(camera.K, camera.dist, width, height).reshape(-1, 2)
     centre, origin, rotation, camera_to_world = _geometry(camera.R, camera.t, projector.R, projector.t)
     reference = _reference_coordinate(origin, a)
-    intercepts = np.empty(len(rays))
-    _line_intercepts_kernel(rays, origin, rotation, reference, a, intercepts)
+    intercepts = _line_intercepts(rays, origin, rotation, reference, a)
     finite = intercepts[np.isfinite(intercepts)]
     if finite.size == 0:
         raise ValueError(f"Every epipolar line runs along projector {axis}, so no pixel can be triangulated "
@@ -358,12 +330,12 @@ def triangulation_table(camera: CameraModel, projector: CameraModel, axis: str) 
     geometry = np.empty((height, width, 3), dtype=np.float32)
     geometry[..., _LINE] = ((intercepts - first) / step).reshape(height, width)
     geometry[..., _RAY_X:] = rays.reshape(height, width, 2)
-    K = np.array(projector.K)
+    K = np.array(projector.K, dtype=np.float64)
     terms, tilt = opencv_distortion_terms(projector.dist)
-    offsets = np.empty((projector.size[a] + 2, _LINE_NODES), dtype=np.float32)
-    exact_cells = np.empty((projector.size[a] + 1, _LINE_NODES - 1), dtype=np.bool_)
-    _line_offsets_kernel(first, step, reference, origin, K[0, 0], K[1, 1], K[0, 2], K[1, 2], terms, tilt, a, offsets,
-                         exact_cells)
+    coded = np.arange(-1, projector.size[a] + 1)[:, None]
+    lines = first + np.arange(_LINE_NODES)[None, :] * step
+    offsets = _line_offsets(coded, lines, reference, origin, K, terms, tilt, a).astype(np.float32)
+    exact_cells = _exact_cells(offsets, first, step, reference, origin, K, terms, tilt, a)
     return TriangulationTable(
         axis=axis, pixel_geometry=geometry, line_offsets=offsets, exact_cells=exact_cells, origin=origin,
         rotation=rotation, camera_to_world=camera_to_world, centre_world=centre, projector_K=K,
@@ -371,54 +343,78 @@ def triangulation_table(camera: CameraModel, projector: CameraModel, axis: str) 
     )
 
 
-@numba.njit(cache=True)
-def _exactly_solved_ray_parameter(dx, dy, dz, coordinate, origin, fx, fy, cx, cy, k, tilt, axis):
-    """:func:`_exact_ray_parameter` as a call, keeping the table loop small."""
-    return _exact_ray_parameter(dx, dy, dz, coordinate, origin, fx, fy, cx, cy, k, tilt, axis)
+def _cell_corners(table: TriangulationTable) -> np.ndarray:
+    """The four ``line_offsets`` of each table cell, (c, q), (c, q + 1), (c + 1, q), (c + 1, q + 1), as one
+    row per cell so that a pixel's bilinear lookup is one gather; NaN for the cells to solve exactly, and a
+    last row of NaN for the pixels outside the table."""
+    corners = _CELL_CORNERS.get(id(table))
+    if corners is None or corners[0] is not table:
+        offsets = table.line_offsets
+        rows = np.stack([offsets[:-1, :-1], offsets[:-1, 1:], offsets[1:, :-1], offsets[1:, 1:]], axis=-1)
+        rows[table.exact_cells] = np.nan
+        corners = (table, np.concatenate([rows.reshape(-1, 4), np.full((1, 4), np.nan, np.float32)]))
+        _CELL_CORNERS.clear()  # one calibration at a time: a process rarely triangulates against two
+        _CELL_CORNERS[id(table)] = corners
+    return corners[1]
 
 
-@numba.njit(parallel=True, cache=True, fastmath=SAFE_FASTMATH)
-def _triangulate_map_kernel(geometry, coordinates, line_offsets, exact_cells, origin, rotation, camera_to_world,
-                            centre_world, fx, fy, cx, cy, k, tilt, axis, out):
-    height, width = coordinates.shape
-    cells, lines = exact_cells.shape
-    inverse_focal = 1.0 / (fx if axis == 0 else fy)
-    principal = cx if axis == 0 else cy
-    o_axis, o_z = origin[axis], origin[2]
-    # scalars, so that the loop does not reload them from arrays that ``out`` might alias
-    ra0, ra1, ra2 = rotation[axis, 0], rotation[axis, 1], rotation[axis, 2]
-    rz0, rz1, rz2 = rotation[2, 0], rotation[2, 1], rotation[2, 2]
-    wx0, wx1, wx2 = camera_to_world[0, 0], camera_to_world[0, 1], camera_to_world[0, 2]
-    wy0, wy1, wy2 = camera_to_world[1, 0], camera_to_world[1, 1], camera_to_world[1, 2]
-    wz0, wz1, wz2 = camera_to_world[2, 0], camera_to_world[2, 1], camera_to_world[2, 2]
-    c_x, c_y, c_z = centre_world[0], centre_world[1], centre_world[2]
-    for row in numba.prange(height):
-        for col in range(width):
-            coordinate = coordinates[row, col]
-            x, y = np.float64(geometry[row, col, _RAY_X]), np.float64(geometry[row, col, _RAY_Y])
-            s = np.nan
-            if np.isfinite(coordinate):
-                fq = geometry[row, col, _LINE]
-                fc = coordinate + 1.0
-                if fq >= 0.0 and fq < lines and fc >= 0.0 and fc < cells and not exact_cells[int(fc), int(fq)]:
-                    q, c = int(fq), int(fc)
-                    wq, wc = fq - q, fc - c
-                    offset = ((1.0 - wc) * ((1.0 - wq) * line_offsets[c, q] + wq * line_offsets[c, q + 1])
-                              + wc * ((1.0 - wq) * line_offsets[c + 1, q] + wq * line_offsets[c + 1, q + 1]))
-                    n = (coordinate - principal) * inverse_focal + offset
-                    d_z = rz0 * x + rz1 * y + rz2
-                    s = (n * o_z - o_axis) / (ra0 * x + ra1 * y + ra2 - n * d_z)
-                    if not (s > 0.0 and o_z + s * d_z > 0.0):
-                        s = np.nan
-                else:
-                    s = _exactly_solved_ray_parameter(
-                        rotation[0, 0] * x + rotation[0, 1] * y + rotation[0, 2],
-                        rotation[1, 0] * x + rotation[1, 1] * y + rotation[1, 2],
-                        rotation[2, 0] * x + rotation[2, 1] * y + rotation[2, 2],
-                        coordinate, origin, fx, fy, cx, cy, k, tilt, axis)
-            out[row, col, 0] = c_x + s * (wx0 * x + wx1 * y + wx2)
-            out[row, col, 1] = c_y + s * (wy0 * x + wy1 * y + wy2)
-            out[row, col, 2] = c_z + s * (wz0 * x + wz1 * y + wz2)
+_CELL_CORNERS: dict[int, tuple[TriangulationTable, np.ndarray]] = {}
+
+
+def _affine(pixel: np.ndarray, matrix: np.ndarray) -> np.ndarray:
+    """(3, 4) ``matrix`` @ (line, x, y, 1) of each ``pixel_geometry`` row, by OpenCV, in the dtype of ``pixel``
+    (see :func:`~services.geometry.rigid.rigid_transform` for why not numpy's matmul; OpenCV's three-row
+    transform is also twenty times faster than its two-row one)."""
+    return cv2.transform(pixel.reshape(-1, 1, 3), matrix).reshape(len(pixel), -1)
+
+
+def _ray_parameters(table: TriangulationTable, corners: np.ndarray, coordinate: np.ndarray,
+                    pixel: np.ndarray) -> np.ndarray:
+    """Ray parameters of decoded pixels (``coordinate`` and their ``pixel_geometry`` rows) by the table
+    (and its :func:`_cell_corners`): the bilinear lookup of the (small) offset in float32, the rest in
+    float64."""
+    axis = _AXES[table.axis]
+    cells, lines = table.exact_cells.shape
+    fq = pixel[:, _LINE].astype(np.float32)
+    with np.errstate(invalid="ignore"):
+        q, c = fq.astype(np.int32), (coordinate + np.float32(1.0)).astype(np.int32)
+        inside = (fq >= 0.0) & (fq < lines) & (coordinate >= -1.0) & (coordinate < cells - 1)  # False where NaN
+    corner = np.take(corners, np.where(inside, c * lines + q, cells * lines), axis=0)
+    # both differences are exact in float32 (Sterbenz), so the lookup adds no rounding to the coordinate
+    wq, wc = fq - q, coordinate - (c - 1)
+    top = corner[:, 0] + wq * (corner[:, 1] - corner[:, 0])
+    bottom = corner[:, 2] + wq * (corner[:, 3] - corner[:, 2])
+    n = (coordinate.astype(np.float64) - table.projector_K[axis, 2]) / table.projector_K[axis, axis]
+    n += top + wc * (bottom - top)
+    d = _affine(pixel, np.column_stack([np.zeros(3), table.rotation]))  # the ray in the projector frame
+    d_axis, d_z = d[:, axis], d[:, 2]
+    o = table.origin
+    with np.errstate(divide="ignore", invalid="ignore"):
+        s = (n * o[2] - o[axis]) / (d_axis - n * d_z)
+        s[~((s > 0.0) & (o[2] + s * d_z > 0.0))] = np.nan
+    exact = np.flatnonzero(np.isnan(n))
+    if exact.size:  # outside the table or where it interpolates too coarsely: the exact solver
+        s[exact] = _exact_ray_parameters(d[exact], coordinate[exact], o, table.projector_K, table.distortion_terms,
+                                         table.tilt, axis)
+    return s
+
+
+def _triangulate_pixels(table: TriangulationTable, corners: np.ndarray, coordinate: np.ndarray,
+                        pixel: np.ndarray) -> np.ndarray:
+    """(N, 3) float32 world points of decoded pixels, from their coordinates and ``pixel_geometry`` rows
+    (computed in float64, then rounded once)."""
+    pixel = pixel.astype(np.float64)
+    s = _ray_parameters(table, corners, coordinate, pixel)
+    to_world = np.zeros((3, 4))
+    to_world[:, 1:] = table.camera_to_world
+    points = _affine(pixel, to_world)  # the ray direction in the world
+    for j in range(3):  # per column: numpy broadcasts over rows of three slowly
+        points[:, j] *= s
+        points[:, j] += table.centre_world[j]
+    return points.astype(np.float32)
+
+
+_POINT = np.dtype((np.void, 12))  # a float32 point as one item, so that numpy scatters whole points
 
 
 def triangulate_map(table: TriangulationTable, coordinates: np.ndarray) -> np.ndarray:
@@ -441,11 +437,21 @@ def triangulate_map(table: TriangulationTable, coordinates: np.ndarray) -> np.nd
         raise ValueError(f"The coordinate map is {coordinates.shape[1]}x{coordinates.shape[0]} but the "
                          f"triangulation table is for a {table.pixel_geometry.shape[1]}x"
                          f"{table.pixel_geometry.shape[0]} camera.")
-    K = table.projector_K
-    points_map = np.empty((*coordinates.shape, 3), dtype=np.float32)
-    _triangulate_map_kernel(table.pixel_geometry, np.ascontiguousarray(coordinates, dtype=np.float32),
-                            table.line_offsets, table.exact_cells, table.origin, table.rotation,
-                            table.camera_to_world, table.centre_world,
-                            K[0, 0], K[1, 1], K[0, 2], K[1, 2], table.distortion_terms, table.tilt,
-                            _AXES[table.axis], points_map)
-    return points_map
+    height, width = coordinates.shape
+    coordinates = np.ascontiguousarray(coordinates, dtype=np.float32).reshape(-1)
+    geometry = table.pixel_geometry.reshape(-1, 3)
+    points_map = np.empty((height * width, 3), dtype=np.float32)
+    corners = _cell_corners(table)
+
+    def triangulate_band(rows: slice) -> None:
+        band = slice(rows.start * width, rows.stop * width)
+        out = points_map[band]
+        out.fill(np.nan)
+        decoded = np.flatnonzero(np.isfinite(coordinates[band]))
+        if decoded.size:
+            points = _triangulate_pixels(table, corners, coordinates[band][decoded],
+                                         np.take(geometry[band], decoded, axis=0))
+            np.put(out.view(_POINT).reshape(-1), decoded, points.view(_POINT))
+
+    map_row_bands(triangulate_band, height, width)
+    return points_map.reshape(height, width, 3)

@@ -8,7 +8,7 @@ from services.simulation.presets import PAPER_SPHERE_CENTRE, forging_rig, forgin
 from services.simulation.render import CameraEffects, ProjectorEffects, render_frames, render_view
 from services.simulation.scene import Albedo
 from services.structured_light.patterns import generate_sequence
-from services.structured_light.reconstruct import _speckles_kernel, reconstruct_points, remove_speckles, surface_normals
+from services.structured_light.reconstruct import _speckles_in_bands, reconstruct_points, remove_speckles, surface_normals
 
 NOISY_CAMERA = CameraEffects(noise_sigma=1.5, blur_sigma=0.7)
 BLURRY_PROJECTOR = ProjectorEffects(gamma=2.2, blur_sigma=0.8, black_level=0.02)
@@ -135,7 +135,7 @@ def test_speckle_filter_refuses_what_is_not_an_image_or_a_size():
 def test_speckle_filter_in_bands_equals_one_band(bands):
     coordinates = _speckled_surface(350, 200, seed=bands)
     whole, banded = np.empty_like(coordinates), np.empty_like(coordinates)
-    _speckles_kernel(coordinates, 1, 8.0, 25, whole)
-    _speckles_kernel(coordinates, bands, 8.0, 25, banded)
+    _speckles_in_bands(coordinates, 1, 8.0, 25, whole)
+    _speckles_in_bands(coordinates, bands, 8.0, 25, banded)
     np.testing.assert_array_equal(banded, whole)
     assert np.isnan(whole).sum() > np.isnan(coordinates).sum()  # speckles were removed
