@@ -30,7 +30,7 @@ from services.db.models import CalibrationSet, Job, PartType, Scan
 from services.formats.board import parse_board
 from services.formats.images import decode_image, png_bytes
 from services.formats.ply import cloud_from_ply, cloud_to_ply
-from services.formats.registration import registration_to_file
+from services.formats.registration import registration_json
 from services.formats.rig import Rig, rig_to_json
 from services.formats.sequence import Sequence, parse_sequence
 from services.intensity import percentile_stretch
@@ -148,8 +148,7 @@ def register(job_id: str) -> dict[str, Any]:
                                           sequence=_load_sequence(runtime.store, artifacts["sequence.json"]),
                                           thermal=_load_npy(runtime.store, artifacts["thermal.npy"]),
                                           model=params["model"])
-    registration_json = registration_to_file(registration).model_dump_json(indent=2).encode()
-    return {"artifacts": {"registration.json": runtime.store.put_bytes(registration_json),
+    return {"artifacts": {"registration.json": runtime.store.put_bytes(registration_json(registration).encode()),
                           "overlay.png": runtime.store.put_bytes(png_bytes(overlay))},
             "nmi": registration.nmi}
 

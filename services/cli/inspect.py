@@ -26,7 +26,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 def _run(args: argparse.Namespace) -> int:
-    from services.formats.json_files import write_text_atomically
+    from services.formats.files import write_text_atomically
     from services.formats.part import load_part
     from services.formats.ply import read_cloud, write_cloud
     from services.inspection.inspect import report_json

@@ -10,7 +10,7 @@ import numpy as np
 
 from services.errors import InputError
 from services.formats.images import read_frame, write_png
-from services.formats.registration import registration_to_file, save_registration
+from services.formats.registration import save_registration
 from services.registration.models import MODELS
 from services.registration.mutual_information import DEFAULT_BINS, DEFAULT_LOG_BASE
 from services.registration.objective import METRICS
@@ -93,7 +93,7 @@ def _run_register(args: argparse.Namespace) -> int:
         )
     except ValueError as error:
         raise InputError(f"{args.fixed} + {args.moving}: {error}") from None
-    save_registration(registration_to_file(result), args.out)
+    save_registration(result, args.out)
     if args.overlay is not None:
         write_png(args.overlay, fused_overlay(fixed, moving, result.matrix))
     if args.checkerboard is not None:

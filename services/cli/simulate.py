@@ -11,7 +11,7 @@ import numpy as np
 from services.errors import InputError
 from services.formats.files import atomic_output, output_directory
 from services.formats.images import read_frame_stack, write_image
-from services.formats.json_files import write_text_atomically
+from services.formats.files import write_text_atomically
 from services.formats.rig import Rig, load_rig, save_rig
 from services.formats.sequence import load_sequence, save_sequence
 from services.simulation.presets import forging_rig, forging_scene, paper_plane, paper_rig, paper_sphere

@@ -84,3 +84,11 @@ def atomic_output(path: str | Path) -> Iterator[Path]:
 def _remove(path: Path) -> None:
     with contextlib.suppress(OSError):  # e.g. on a read-only disk, where nothing was written either
         path.unlink(missing_ok=True)
+
+
+def write_text_atomically(path: str | Path, text: str) -> Path:
+    """Write beside the target and rename, so a reader never sees half a file."""
+    path = Path(path)
+    with atomic_output(path) as temporary:
+        temporary.write_text(text)
+    return path

@@ -8,7 +8,7 @@ from typing import TypeVar
 from pydantic import BaseModel, TypeAdapter, ValidationError
 
 from services.errors import InputError
-from services.formats.files import atomic_output
+from services.formats.files import write_text_atomically
 
 Model = TypeVar("Model")
 
@@ -55,14 +55,6 @@ def read_text(path: str | Path, what: str) -> str:
     except (OSError, UnicodeDecodeError) as error:
         reason = getattr(error, "strerror", None) or error
         raise InputError(f"{path}: cannot read the {what} ({reason})") from None
-
-
-def write_text_atomically(path: str | Path, text: str) -> Path:
-    """Write beside the target and rename, so a reader never sees half a file."""
-    path = Path(path)
-    with atomic_output(path) as temporary:
-        temporary.write_text(text)
-    return path
 
 
 def write_model(model: BaseModel, path: str | Path) -> Path:

@@ -31,7 +31,8 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 from services.errors import InputError
-from services.formats.json_files import read_text, validate_json, write_text_atomically
+from services.formats.files import write_text_atomically
+from services.formats.json_files import read_text, validate_json
 from services.geometry.camera_model import VALID_DISTORTION_LENGTHS, CameraModel, DeviceKind
 
 _ROTATION_TOLERANCE = 1e-6

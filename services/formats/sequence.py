@@ -36,7 +36,8 @@ from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from services.errors import InputError
 from services.formats.images import read_frame_stack
-from services.formats.json_files import read_text, validate_json, write_text_atomically
+from services.formats.files import write_text_atomically
+from services.formats.json_files import read_text, validate_json
 
 MANIFEST_NAME = "sequence.json"
 Axis = Literal["x", "y"]
