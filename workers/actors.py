@@ -36,17 +36,14 @@ from services.formats.sequence import Sequence, parse_sequence
 from services.intensity import percentile_stretch
 from services.pipeline.calibrate import place_device
 from services.pipeline.field import fuse_field
-from services.pipeline.inspect import report_digest
 from services.pipeline.reconstruct import reconstruct_capture
 from services.pipeline.register import register_scan
-from services.pipeline.scan import StageClock, capture_artifacts, cloud_artifacts, field_artifacts, process_scan
+from services.pipeline.scan import StageClock, scan_capture, scan_result
 from services.pipeline.summary import field_summary, glow_summary
 from services.pipeline.warmup import warm_up
 from services.runtime import Runtime, current_runtime
 from services.simulation.presets import forging_rig
-from services.storage.artifacts import ArtifactStore, ArtifactWriter, StorageFull
-from services.streaming.field import field_scene
-from services.streaming.recording import scan_recording
+from services.storage.artifacts import ArtifactStore, StorageFull
 from services.structured_light.patterns import generate_sequence
 
 logger = logging.getLogger(__name__)
@@ -77,31 +74,14 @@ def scan(job_id: str) -> dict[str, Any]:
             capture = gateway.capture(thermal_frames=1, exposure=runtime.settings.camera_exposure_mode)
     except GatewayError as error:  # the job's error says which stage lost the devices
         raise GatewayError(f"capture failed: {error}", error.status) from None
-    with ArtifactWriter(runtime.store) as writer:  # the files are stored while the scan goes on
-        writer.put(capture_artifacts(frames=capture.frames, sequence=capture.sequence, thermal=capture.thermal,
-                                     exposure=capture.exposure))
-        outcome = process_scan(frames=capture.frames, sequence=capture.sequence, thermal=capture.thermal, rig=rig,
-                               tables=runtime.tables, exposure=capture.exposure, part=part, clock=clock,
-                               on_cloud=lambda cloud: writer.put_made(lambda: cloud_artifacts(cloud)))
-        writer.put_made(lambda: field_artifacts(outcome))
-        clock.start("stream", 0.7)
-        captured_at = float(capture.frame_timestamps[0]) if len(capture.frame_timestamps) else None
-        deviation = None if outcome.inspection is None else outcome.inspection.deviation
-        scene = field_scene(outcome.field, rig, capture.thermal[0], deviation=deviation)
-        writer.put({"field.rrd": scan_recording(params["scan_id"], scene, captured_at)})
-        runtime.station_view().publish(scene, captured_at)
-        clock.start("store", 0.85)  # what storing adds after the stream: the rest of the writes
-        artifacts = writer.digests()
-    clock.stop()
+    captured_at = float(capture.frame_timestamps[0]) if len(capture.frame_timestamps) else None
+    stored = scan_capture(scan_id=params["scan_id"], frames=capture.frames, sequence=capture.sequence,
+                          thermal=capture.thermal, rig=rig, tables=runtime.tables, store=runtime.store,
+                          exposure=capture.exposure, captured_at=captured_at, part=part, clock=clock,
+                          publish=runtime.station_view().publish)
     # the job tracker writes the artifacts, the summary and the verdict onto the scan when it records the result
-    inspected = {}
-    if outcome.inspection is not None:
-        inspected = {"part_type_id": params["part_type_id"], **report_digest(outcome.inspection.report)}
-    elif outcome.inspection_error is not None:
-        inspected = {"part_type_id": params["part_type_id"], "verdict": "NotDecidable", "features": [],
-                     "inspection_error": outcome.inspection_error}
-    return {"scan_id": params["scan_id"], "artifacts": artifacts, "summary": outcome.summary,
-            "stage_seconds": clock.seconds, "glow": outcome.summary["glow"], **inspected}
+    return scan_result(scan_id=params["scan_id"], stored=stored, part_type_id=params.get("part_type_id"),
+                       stage_seconds=clock.seconds)
 
 
 @dramatiq.actor(actor_name="reconstruct", **_options(max_retries=1, time_limit_s=120))

@@ -3,9 +3,9 @@ benchmarks and the experiments (which only translate to and from it).
 
 - :func:`reconstruct_capture`: a capture to a point cloud.
 - :func:`fuse_field`, :func:`capture_field`: a cloud (or a capture) plus thermal frames to a field.
-- :func:`process_scan`, :func:`scan_artifacts`: one scan's frames to its cloud, field, summary, inspection and files
-  (:func:`capture_artifacts` before the processing, :func:`cloud_artifacts` after the reconstruction,
-  :func:`field_artifacts` after the fusion).
+- :func:`scan_capture`, :func:`scan_result`: one scan's frames to its stored files, streamed field and job
+  result; :func:`process_scan`, :func:`scan_artifacts` the same in memory (:func:`capture_artifacts` before the
+  processing, :func:`cloud_artifacts` after the reconstruction, :func:`field_artifacts` after the fusion).
 - :func:`inspect_part`, :func:`inspection_artifacts`: a field and a part (type) to the report, deviation clouds and
   verdict (``thermofield inspect`` and the scan job).
 - :func:`calibrate_camera_views`, :func:`calibrate_projector_captures`, :func:`place_device`: calibration.

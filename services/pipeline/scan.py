@@ -1,5 +1,5 @@
-"""Use case: one scan's captured frames to its cloud, field, summary, inspection (when it has a part type) and
-stored artifacts (as bytes)."""
+"""Use case: one scan's captured frames to its cloud, field, summary, inspection (when it has a part type),
+stored artifacts and Rerun recording."""
 
 from __future__ import annotations
 
@@ -19,10 +19,13 @@ from services.formats.sequence import Sequence, sequence_to_json
 from services.geometry.cloud import PointCloud
 from services.inspection.inspect import PreparedPart
 from services.pipeline.field import fuse_field
-from services.pipeline.inspect import InspectionOutcome, inspect_part, inspection_artifacts
+from services.pipeline.inspect import InspectionOutcome, inspect_part, inspection_artifacts, report_digest
 from services.pipeline.reconstruct import reconstruct_capture
 from services.pipeline.summary import field_summary, glow_summary
 from services.pipeline.tables import TriangulationTables
+from services.storage.artifacts import ArtifactStore, ArtifactWriter
+from services.streaming.field import FieldScene, field_scene
+from services.streaming.recording import scan_recording
 
 Progress = Callable[[str, float], None]
 """Called with a stage's name and the job's fraction done when the stage starts."""
@@ -92,6 +95,60 @@ def process_scan(*, frames: np.ndarray, sequence: Sequence, thermal: np.ndarray,
     clock.stop()
     summary = {**field_summary(field_), "glow": glow_summary(reconstruction.glow, exposure)}
     return ScanOutcome(reconstruction.cloud, field_, summary, inspection, inspection_error)
+
+
+@dataclass(frozen=True)
+class StoredScan:
+    """A processed scan and the digests of its stored artifacts (name to SHA-256)."""
+
+    outcome: ScanOutcome
+    artifacts: dict[str, str]
+
+
+def scan_capture(*, scan_id: str, frames: np.ndarray, sequence: Sequence, thermal: np.ndarray, rig: Rig,
+                 tables: TriangulationTables, store: ArtifactStore, exposure: dict[str, Any] | None = None,
+                 captured_at: float | None = None, part: PreparedPart | None = None,
+                 clock: StageClock | None = None,
+                 publish: Callable[[FieldScene, float | None], None] | None = None) -> StoredScan:
+    """:func:`process_scan` with every file stored as soon as it is known, and the field streamed.
+
+    The capture's files are stored while the reconstruction runs, the cloud's while the fusion runs (an
+    :class:`~services.storage.artifacts.ArtifactWriter`); then the field, the inspection's files and the
+    scan's Rerun recording ``field.rrd`` (its scene also given to ``publish``, e.g. the station's live
+    view). Returns once every file is stored; a failed write raises.
+    """
+    clock = clock or StageClock()
+    with ArtifactWriter(store) as writer:
+        writer.put(capture_artifacts(frames=frames, sequence=sequence, thermal=thermal, exposure=exposure))
+        outcome = process_scan(frames=frames, sequence=sequence, thermal=thermal, rig=rig, tables=tables,
+                               exposure=exposure, part=part, clock=clock,
+                               on_cloud=lambda cloud: writer.put_made(lambda: cloud_artifacts(cloud)))
+        writer.put_made(lambda: field_artifacts(outcome))
+        clock.start("stream", 0.7)
+        deviation = None if outcome.inspection is None else outcome.inspection.deviation
+        scene = field_scene(outcome.field, rig, thermal[0], deviation=deviation)
+        writer.put({"field.rrd": scan_recording(scan_id, scene, captured_at)})
+        if publish is not None:
+            publish(scene, captured_at)
+        clock.start("store", 0.85)  # what storing adds after the stream: the rest of the writes
+        artifacts = writer.digests()
+    clock.stop()
+    return StoredScan(outcome, artifacts)
+
+
+def scan_result(*, scan_id: str, stored: StoredScan, part_type_id: str | None,
+                stage_seconds: dict[str, float]) -> dict[str, Any]:
+    """A scan job's JSON-safe result: its artifacts, summary, stage seconds, glow and, with a part type, the
+    verdict and the features (``NotDecidable``, none and ``inspection_error`` when it could not be inspected)."""
+    outcome = stored.outcome
+    inspected: dict[str, Any] = {}
+    if outcome.inspection is not None:
+        inspected = {"part_type_id": part_type_id, **report_digest(outcome.inspection.report)}
+    elif outcome.inspection_error is not None:
+        inspected = {"part_type_id": part_type_id, "verdict": "NotDecidable", "features": [],
+                     "inspection_error": outcome.inspection_error}
+    return {"scan_id": scan_id, "artifacts": stored.artifacts, "summary": outcome.summary,
+            "stage_seconds": stage_seconds, "glow": outcome.summary["glow"], **inspected}
 
 
 def npy_bytes(stack: np.ndarray) -> bytes:
