@@ -33,8 +33,7 @@ from services.formats.ply import cloud_from_ply, cloud_to_ply
 from services.formats.registration import registration_json
 from services.formats.rig import Rig, rig_to_json
 from services.formats.sequence import Sequence, parse_sequence
-from services.intensity import percentile_stretch
-from services.pipeline.calibrate import place_device
+from services.pipeline.calibrate import place_device, thermal_board_image
 from services.pipeline.field import fuse_field
 from services.pipeline.reconstruct import reconstruct_capture
 from services.pipeline.register import register_scan
@@ -152,7 +151,7 @@ def calibrate(job_id: str) -> dict[str, Any]:
             views = gateway.board_views(json.loads(board_json), params["capture"]["views"],
                                         params["capture"]["interval_s"])
         reference = [(f"camera view {i}", frame) for i, frame in enumerate(views.camera)]
-        device = [(f"{params['device']} view {i}", np.round(percentile_stretch(frame, 65535.0)).astype(np.uint16)) for i, frame in enumerate(views.thermal)]
+        device = [(f"{params['device']} view {i}", thermal_board_image(frame)) for i, frame in enumerate(views.thermal)]
     else:
         reference = _uploaded_images(runtime.store, params["reference_images"], "reference image")
         device = _uploaded_images(runtime.store, params["device_images"], f"{params['device']} image")

@@ -29,6 +29,7 @@ from services.formats.calibration import (
 from services.formats.rig import Rig
 from services.formats.sequence import Sequence as PatternSequence
 from services.geometry.camera_model import CameraModel, DeviceKind
+from services.intensity import percentile_stretch
 from services.structured_light.decode import decode
 
 LabelledImage = tuple[str, np.ndarray]
@@ -65,6 +66,13 @@ def capture_board_image(sequence: PatternSequence, frames: np.ndarray) -> np.nda
     phase frames), in the frames' dtype."""
     intensity = decode(frames, sequence, edge_margin=0).intensity
     return np.clip(np.round(intensity), 0, np.iinfo(frames.dtype).max).astype(frames.dtype)
+
+
+def thermal_board_image(frame: np.ndarray) -> np.ndarray:
+    """A filmed thermal frame (degrees C) as a 16-bit board image: its 0.5..99.5 percentile range stretched
+    over 0..65535 (:func:`services.intensity.percentile_stretch`), so that corner detection keeps its fine
+    levels."""
+    return np.round(percentile_stretch(frame, 65535.0)).astype(np.uint16)
 
 
 def _describe(board: BoardSpec) -> str:
