@@ -1,19 +1,22 @@
 """Use case: make the first scan after a start as fast as the next.
 
-numba compiles (or loads from its cache) each kernel on its first call in a process, and a calibration's
-triangulation table takes longer to build than a scan; both would fall on the first scan. :func:`warm_up`
-builds the active calibration's table and runs every kernel of a scan once, on a small simulated capture
-of a plane seen by the same rig scaled down (kernels are compiled per argument type, not per size).
+A calibration's triangulation table takes longer to build than a scan, and a scan's first run in a process
+pays for the modules it imports on first use (the PLY writer, the Rerun recording), the thread pools and
+OpenCV's first calls; all would fall on the first scan. :func:`warm_up` builds the active calibration's
+table and runs every stage of a scan once, on a small synthetic capture of a plane seen by the same rig
+scaled down.
 """
 
 from __future__ import annotations
 
 import time
 
+import cv2
 import numpy as np
 
 from services.formats.rig import Rig
 from services.formats.sequence import Sequence
+from services.geometry.camera import pixel_grid, pixel_rays, project_points
 from services.geometry.camera_model import CameraModel
 from services.pipeline.scan import process_scan, scan_artifacts
 from services.pipeline.tables import TriangulationTables
@@ -38,13 +41,30 @@ def _meeting_point(camera: CameraModel, projector: CameraModel) -> np.ndarray:
     return camera.centre + max(s, 100.0) * a
 
 
-def warm_up(*, rig: Rig, sequence: Sequence, tables: TriangulationTables) -> dict[str, float]:
-    """Build the rig's triangulation table for ``sequence`` and run a small scan through every kernel.
+def _plane_frames(camera: CameraModel, projector: CameraModel, patterns: np.ndarray,
+                  rng: np.random.Generator) -> np.ndarray:
+    """uint8 camera frames of the projector's ``patterns`` on a plane facing the camera where the rig looks.
 
-    Returns the seconds each part took (``table``, ``kernels``).
+    Each camera pixel's ray meets the plane at X; the frame samples the pattern at X's projector pixel
+    (bilinear, ``cv2.remap``), scaled to grey levels 20..220 with 1.5 grey levels of noise. Not a rendering
+    (no shading, blur or shadows: the simulator's job): the warm-up only needs decodable pixels in every stage.
     """
-    from services.simulation.render import render_frames, render_view
-    from services.simulation.scene import Plane, Scene
+    origin, directions = pixel_rays(pixel_grid(camera.width, camera.height), camera.K, camera.dist, camera.R,
+                                    camera.t)
+    target, normal = _meeting_point(camera, projector), camera.R[2]
+    points = origin + ((target - origin) @ normal / (directions @ normal))[:, None] * directions
+    pixels = project_points(points, projector.K, projector.dist, projector.R, projector.t).astype(np.float32)
+    maps = pixels.reshape(camera.height, camera.width, 2)
+    frames = np.stack([cv2.remap(pattern, maps[..., 0], maps[..., 1], cv2.INTER_LINEAR) for pattern in patterns])
+    levels = 20.0 + frames * (200.0 / 255.0) + rng.normal(0.0, 1.5, frames.shape)
+    return np.clip(np.rint(levels), 0, 255).astype(np.uint8)
+
+
+def warm_up(*, rig: Rig, sequence: Sequence, tables: TriangulationTables) -> dict[str, float]:
+    """Build the rig's triangulation table for ``sequence`` and run a small scan through every stage.
+
+    Returns the seconds each part took (``table``, ``stages``).
+    """
     from services.structured_light.patterns import generate_sequence
     from services.streaming.field import field_scene
     from services.streaming.recording import scan_recording
@@ -60,21 +80,13 @@ def warm_up(*, rig: Rig, sequence: Sequence, tables: TriangulationTables) -> dic
     small = Rig({name: _scaled(device, _SCALE) for name, device in rig.devices.items()})
     _, small_camera = small.device(None, "camera")
     _, small_projector = small.device(None, "projector")
-    centre = _meeting_point(small_camera, small_projector)
-    normal = -small_camera.R[2]
-    u_axis = np.cross(normal, [0.0, 1.0, 0.0])
-    u_axis = u_axis / np.linalg.norm(u_axis) if np.linalg.norm(u_axis) > 1e-6 else np.array([1.0, 0.0, 0.0])
-    scene = Scene(surfaces=[Plane(center=centre.tolist(), normal=normal.tolist(), u_axis=u_axis.tolist(),
-                                  size=[5000.0, 5000.0])])
     small_sequence, patterns = generate_sequence(small_projector.width, small_projector.height)
-    view = render_view(scene, small_camera, small_projector, supersample=1)
-    frames = render_frames(view, patterns, np.random.default_rng(0))
+    frames = _plane_frames(small_camera, small_projector, patterns, np.random.default_rng(0))
     _, thermal = small.device(None, "thermal")
     thermal_frames = np.full((1, thermal.height, thermal.width), 900.0, np.float32)
-    warm_tables = TriangulationTables()
     outcome = process_scan(frames=frames, sequence=small_sequence, thermal=thermal_frames, rig=small,
-                           tables=warm_tables)
+                           tables=TriangulationTables())
     scan_artifacts(frames=frames, sequence=small_sequence, thermal=thermal_frames, outcome=outcome)
     scan_recording("warm-up", field_scene(outcome.field, small, thermal_frames[0]))
-    seconds["kernels"] = round(time.perf_counter() - start, 3)
+    seconds["stages"] = round(time.perf_counter() - start, 3)
     return seconds
