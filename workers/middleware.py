@@ -5,29 +5,35 @@ from __future__ import annotations
 import logging
 import os
 import socket
+import sys
 import threading
 
 import cv2
 import dramatiq
-import numba
 from dramatiq.middleware import Middleware, SkipMessage
 
 from services.jobs.tracker import LEASE_S, JobBusy
+from services.structured_light.row_bands import limit_threads
 from services.runtime import current_runtime
 
 logger = logging.getLogger(__name__)
 class ComputeThreads(Middleware):
-    """Caps OpenCV's and numba's thread pools in each worker process so that replicas share the cores."""
+    """Caps the numeric thread pools (OpenCV's, the science's row bands, numba's where it is loaded) in each
+    worker process so that replicas share the cores."""
 
     def __init__(self, threads: int) -> None:
         self.threads = threads
 
     def before_worker_boot(self, broker, worker) -> None:
         cv2.setNumThreads(self.threads)
+        limit_threads(self.threads)
+        os.environ["NUMBA_NUM_THREADS"] = str(self.threads)  # read by numba when first imported
 
     def after_worker_thread_boot(self, broker, thread) -> None:
-        # numba's thread count is per calling thread, so each worker thread sets its own.
-        numba.set_num_threads(min(self.threads, numba.config.NUMBA_NUM_THREADS))
+        # numba (only the Gray-code-only refinement and the simulator use it) sets its count per calling thread
+        if "numba" in sys.modules:
+            numba = sys.modules["numba"]
+            numba.set_num_threads(min(self.threads, numba.config.NUMBA_NUM_THREADS))
 
 
 class WarmUp(Middleware):

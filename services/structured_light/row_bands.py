@@ -18,9 +18,22 @@ BAND_PIXELS = 1 << 16
 _Result = TypeVar("_Result")
 
 
+_thread_limit: int | None = None
+
+
 def thread_count() -> int:
-    """Threads of the pool: one per CPU this process may run on, at most 8."""
-    return max(1, min(8, len(os.sched_getaffinity(0))))
+    """Threads of the pool: one per CPU this process may run on, at most 8 (or :func:`limit_threads`)."""
+    cpus = max(1, min(8, len(os.sched_getaffinity(0))))
+    return cpus if _thread_limit is None else min(cpus, _thread_limit)
+
+
+def limit_threads(count: int) -> None:
+    """Use at most ``count`` threads from now on (a worker process sharing the cores with other replicas)."""
+    global _thread_limit
+    if count < 1:
+        raise ValueError(f"The thread limit must be at least 1; got {count}.")
+    _thread_limit = count
+    _pool.cache_clear()
 
 
 @lru_cache(maxsize=1)

@@ -107,12 +107,15 @@ def test_service_actors_set_their_own_retries_and_time_limits(broker):
 
 
 def test_worker_threads_use_the_configured_numeric_thread_count(broker):
+    import cv2
     import numba
+
+    from services.structured_light.row_bands import thread_count
 
     @dramatiq.actor(broker=broker, actor_name="t_threads", queue_name="t_threads", max_retries=0)
     def threads(job_id):
-        return {"numba": numba.get_num_threads()}
+        return {"numba": numba.get_num_threads(), "row_bands": thread_count(), "opencv": cv2.getNumThreads()}
 
     (job,) = run_jobs(broker, threads, 1)
-    assert job.result == {"numba": 1}  # the fixture's compute_threads
+    assert job.result == {"numba": 1, "row_bands": 1, "opencv": 1}  # the fixture's compute_threads
 
