@@ -205,17 +205,25 @@ def sample_view(
     def keep(rows: slice, chunk_temperature: np.ndarray, chunk_angle: np.ndarray, chunk_weight: np.ndarray) -> None:
         temperature[rows], angle[rows], weight[rows] = chunk_temperature, chunk_angle, chunk_weight
 
-    _sample_view(points, normals, view, max_view_angle_deg, depth_tolerance_mm, occlusion_margin_px, keep)
+    _sample_view(len(points), rows_of(points), rows_of(normals), view, max_view_angle_deg, depth_tolerance_mm,
+                 occlusion_margin_px, keep)
     return temperature, angle, weight
 
 
+Rows = Callable[[slice], np.ndarray]
+"""A chunk's rows of an (N, 3) array, as float64 (n, 3)."""
 _ChunkResult = Callable[[slice, np.ndarray, np.ndarray, np.ndarray], None]
 
 
-def _sample_view(points: np.ndarray, normals: np.ndarray, view: ThermalView, max_view_angle_deg: float,
+def rows_of(array: np.ndarray) -> Rows:
+    """:data:`Rows` of an (N, 3) array."""
+    return lambda rows: np.asarray(array[rows], dtype=np.float64)
+
+
+def _sample_view(count: int, points_of: Rows, normals_of: Rows, view: ThermalView, max_view_angle_deg: float,
                  depth_tolerance_mm: float, occlusion_margin_px: int, result: _ChunkResult) -> None:
-    """:func:`sample_view` chunk by chunk: ``result(rows, temperature, view_angle, weight)`` for each chunk of
-    rows (called on the pool's threads; each chunk's rows are its own)."""
+    """:func:`sample_view` of ``count`` points chunk by chunk: ``result(rows, temperature, view_angle, weight)``
+    for each chunk of rows (called on the pool's threads; each chunk's rows are its own)."""
     device = view.device
     max_angle = np.deg2rad(max_view_angle_deg)
     K = np.asarray(device.K, dtype=np.float64)
@@ -224,13 +232,13 @@ def _sample_view(points: np.ndarray, normals: np.ndarray, view: ThermalView, max
     terms, tilt = opencv_distortion_terms(device.dist)
     centre = np.asarray(device.centre, dtype=np.float64)
     focal = 0.5 * (K[0, 0] + K[1, 1])
-    chunks = _chunks(len(points))
-    pixels = np.empty((2, len(points)))
-    depth = np.empty(len(points))
-    index = np.empty(len(points), dtype=np.intp)
+    chunks = _chunks(count)
+    pixels = np.empty((2, count))
+    depth = np.empty(count)
+    index = np.empty(count, dtype=np.intp)
 
     def project(rows: slice) -> None:  # pixels as services.geometry.camera.project_points, the nearest pixel
-        points_device = rigid_transform(points[rows], R, t)
+        points_device = rigid_transform(points_of(rows), R, t)
         z = points_device[:, 2]
         depth[rows] = z
         with np.errstate(divide="ignore", invalid="ignore"):
@@ -249,8 +257,7 @@ def _sample_view(points: np.ndarray, normals: np.ndarray, view: ThermalView, max
     surface = buffer.ravel()
 
     def sample(rows: slice) -> None:
-        chunk_points = np.asarray(points[rows], dtype=np.float64)
-        chunk_normals = np.asarray(normals[rows], dtype=np.float64)
+        chunk_points, chunk_normals = points_of(rows), normals_of(rows)
         chunk_index, chunk_depth = index[rows], depth[rows]
         angle = _view_angles(chunk_points, chunk_normals, centre)
         gradient = depth_gradient(rigid_transform(chunk_points, R, t), rigid_transform(chunk_normals, R, np.zeros(3)),
@@ -349,13 +356,25 @@ def fuse_temperature(
     points, normals = _as_float(points), _as_float(normals)
     if points.ndim != 2 or points.shape[1] != 3 or normals.shape != points.shape:
         raise ValueError(f"points and normals must both be (N, 3); got {points.shape} and {normals.shape}.")
+    return fuse_rows(len(points), rows_of(points), rows_of(normals), views, max_view_angle_deg, depth_tolerance_mm,
+                     occlusion_margin_px)
+
+
+def fuse_rows(count: int, points_of: Rows, normals_of: Rows, views: Sequence[ThermalView],
+              max_view_angle_deg: float = DEFAULT_MAX_VIEW_ANGLE_DEG,
+              depth_tolerance_mm: float = DEFAULT_DEPTH_TOLERANCE_MM,
+              occlusion_margin_px: int = DEFAULT_OCCLUSION_MARGIN_PX) -> TemperatureField:
+    """:func:`fuse_temperature` of ``count`` points given chunk by chunk (e.g. stacked from a cloud's
+    coordinate columns, without an (N, 3) copy of the whole cloud)."""
+    if occlusion_margin_px < 0:
+        raise ValueError(f"The occlusion margin must be a non-negative number of pixels; got {occlusion_margin_px}.")
     if not views:
         raise ValueError("At least one thermal view is needed to fuse a temperature field.")
     if not 0.0 < max_view_angle_deg < 90.0:
         raise ValueError(f"The view-angle limit must be in (0, 90) degrees; got {max_view_angle_deg}.")
-    weighted_sum = np.zeros(len(points))
-    weight_sum = np.zeros(len(points))
-    best_angle = np.full(len(points), np.inf)
+    weighted_sum = np.zeros(count)
+    weight_sum = np.zeros(count)
+    best_angle = np.full(count, np.inf)
 
     def accumulate(rows: slice, temperature: np.ndarray, angle: np.ndarray, weight: np.ndarray) -> None:
         temperature *= weight
@@ -364,8 +383,18 @@ def fuse_temperature(
         np.fmin(best_angle[rows], angle, out=best_angle[rows])
 
     for view in views:
-        _sample_view(points, normals, view, max_view_angle_deg, depth_tolerance_mm, occlusion_margin_px, accumulate)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        fused = np.where(weight_sum > 0, weighted_sum / weight_sum, np.nan)
-    best_angle[np.isinf(best_angle)] = np.nan
-    return TemperatureField(fused.astype(np.float32), np.rad2deg(best_angle).astype(np.float32))
+        _sample_view(count, points_of, normals_of, view, max_view_angle_deg, depth_tolerance_mm, occlusion_margin_px,
+                     accumulate)
+    fused = np.empty(count, dtype=np.float32)
+    fused_angle = np.empty(count, dtype=np.float32)
+
+    def finish(rows: slice) -> None:
+        total = weight_sum[rows]
+        with np.errstate(invalid="ignore", divide="ignore"):
+            fused[rows] = np.where(total > 0, weighted_sum[rows] / total, np.nan)
+        angle = best_angle[rows]
+        angle[np.isinf(angle)] = np.nan
+        fused_angle[rows] = np.rad2deg(angle)
+
+    map_bands(finish, _chunks(count))
+    return TemperatureField(fused, fused_angle)
