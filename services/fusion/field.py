@@ -92,7 +92,7 @@ def temperature_field(
     max_view_angle_deg : float
         View-angle limit, see :func:`services.fusion.fuse.fuse_temperature`.
     colormap : str
-        Matplotlib colour map for the RGB properties.
+        Colour map for the RGB properties (see :func:`services.fusion.colormap.colormap_lut`).
 
     Returns
     -------

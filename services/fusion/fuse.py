@@ -141,32 +141,38 @@ def _bilinear(frames: np.ndarray, u: np.ndarray, v: np.ndarray, depth: np.ndarra
     count, height, width = frames.shape
     values_of = frames.reshape(count, -1)
     surface_of = buffer.reshape(-1)
+    all_finite = [bool(np.isfinite(values).all()) for values in values_of]
     left, top = np.floor(u), np.floor(v)
     fx, fy = u - left, v - top
+    with np.errstate(invalid="ignore"):  # NaN pixels: no corner counts
+        left_in, right_in = (left >= 0) & (left < width), (left >= -1) & (left < width - 1)
+        top_in, bottom_in = (top >= 0) & (top < height), (top >= -1) & (top < height - 1)
+        base = np.where(left_in | right_in, left, 0.0)
+        base += np.where(top_in | bottom_in, top, 0.0) * width
+        base = base.astype(np.intp)
     total = np.zeros((count, len(u)))
     weight_sum = np.zeros((count, len(u)))
     unknown = np.zeros((count, len(u)), dtype=bool)
-    for dy in (0, 1):
-        row = top + dy
-        inside_rows = (row >= 0) & (row < height)
-        row_weight = fy if dy else 1.0 - fy
-        row *= width
-        for dx in (0, 1):
-            column = left + dx if dx else left
-            counted = inside_rows & (column >= 0) & (column < width)
-            flat = np.where(counted, row + column, 0.0).astype(np.intp)
+    for dy, row_in, row_weight in ((0, top_in, 1.0 - fy), (1, bottom_in, fy)):
+        for dx, column_in in ((0, left_in), (1, right_in)):
+            counted = row_in & column_in
+            flat = base + (dy * width + dx)
+            np.clip(flat, 0, height * width - 1, out=flat)  # (corners outside do not count)
             limit = surface_of[flat]
             limit += tolerance
             counted &= depth <= limit  # else a nearer surface (or none) at this corner
             weight = fx * row_weight if dx else (1.0 - fx) * row_weight
             for frame in range(count):
                 value = values_of[frame][flat]
-                finite = np.isfinite(value)
-                unknown[frame] |= counted & ~finite & (weight > 0)
-                finite &= counted
+                if all_finite[frame]:
+                    good = counted
+                else:
+                    good = np.isfinite(value)
+                    unknown[frame] |= (counted & (weight > 0)) > good
+                    good &= counted
                 value *= weight
-                total[frame] += np.where(finite, value, 0.0)
-                weight_sum[frame] += np.where(finite, weight, 0.0)
+                np.add(total[frame], value, out=total[frame], where=good)
+                np.add(weight_sum[frame], weight, out=weight_sum[frame], where=good)
     with np.errstate(invalid="ignore", divide="ignore"):
         total /= weight_sum
     total[(weight_sum <= 0) | unknown] = np.nan
