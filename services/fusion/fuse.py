@@ -84,6 +84,12 @@ def _as_float(array: np.ndarray) -> np.ndarray:
 
 def _view_angles(points: np.ndarray, normals: np.ndarray, centre: np.ndarray) -> np.ndarray:
     """:func:`view_angles` of float64 (n, 3) arrays."""
+    cosine = _view_cosines(points, normals, centre)
+    return np.arccos(cosine, out=cosine)  # NaN stays NaN
+
+
+def _view_cosines(points: np.ndarray, normals: np.ndarray, centre: np.ndarray) -> np.ndarray:
+    """Cosines of :func:`_view_angles`, clipped to [-1, 1] (NaN if unknown)."""
     x, y, z = centre[0] - points[:, 0], centre[1] - points[:, 1], centre[2] - points[:, 2]
     length = x * x
     length += y * y
@@ -99,8 +105,7 @@ def _view_angles(points: np.ndarray, normals: np.ndarray, centre: np.ndarray) ->
     cosine += y
     cosine += z
     cosine[np.isinf(cosine)] = np.nan
-    np.clip(cosine, -1.0, 1.0, out=cosine)
-    return np.arccos(cosine, out=cosine)  # NaN stays NaN
+    return np.clip(cosine, -1.0, 1.0, out=cosine)
 
 
 def _project(points: np.ndarray, device: CameraModel) -> np.ndarray:
@@ -265,7 +270,8 @@ def _sample_view(count: int, points_of: Rows, normals_of: Rows, view: ThermalVie
     def sample(rows: slice) -> None:
         chunk_points, chunk_normals = points_of(rows), normals_of(rows)
         chunk_index, chunk_depth = index[rows], depth[rows]
-        angle = _view_angles(chunk_points, chunk_normals, centre)
+        cosine = _view_cosines(chunk_points, chunk_normals, centre)
+        angle = np.arccos(cosine)
         gradient = depth_gradient(rigid_transform(chunk_points, R, t), rigid_transform(chunk_normals, R, np.zeros(3)),
                                   focal, max_angle)
         tolerance = depth_tolerance(gradient, depth_tolerance_mm)
@@ -287,7 +293,7 @@ def _sample_view(count: int, points_of: Rows, normals_of: Rows, view: ThermalVie
                 frames_seen = finite.sum(axis=0)
                 mean = np.where(finite, samples, 0.0).sum(axis=0) / np.maximum(frames_seen, 1)
                 temperature[usable] = np.where(frames_seen > 0, mean, np.nan)
-            weight[usable] = np.cos(angle[usable]) * frames_seen
+            weight[usable] = cosine[usable] * frames_seen  # cos(angle), from before the arccos
         angle[~seen] = np.nan
         result(rows, temperature, angle, weight)
 

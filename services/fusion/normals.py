@@ -10,6 +10,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from services.structured_light.row_bands import map_bands, row_bands
+
 # The grid search serves at most this fraction of the cloud's points; more use the KD tree.
 _GRID_FRACTION = 1 / 16
 # The first grid's cell side in point spacings, and its growth for the queries it leaves unresolved.
@@ -21,6 +23,7 @@ _MARK_BITS, _LIST_BITS = 21, 18
 _HASH_PRIMES = (73856093, 19349663, 83492791)  # Teschner et al., VMV 2003
 _BLOCK = np.stack(np.meshgrid(*3 * [np.arange(-1, 2)], indexing="ij"), axis=-1).reshape(-1, 3).astype(np.int32)
 _QUERY_BATCH = 4096
+_POINT_CHUNK = 1 << 16
 
 
 def estimate_normals(
@@ -194,63 +197,74 @@ def _grid_search(columns, finite: np.ndarray, index: np.ndarray, k: int, cell: f
     block = _cell_hash(columns, cell, index, _BLOCK)  # (M, 27)
     marked = np.zeros(1 << _MARK_BITS, dtype=bool)
     marked[block & ((1 << _MARK_BITS) - 1)] = True
-    slots = _cell_hash(columns, cell)
-    slots &= (1 << _MARK_BITS) - 1
-    candidates = np.flatnonzero(marked[slots] & finite)
-    lists = slots[candidates] & ((1 << _LIST_BITS) - 1)
+
+    def candidates_in(rows: slice) -> tuple[np.ndarray, np.ndarray]:
+        slots = _cell_hash(tuple(column[rows] for column in columns), cell)
+        slots &= (1 << _MARK_BITS) - 1
+        chosen = np.flatnonzero(marked[slots] & finite[rows])
+        return chosen + rows.start, slots[chosen]
+
+    parts = map_bands(candidates_in, row_bands(len(finite), 1, _POINT_CHUNK))
+    candidates = np.concatenate([part[0] for part in parts])
+    lists = np.concatenate([part[1] for part in parts]) & ((1 << _LIST_BITS) - 1)
     order = np.argsort(lists, kind="stable")
     candidates = candidates[order]
     sizes = np.bincount(lists, minlength=1 << _LIST_BITS)
     starts = np.cumsum(sizes) - sizes
     block &= (1 << _LIST_BITS) - 1
     block.sort(axis=1)
+    coordinates = tuple(np.asarray(column[candidates], dtype=np.float64) for column in columns)
     queries = _gather(columns, index)
     found = np.zeros((len(index), k), dtype=np.intp)
     exact = np.zeros(len(index), dtype=bool)
     for first in range(0, len(index), _QUERY_BATCH):
         batch = slice(first, first + _QUERY_BATCH)
-        found[batch], exact[batch] = _nearest_candidates(columns, queries[batch], block[batch], candidates, starts,
-                                                         sizes, k, cell)
+        found[batch], exact[batch] = _nearest_candidates(queries[batch], block[batch], coordinates, starts, sizes,
+                                                         k, cell)
+    found = candidates[found]
     return found, exact
 
 
-def _nearest_candidates(columns, queries: np.ndarray, block: np.ndarray, candidates: np.ndarray,
+def _nearest_candidates(queries: np.ndarray, block: np.ndarray, coordinates: tuple[np.ndarray, ...],
                         starts: np.ndarray, sizes: np.ndarray, k: int, cell: float) -> tuple[np.ndarray, np.ndarray]:
     """:func:`_grid_search` for queries with the (M, 27) sorted list numbers of their blocks, given the
-    candidates sorted by list and each list's start and size."""
-    first = starts[block]
+    float64 coordinates of the candidates sorted by list and each list's start and size; the nearest as
+    positions among the candidates."""
     counts = sizes[block]
     counts[:, 1:][block[:, 1:] == block[:, :-1]] = 0  # a list met twice in one block: its points once
-    counts = counts.ravel()
-    totals = counts.reshape(len(queries), -1).sum(axis=1)
     # every (query, candidate) pair, query by query
-    runs = np.repeat(np.arange(len(counts)), counts)
-    run_starts = np.cumsum(counts) - counts
-    position = first.ravel()[runs] + (np.arange(len(runs)) - run_starts[runs])
-    pair_point = candidates[position]
-    pair_query = runs // block.shape[1]
-    if not len(pair_point):
-        return np.zeros((len(queries), k), dtype=np.intp), np.zeros(len(queries), dtype=bool)
-    distance = _squared_distances(_gather(columns, pair_point), queries[pair_query])
-    query_starts = np.cumsum(totals) - totals
+    totals = counts.sum(axis=1)
+    counts = counts.ravel()
+    offsets = starts[block].ravel() - (np.cumsum(counts) - counts)
+    position = np.repeat(offsets, counts)
+    position += np.arange(len(position))
+    pair_query = np.repeat(np.arange(len(queries)), totals)
+    # squared distances, keeping the pairs within the search radius: a query with k of them has its exact
+    # neighbours among them (the margin covers the rounding of the cell coordinates)
+    distance = np.zeros(len(position))
+    for axis, coordinate in enumerate(coordinates):
+        difference = coordinate[position]
+        difference -= np.ascontiguousarray(queries[:, axis])[pair_query]
+        difference *= difference
+        distance += difference
+    within = distance <= (0.99 * cell) ** 2
+    position, pair_query, distance = position[within], pair_query[within], distance[within]
+    totals = np.bincount(pair_query, minlength=len(queries))
     found = np.zeros((len(queries), k), dtype=np.intp)
-    kth = np.full(len(queries), np.inf)
-    # the k smallest of each query's distances, in tables of queries with about as many candidates
+    exact = totals >= k
+    query_starts = np.cumsum(totals) - totals
+    # the k smallest of each query's distances, in tables of queries with about as many pairs
     width_class = np.ceil(np.log2(np.maximum(totals, k))).astype(np.intp)
-    for width in np.unique(width_class):
-        rows = np.flatnonzero((width_class == width) & (totals > 0))
-        if not len(rows):
-            continue
-        columns_used = totals[rows].max()
-        table = np.full((len(rows), max(int(columns_used), k)), np.inf)
+    for width in np.unique(width_class[exact]):
+        rows = np.flatnonzero(exact & (width_class == width))
+        columns_used = int(totals[rows].max())
+        table = np.full((len(rows), columns_used), np.inf)
         column = np.arange(columns_used)
         mine = column < totals[rows, None]
-        position = (query_starts[rows, None] + column)[mine]
-        table[:, :columns_used][mine] = distance[position]
-        nearest = np.argpartition(table, k - 1, axis=1)[:, :k] if table.shape[1] > k else \
+        table[mine] = distance[(query_starts[rows, None] + column)[mine]]
+        nearest = np.argpartition(table, k - 1, axis=1)[:, :k] if columns_used > k else \
             np.argsort(table, axis=1)[:, :k]
         nearest = np.take_along_axis(nearest, np.argsort(np.take_along_axis(table, nearest, axis=1), axis=1,
                                                          kind="stable"), axis=1)
-        kth[rows] = np.take_along_axis(table, nearest[:, -1:], axis=1)[:, 0]
-        found[rows] = pair_point[np.minimum(query_starts[rows, None] + nearest, len(pair_point) - 1)]
-    return found, kth <= (0.99 * cell) ** 2  # margin for the rounding of the cell coordinates
+        found[rows] = position[query_starts[rows, None] + nearest]
+    return found, exact

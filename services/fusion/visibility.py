@@ -109,8 +109,10 @@ def depth_gradient(
     np.sqrt(reach, out=reach)
     reach *= np.cos(max_view_angle)
     np.maximum(along, reach, out=along)  # NaN stays NaN (unknown normal)
+    slope = nx * nx
+    slope += ny * ny
     gradient = z * z
-    gradient *= np.hypot(nx, ny)
+    gradient *= np.sqrt(slope, out=slope)
     along *= focal_px
     with np.errstate(invalid="ignore", divide="ignore"):
         gradient /= along
