@@ -3,11 +3,11 @@
 Run: .venv/bin/python benchmarks/bench_field.py [--repeats 7]
 
 Simulates the forging station once (presets.forging_rig / forging_scene, 26-frame
-Gray + phase capture, 320x256 thermal frame), warms up numba, then times with
-the captured frames in memory:
+Gray + phase capture, 320x256 thermal frame), warms up (the reconstruction's numba
+kernels; the fusion is numpy and OpenCV), then times with the captured frames in memory:
 
 - reconstruct: ``reconstruct_points`` (decode + triangulate, the lead's code);
-- fuse: ``temperature_field`` (projection, z-buffer, guard band, depth-aware
+- fuse: ``temperature_field`` (the normals the cloud lacks, projection, z-buffer, guard band, depth-aware
   bilinear sampling, weights, colours);
 - field: both, what ``thermofield field`` computes between reading and writing;
 - baseline: the naive fusion the z-buffer replaces, one ``cv2.projectPoints``
@@ -76,7 +76,7 @@ def main() -> None:
     viewpoint = camera.centre
     views = [ThermalView(thermal, image)]
 
-    cloud = reconstruct_points(frames, sequence, camera, projector)  # warm-up (numba compilation)
+    cloud = reconstruct_points(frames, sequence, camera, projector)  # warm-up (the decoder's numba kernels)
     temperature_field(cloud, views, viewpoint)
 
     results = {

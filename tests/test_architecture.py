@@ -77,3 +77,36 @@ def test_the_register_command_loads_neither_numba_nor_scipy_nor_pydantic(tmp_pat
     assert status == 0 and (tmp_path / "reg.json").is_file()
     assert "services.registration.register" in loaded
     assert not [name for name in loaded if _within(name, ("numba", "scipy", "pydantic"))]
+
+
+_FIELD_WITHOUT_HEAVY_IMPORTS = """
+import json, sys
+import numpy as np
+import services.cli.fusion, services.fusion.colormap, services.fusion.field, services.fusion.fuse
+import services.fusion.visibility
+from services.fusion.colormap import colormap_lut
+from services.fusion.field import temperature_field
+from services.fusion.fuse import ThermalView
+from services.geometry.camera_model import CameraModel
+
+imported = sorted(sys.modules)
+x, y = (value.ravel() for value in np.meshgrid(np.linspace(-100, 100, 120), np.linspace(-80, 80, 100)))
+cloud = {"x": x, "y": y, "z": np.full_like(x, 600.0), "nx": np.zeros_like(x), "ny": np.zeros_like(x),
+         "nz": -np.ones_like(x)}
+cloud["nx"][::50] = np.nan  # a few unknown normals, estimated from their neighbours
+thermal = CameraModel(kind="thermal", width=80, height=64, K=np.array([[60.0, 0, 39.5], [0, 60.0, 31.5], [0, 0, 1]]))
+field = temperature_field(cloud, [ThermalView(thermal, np.full((64, 80), 300.0))], np.zeros(3))
+colormap_lut("coolwarm")
+print(json.dumps([imported, sorted(sys.modules), int(np.isfinite(field["temperature"]).sum())]))
+"""
+
+
+def test_the_fusion_modules_load_neither_numba_nor_scipy_nor_matplotlib():
+    """Their imports and numba's loading of its cached kernels cost ``thermofield field`` and the scan worker
+    about 0.5 s; fusing a cloud with a few unknown normals and the inspection's cool-warm map need none."""
+    imported, loaded, seen = json.loads(subprocess.run(
+        [sys.executable, "-c", _FIELD_WITHOUT_HEAVY_IMPORTS], cwd=ROOT, capture_output=True, text=True, check=True,
+        timeout=120).stdout.splitlines()[-1])
+    assert seen > 10000
+    assert not [name for name in imported if _within(name, ("numba", "scipy", "matplotlib"))]
+    assert not [name for name in loaded if _within(name, ("numba", "scipy", "matplotlib"))]

@@ -8,22 +8,67 @@ import numpy as np
 
 from services.geometry.cloud import PointCloud
 from services.fusion.colormap import DEFAULT_COLORMAP, temperature_colors
-from services.fusion.fuse import DEFAULT_MAX_VIEW_ANGLE_DEG, ThermalView, fuse_temperature
-from services.fusion.normals import estimate_normals
+from services.fusion.fuse import DEFAULT_MAX_VIEW_ANGLE_DEG, Rows, ThermalView, fuse_rows, rows_of
+from services.fusion.normals import estimate_normals, normals_at
 
 FIELD_PROPERTIES = ("temperature", "view_angle", "red", "green", "blue")
 
 
 def cloud_normals(cloud: PointCloud, viewpoint: np.ndarray) -> np.ndarray:
     """The cloud's ``nx, ny, nz`` where given and finite, else estimated by PCA facing ``viewpoint``."""
-    points = cloud.points
     if all(name in cloud for name in ("nx", "ny", "nz")):
         normals = np.column_stack([cloud["nx"], cloud["ny"], cloud["nz"]]).astype(np.float64)
-        missing = ~np.isfinite(normals).all(axis=1)
-        if missing.any():
-            normals[missing] = estimate_normals(points, viewpoint, where=missing)[missing]
+        missing = np.flatnonzero(_missing_normals(cloud))
+        if len(missing):
+            normals[missing] = _estimated_normals(cloud, missing, viewpoint)
         return normals
-    return estimate_normals(points, viewpoint)
+    return estimate_normals(cloud.points, viewpoint)
+
+
+def _coordinates(cloud: PointCloud) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    return cloud["x"], cloud["y"], cloud["z"]
+
+
+def _missing_normals(cloud: PointCloud) -> np.ndarray:
+    """Points without a finite normal."""
+    return ~(np.isfinite(cloud["nx"]) & np.isfinite(cloud["ny"]) & np.isfinite(cloud["nz"]))
+
+
+def _estimated_normals(cloud: PointCloud, index: np.ndarray, viewpoint: np.ndarray) -> np.ndarray:
+    """PCA normals of the points ``index`` (NaN for non-finite points), neighbours from the whole cloud."""
+    columns = _coordinates(cloud)
+    finite = np.isfinite(columns[0]) & np.isfinite(columns[1]) & np.isfinite(columns[2])
+    estimated = np.full((len(index), 3), np.nan)
+    wanted = finite[index]
+    if wanted.any():
+        estimated[wanted] = normals_at(columns, index[wanted], viewpoint, finite=finite)
+    return estimated
+
+
+def _stacked_rows(columns: tuple[np.ndarray, ...], rows: slice) -> np.ndarray:
+    out = np.empty((len(columns[0][rows]), 3))
+    for axis, column in enumerate(columns):
+        out[:, axis] = column[rows]
+    return out
+
+
+def _cloud_rows(cloud: PointCloud, viewpoint: np.ndarray) -> tuple[Rows, Rows]:
+    """Chunk readers (see :func:`services.fusion.fuse.fuse_rows`) of the cloud's points and of
+    :func:`cloud_normals`, which stack the chunk's columns rather than the whole cloud's."""
+    columns = _coordinates(cloud)
+    if not all(name in cloud for name in ("nx", "ny", "nz")):
+        return (lambda rows: _stacked_rows(columns, rows)), rows_of(estimate_normals(cloud.points, viewpoint))
+    normal_columns = (cloud["nx"], cloud["ny"], cloud["nz"])
+    missing = np.flatnonzero(_missing_normals(cloud))
+    estimated = _estimated_normals(cloud, missing, viewpoint)
+
+    def normals_of(rows: slice) -> np.ndarray:
+        normals = _stacked_rows(normal_columns, rows)
+        first, last = np.searchsorted(missing, [rows.start, rows.stop])
+        normals[missing[first:last] - rows.start] = estimated[first:last]
+        return normals
+
+    return (lambda rows: _stacked_rows(columns, rows)), normals_of
 
 
 def temperature_field(
@@ -47,7 +92,7 @@ def temperature_field(
     max_view_angle_deg : float
         View-angle limit, see :func:`services.fusion.fuse.fuse_temperature`.
     colormap : str
-        Matplotlib colour map for the RGB properties.
+        Colour map for the RGB properties (see :func:`services.fusion.colormap.colormap_lut`).
 
     Returns
     -------
@@ -58,7 +103,11 @@ def temperature_field(
     """
     if not isinstance(cloud, PointCloud):
         cloud = PointCloud(dict(cloud))
-    fused = fuse_temperature(cloud.points, cloud_normals(cloud, viewpoint), views, max_view_angle_deg)
+    absent = [name for name in ("x", "y", "z") if name not in cloud]
+    if absent:
+        raise ValueError(f"The cloud lacks the coordinate properties {absent}.")
+    points_of, normals_of = _cloud_rows(cloud, viewpoint)
+    fused = fuse_rows(len(cloud), points_of, normals_of, views, max_view_angle_deg)
     rgb = temperature_colors(fused.temperature, name=colormap)
     return cloud.without(*FIELD_PROPERTIES).with_properties(
         temperature=fused.temperature, view_angle=fused.view_angle, red=rgb[:, 0], green=rgb[:, 1], blue=rgb[:, 2])

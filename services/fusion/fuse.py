@@ -1,23 +1,34 @@
-"""The 3D temperature field: each cloud point's temperature from one or more calibrated thermal views."""
+"""The 3D temperature field: each cloud point's temperature from one or more calibrated thermal views.
+
+The per-point work runs as numpy expressions on chunks of ``POINT_CHUNK`` points, on the small thread pool of
+:mod:`services.structured_light.row_bands`: a chunk's float64 temporaries (half a megabyte each) stay in the
+CPU cache, where whole-array expressions over a scan's half a million points would each stream several
+megabytes through memory, and numpy releases the GIL, so the chunks run in parallel and the service's other
+threads (API, artifact writers) run meanwhile.
+"""
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
-import numba
 import numpy as np
 
 from services.geometry.camera_model import CameraModel
+from services.geometry.distortion import distorted_pixels, opencv_distortion_terms
 from services.geometry.rigid import rigid_transform
 from services.fusion.visibility import (
-    SAMPLE_FOOTPRINTS, depth_buffer, depth_gradient, depth_tolerance, nearest_depth_around, seen_mask,
+    SAMPLE_FOOTPRINTS, depth_gradient, depth_tolerance, fill_empty_pixels, nearest_depth_around,
+    nearest_pixel_index, splat_nearest, within_tolerance,
 )
 from services.geometry.camera import project_points
+from services.structured_light.row_bands import map_bands, row_bands
 
 DEFAULT_MAX_VIEW_ANGLE_DEG = 75.0
 DEFAULT_DEPTH_TOLERANCE_MM = 2.0
 DEFAULT_OCCLUSION_MARGIN_PX = 6
+POINT_CHUNK = 1 << 16
+"""Points per chunk of the per-point passes."""
 
 
 @dataclass(frozen=True)
@@ -49,22 +60,52 @@ class TemperatureField:
 
 def view_angles(points: np.ndarray, normals: np.ndarray, centre: np.ndarray) -> np.ndarray:
     """Angle between each normal and the direction from its point to ``centre``, radians (NaN if unknown)."""
+    points, normals = _as_float(points), _as_float(normals)
+    centre = np.asarray(centre, dtype=np.float64)
     angles = np.empty(len(points))
-    _view_angles(np.ascontiguousarray(points, dtype=np.float64), np.ascontiguousarray(normals, dtype=np.float64),
-                 np.asarray(centre, dtype=np.float64), angles)
+
+    def chunk(rows: slice) -> None:
+        angles[rows] = _view_angles(np.asarray(points[rows], dtype=np.float64),
+                                    np.asarray(normals[rows], dtype=np.float64), centre)
+
+    map_bands(chunk, _chunks(len(points)))
     return angles
 
 
-# Compiled per-point loops: numpy's whole-array expressions over a scan's half a million points made a dozen
-# temporaries each (the bilinear sampling took 4x as long, the whole fusion 2.6x). nogil: the service's other threads (API, artifact writers)
-# run meanwhile.
-@numba.njit(cache=True, nogil=True)
-def _view_angles(points, normals, centre, out):
-    for i in range(points.shape[0]):
-        x, y, z = centre[0] - points[i, 0], centre[1] - points[i, 1], centre[2] - points[i, 2]
-        length = np.sqrt(x * x + y * y + z * z)
-        cosine = (x / length) * normals[i, 0] + (y / length) * normals[i, 1] + (z / length) * normals[i, 2]
-        out[i] = np.arccos(min(max(cosine, -1.0), 1.0)) if np.isfinite(cosine) else np.nan
+def _chunks(count: int) -> list[slice]:
+    return row_bands(count, 1, POINT_CHUNK)
+
+
+def _as_float(array: np.ndarray) -> np.ndarray:
+    """``array`` as it is if float32 or float64 (the chunks convert to float64), else as float64."""
+    array = np.asarray(array)
+    return array if array.dtype in (np.float32, np.float64) else array.astype(np.float64)
+
+
+def _view_angles(points: np.ndarray, normals: np.ndarray, centre: np.ndarray) -> np.ndarray:
+    """:func:`view_angles` of float64 (n, 3) arrays."""
+    cosine = _view_cosines(points, normals, centre)
+    return np.arccos(cosine, out=cosine)  # NaN stays NaN
+
+
+def _view_cosines(points: np.ndarray, normals: np.ndarray, centre: np.ndarray) -> np.ndarray:
+    """Cosines of :func:`_view_angles`, clipped to [-1, 1] (NaN if unknown)."""
+    x, y, z = centre[0] - points[:, 0], centre[1] - points[:, 1], centre[2] - points[:, 2]
+    length = x * x
+    length += y * y
+    length += z * z
+    np.sqrt(length, out=length)
+    x /= length
+    y /= length
+    z /= length
+    x *= normals[:, 0]
+    y *= normals[:, 1]
+    z *= normals[:, 2]
+    cosine = x
+    cosine += y
+    cosine += z
+    cosine[np.isinf(cosine)] = np.nan
+    return np.clip(cosine, -1.0, 1.0, out=cosine)
 
 
 def _project(points: np.ndarray, device: CameraModel) -> np.ndarray:
@@ -85,37 +126,62 @@ def _bilinear_samples(
     without a temperature (saturated, beyond the range) gets none rather than the
     lower temperature of its other neighbours.
     """
+    frames = np.asarray(frames, dtype=np.float64)
+    pixels = np.asarray(pixels, dtype=np.float64)
+    depth = np.asarray(depth, dtype=np.float64)
+    tolerance = np.asarray(tolerance, dtype=np.float64)
+    buffer = np.ascontiguousarray(buffer, dtype=np.float64)
     samples = np.empty((len(frames), len(depth)))
-    _bilinear_kernel(np.ascontiguousarray(frames, dtype=np.float64), np.ascontiguousarray(pixels, dtype=np.float64),
-                     np.ascontiguousarray(depth, dtype=np.float64), np.ascontiguousarray(buffer, dtype=np.float64),
-                     np.ascontiguousarray(tolerance, dtype=np.float64), samples)
+
+    def chunk(rows: slice) -> None:
+        samples[:, rows] = _bilinear(frames, pixels[rows, 0], pixels[rows, 1], depth[rows], buffer, tolerance[rows])
+
+    map_bands(chunk, _chunks(len(depth)))
     return samples
 
 
-@numba.njit(cache=True, nogil=True)
-def _bilinear_kernel(frames, pixels, depth, buffer, tolerance, out):
+def _bilinear(frames: np.ndarray, u: np.ndarray, v: np.ndarray, depth: np.ndarray, buffer: np.ndarray,
+              tolerance: np.ndarray) -> np.ndarray:
+    """:func:`_bilinear_samples` of one chunk of points at pixels (u, v)."""
     count, height, width = frames.shape
-    for i in range(pixels.shape[0]):
-        left, top = np.floor(pixels[i, 0]), np.floor(pixels[i, 1])
-        fx, fy = pixels[i, 0] - left, pixels[i, 1] - top
-        for frame in range(count):
-            total, weight_sum, unknown = 0.0, 0.0, False
-            for corner in range(4):
-                dx, dy = corner % 2, corner // 2
-                column, row = left + dx, top + dy
-                if not (column >= 0 and column < width and row >= 0 and row < height):
-                    continue
-                r, c = int(row), int(column)
-                if not depth[i] <= buffer[r, c] + tolerance[i]:  # a nearer surface (or none) at this corner
-                    continue
-                weight = (fx if dx else 1.0 - fx) * (fy if dy else 1.0 - fy)
-                value = frames[frame, r, c]
-                if np.isfinite(value):
-                    total += value * weight
-                    weight_sum += weight
-                elif weight > 0:
-                    unknown = True
-            out[frame, i] = total / weight_sum if weight_sum > 0 and not unknown else np.nan
+    values_of = frames.reshape(count, -1)
+    surface_of = buffer.reshape(-1)
+    all_finite = [bool(np.isfinite(values).all()) for values in values_of]
+    left, top = np.floor(u), np.floor(v)
+    fx, fy = u - left, v - top
+    with np.errstate(invalid="ignore"):  # NaN pixels: no corner counts
+        left_in, right_in = (left >= 0) & (left < width), (left >= -1) & (left < width - 1)
+        top_in, bottom_in = (top >= 0) & (top < height), (top >= -1) & (top < height - 1)
+        base = np.where(left_in | right_in, left, 0.0)
+        base += np.where(top_in | bottom_in, top, 0.0) * width
+        base = base.astype(np.intp)
+    total = np.zeros((count, len(u)))
+    weight_sum = np.zeros((count, len(u)))
+    unknown = np.zeros((count, len(u)), dtype=bool)
+    for dy, row_in, row_weight in ((0, top_in, 1.0 - fy), (1, bottom_in, fy)):
+        for dx, column_in in ((0, left_in), (1, right_in)):
+            counted = row_in & column_in
+            flat = base + (dy * width + dx)
+            np.clip(flat, 0, height * width - 1, out=flat)  # (corners outside do not count)
+            limit = surface_of[flat]
+            limit += tolerance
+            counted &= depth <= limit  # else a nearer surface (or none) at this corner
+            weight = fx * row_weight if dx else (1.0 - fx) * row_weight
+            for frame in range(count):
+                value = values_of[frame][flat]
+                if all_finite[frame]:
+                    good = counted
+                else:
+                    good = np.isfinite(value)
+                    unknown[frame] |= (counted & (weight > 0)) > good
+                    good &= counted
+                value *= weight
+                np.add(total[frame], value, out=total[frame], where=good)
+                np.add(weight_sum[frame], weight, out=weight_sum[frame], where=good)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        total /= weight_sum
+    total[(weight_sum <= 0) | unknown] = np.nan
+    return total
 
 
 def sample_view(
@@ -142,32 +208,96 @@ def sample_view(
         cos(view angle) times the number of frames that gave a value; 0 where
         ``temperature`` is NaN.
     """
+    points, normals = _as_float(points), _as_float(normals)
+    temperature = np.empty(len(points))
+    angle = np.empty(len(points))
+    weight = np.empty(len(points))
+
+    def keep(rows: slice, chunk_temperature: np.ndarray, chunk_angle: np.ndarray, chunk_weight: np.ndarray) -> None:
+        temperature[rows], angle[rows], weight[rows] = chunk_temperature, chunk_angle, chunk_weight
+
+    _sample_view(len(points), rows_of(points), rows_of(normals), view, max_view_angle_deg, depth_tolerance_mm,
+                 occlusion_margin_px, keep)
+    return temperature, angle, weight
+
+
+Rows = Callable[[slice], np.ndarray]
+"""A chunk's rows of an (N, 3) array, as float64 (n, 3)."""
+_ChunkResult = Callable[[slice, np.ndarray, np.ndarray, np.ndarray], None]
+
+
+def rows_of(array: np.ndarray) -> Rows:
+    """:data:`Rows` of an (N, 3) array."""
+    return lambda rows: np.asarray(array[rows], dtype=np.float64)
+
+
+def _sample_view(count: int, points_of: Rows, normals_of: Rows, view: ThermalView, max_view_angle_deg: float,
+                 depth_tolerance_mm: float, occlusion_margin_px: int, result: _ChunkResult) -> None:
+    """:func:`sample_view` of ``count`` points chunk by chunk: ``result(rows, temperature, view_angle, weight)``
+    for each chunk of rows (called on the pool's threads; each chunk's rows are its own)."""
     device = view.device
     max_angle = np.deg2rad(max_view_angle_deg)
-    pixels = _project(points, device)
-    points_device = rigid_transform(points, device.R, device.t)
-    depth = points_device[:, 2]
-    angle = view_angles(points, normals, device.centre)
-    focal = 0.5 * (device.K[0, 0] + device.K[1, 1])
-    gradient = depth_gradient(points_device, rigid_transform(normals, device.R, np.zeros(3)), focal, max_angle)
-    tolerance = depth_tolerance(gradient, depth_tolerance_mm)
-    buffer = depth_buffer(pixels, depth, device.width, device.height)
-    seen = seen_mask(pixels, depth, buffer, tolerance)
-    if occlusion_margin_px > 0:
-        # the square window reaches margin * sqrt(2) pixels away along its diagonals
-        guard = depth_tolerance(gradient, depth_tolerance_mm, SAMPLE_FOOTPRINTS + np.sqrt(2) * occlusion_margin_px)
-        seen &= seen_mask(pixels, depth, nearest_depth_around(buffer, occlusion_margin_px), guard)
-    usable = seen & (angle <= max_angle)
+    K = np.asarray(device.K, dtype=np.float64)
+    R = np.asarray(device.R, dtype=np.float64)
+    t = np.asarray(device.t, dtype=np.float64).ravel()
+    terms, tilt = opencv_distortion_terms(device.dist)
+    centre = np.asarray(device.centre, dtype=np.float64)
+    focal = 0.5 * (K[0, 0] + K[1, 1])
+    chunks = _chunks(count)
+    pixels = np.empty((2, count))
+    depth = np.empty(count)
+    index = np.empty(count, dtype=np.intp)
 
-    temperature = np.full(len(points), np.nan)
-    weight = np.zeros(len(points))
-    if usable.any():
-        samples = _bilinear_samples(view.frames, pixels[usable], depth[usable], buffer, tolerance[usable])
-        frames_seen = np.isfinite(samples).sum(axis=0)
-        mean = np.nansum(samples, axis=0) / np.maximum(frames_seen, 1)
-        temperature[usable] = np.where(frames_seen > 0, mean, np.nan)
-        weight[usable] = np.cos(angle[usable]) * frames_seen
-    return temperature, np.where(seen, angle, np.nan), weight
+    def project(rows: slice) -> None:  # pixels as services.geometry.camera.project_points, the nearest pixel
+        points_device = rigid_transform(points_of(rows), R, t)
+        z = points_device[:, 2]
+        depth[rows] = z
+        with np.errstate(divide="ignore", invalid="ignore"):
+            z = np.where(z > 0.0, z, np.nan)
+            u, v = distorted_pixels(points_device[:, 0] / z, points_device[:, 1] / z, K, terms, tilt)
+        pixels[0, rows], pixels[1, rows] = u, v
+        index[rows] = nearest_pixel_index(u, v, device.width, device.height)
+
+    map_bands(project, chunks)
+    buffer = np.full(device.height * device.width, np.inf)
+    splat_nearest(buffer, index, depth)
+    buffer = fill_empty_pixels(buffer.reshape(device.height, device.width))
+    # the square window reaches margin * sqrt(2) pixels away along its diagonals
+    guard_footprints = SAMPLE_FOOTPRINTS + np.sqrt(2) * occlusion_margin_px
+    nearest = nearest_depth_around(buffer, occlusion_margin_px).ravel() if occlusion_margin_px > 0 else None
+    surface = buffer.ravel()
+
+    def sample(rows: slice) -> None:
+        chunk_points, chunk_normals = points_of(rows), normals_of(rows)
+        chunk_index, chunk_depth = index[rows], depth[rows]
+        cosine = _view_cosines(chunk_points, chunk_normals, centre)
+        angle = np.arccos(cosine)
+        gradient = depth_gradient(rigid_transform(chunk_points, R, t), rigid_transform(chunk_normals, R, np.zeros(3)),
+                                  focal, max_angle)
+        tolerance = depth_tolerance(gradient, depth_tolerance_mm)
+        seen = within_tolerance(chunk_index, chunk_depth, surface, tolerance)
+        if nearest is not None:
+            seen &= within_tolerance(chunk_index, chunk_depth, nearest,
+                                     depth_tolerance(gradient, depth_tolerance_mm, guard_footprints))
+        usable = np.flatnonzero(seen & (angle <= max_angle))
+        temperature = np.full(len(angle), np.nan)
+        weight = np.zeros(len(angle))
+        if len(usable):
+            samples = _bilinear(view.frames, pixels[0, rows][usable], pixels[1, rows][usable], chunk_depth[usable],
+                                buffer, tolerance[usable])
+            if len(samples) == 1:
+                frames_seen = np.isfinite(samples[0]).astype(np.float64)
+                temperature[usable] = samples[0]
+            else:
+                finite = np.isfinite(samples)
+                frames_seen = finite.sum(axis=0)
+                mean = np.where(finite, samples, 0.0).sum(axis=0) / np.maximum(frames_seen, 1)
+                temperature[usable] = np.where(frames_seen > 0, mean, np.nan)
+            weight[usable] = cosine[usable] * frames_seen  # cos(angle), from before the arccos
+        angle[~seen] = np.nan
+        result(rows, temperature, angle, weight)
+
+    map_bands(sample, chunks)
 
 
 def fuse_temperature(
@@ -235,24 +365,48 @@ def fuse_temperature(
     """
     if occlusion_margin_px < 0:
         raise ValueError(f"The occlusion margin must be a non-negative number of pixels; got {occlusion_margin_px}.")
-    points = np.asarray(points, dtype=np.float64)
-    normals = np.asarray(normals, dtype=np.float64)
+    points, normals = _as_float(points), _as_float(normals)
     if points.ndim != 2 or points.shape[1] != 3 or normals.shape != points.shape:
         raise ValueError(f"points and normals must both be (N, 3); got {points.shape} and {normals.shape}.")
+    return fuse_rows(len(points), rows_of(points), rows_of(normals), views, max_view_angle_deg, depth_tolerance_mm,
+                     occlusion_margin_px)
+
+
+def fuse_rows(count: int, points_of: Rows, normals_of: Rows, views: Sequence[ThermalView],
+              max_view_angle_deg: float = DEFAULT_MAX_VIEW_ANGLE_DEG,
+              depth_tolerance_mm: float = DEFAULT_DEPTH_TOLERANCE_MM,
+              occlusion_margin_px: int = DEFAULT_OCCLUSION_MARGIN_PX) -> TemperatureField:
+    """:func:`fuse_temperature` of ``count`` points given chunk by chunk (e.g. stacked from a cloud's
+    coordinate columns, without an (N, 3) copy of the whole cloud)."""
+    if occlusion_margin_px < 0:
+        raise ValueError(f"The occlusion margin must be a non-negative number of pixels; got {occlusion_margin_px}.")
     if not views:
         raise ValueError("At least one thermal view is needed to fuse a temperature field.")
     if not 0.0 < max_view_angle_deg < 90.0:
         raise ValueError(f"The view-angle limit must be in (0, 90) degrees; got {max_view_angle_deg}.")
-    weighted_sum = np.zeros(len(points))
-    weight_sum = np.zeros(len(points))
-    best_angle = np.full(len(points), np.inf)
+    weighted_sum = np.zeros(count)
+    weight_sum = np.zeros(count)
+    best_angle = np.full(count, np.inf)
+
+    def accumulate(rows: slice, temperature: np.ndarray, angle: np.ndarray, weight: np.ndarray) -> None:
+        temperature *= weight
+        weighted_sum[rows] += np.where(weight > 0, temperature, 0.0)
+        weight_sum[rows] += weight
+        np.fmin(best_angle[rows], angle, out=best_angle[rows])
+
     for view in views:
-        temperature, angle, weight = sample_view(points, normals, view, max_view_angle_deg, depth_tolerance_mm,
-                                                 occlusion_margin_px)
-        weighted_sum += np.where(weight > 0, temperature * weight, 0.0)
-        weight_sum += weight
-        best_angle = np.fmin(best_angle, angle)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        fused = np.where(weight_sum > 0, weighted_sum / weight_sum, np.nan)
-    best_angle[np.isinf(best_angle)] = np.nan
-    return TemperatureField(fused.astype(np.float32), np.rad2deg(best_angle).astype(np.float32))
+        _sample_view(count, points_of, normals_of, view, max_view_angle_deg, depth_tolerance_mm, occlusion_margin_px,
+                     accumulate)
+    fused = np.empty(count, dtype=np.float32)
+    fused_angle = np.empty(count, dtype=np.float32)
+
+    def finish(rows: slice) -> None:
+        total = weight_sum[rows]
+        with np.errstate(invalid="ignore", divide="ignore"):
+            fused[rows] = np.where(total > 0, weighted_sum[rows] / total, np.nan)
+        angle = best_angle[rows]
+        angle[np.isinf(angle)] = np.nan
+        fused_angle[rows] = np.rad2deg(angle)
+
+    map_bands(finish, _chunks(count))
+    return TemperatureField(fused, fused_angle)

@@ -1,14 +1,14 @@
 """Which cloud points a thermal camera sees: a z-buffer of the cloud in the thermal view.
 
-The per-point passes are compiled loops (numba): a scan's cloud has half a million points, and numpy's
-whole-array expressions made several temporaries of that size per step (the depth test took 7x as long).
+The per-point passes are numpy expressions that :mod:`services.fusion.fuse` runs on chunks of about 65k
+points (see ``POINT_CHUNK``), so that their temporaries stay in the CPU cache; the window minima are
+OpenCV erosions.
 """
 
 from __future__ import annotations
 
-import numba
+import cv2
 import numpy as np
-from scipy import ndimage
 
 # Nearest-pixel assignment puts points up to 1.5 pixel footprints from a bilinear
 # corner's centre, so a tilted surface's depth may differ by that many footprints.
@@ -50,12 +50,22 @@ def depth_buffer(pixels: np.ndarray, depth: np.ndarray, width: int, height: int)
     depth = np.asarray(depth, dtype=np.float64)
     if pixels.ndim != 2 or pixels.shape[1] != 2 or depth.shape != (pixels.shape[0],):
         raise ValueError(f"pixels must be (N, 2) and depth (N,); got {pixels.shape} and {depth.shape}.")
-    index = _nearest_pixel_index(pixels, width, height)
     buffer = np.full(height * width, np.inf)
-    _splat_nearest(index, depth, buffer)
-    buffer = buffer.reshape(height, width)
+    splat_nearest(buffer, _nearest_pixel_index(pixels, width, height), depth)
+    return fill_empty_pixels(buffer.reshape(height, width))
+
+
+def splat_nearest(buffer: np.ndarray, index: np.ndarray, depth: np.ndarray) -> None:
+    """Lower the flat ``buffer`` to each point's depth at its pixel ``index`` (-1: outside; depth <= 0 or NaN:
+    not drawn), in place."""
+    drawn = (index >= 0) & (depth > 0)
+    np.minimum.at(buffer, index[drawn], depth[drawn])
+
+
+def fill_empty_pixels(buffer: np.ndarray) -> np.ndarray:
+    """``buffer`` with each empty (+inf) pixel given the smallest depth of its 3x3 neighbours, in place."""
     empty = np.isinf(buffer)
-    buffer[empty] = ndimage.minimum_filter(buffer, size=3, mode="nearest")[empty]
+    buffer[empty] = nearest_depth_around(buffer, 1)[empty]
     return buffer
 
 
@@ -85,22 +95,32 @@ def depth_gradient(
     with |n . X| = |X| cos(theta) for the view angle theta, floored at
     cos(theta_max).
     """
-    gradient = np.empty(len(points_device))
-    _depth_gradient(np.ascontiguousarray(points_device, dtype=np.float64),
-                    np.ascontiguousarray(normals_device, dtype=np.float64), float(focal_px), float(max_view_angle),
-                    gradient)
+    points_device = np.asarray(points_device, dtype=np.float64)
+    normals_device = np.asarray(normals_device, dtype=np.float64)
+    x, y, z = points_device[:, 0], points_device[:, 1], points_device[:, 2]
+    nx, ny, nz = normals_device[:, 0], normals_device[:, 1], normals_device[:, 2]
+    along = nx * x
+    along += ny * y
+    along += nz * z
+    np.abs(along, out=along)
+    reach = x * x
+    reach += y * y
+    reach += z * z
+    np.sqrt(reach, out=reach)
+    reach *= np.cos(max_view_angle)
+    np.maximum(along, reach, out=along)  # NaN stays NaN (unknown normal)
+    slope = nx * nx
+    slope += ny * ny
+    gradient = z * z
+    gradient *= np.sqrt(slope, out=slope)
+    along *= focal_px
+    with np.errstate(invalid="ignore", divide="ignore"):
+        gradient /= along
+    unknown = ~np.isfinite(gradient)  # an unknown normal, or a point at the centre (along = 0)
+    unknown |= ~np.isfinite(along)
+    if unknown.any():
+        gradient[unknown] = z[unknown] / focal_px * np.tan(max_view_angle)
     return gradient
-
-
-@numba.njit(cache=True, nogil=True)
-def _depth_gradient(points, normals, focal, max_view_angle, out):
-    floor, unknown_slope = np.cos(max_view_angle), np.tan(max_view_angle)
-    for i in range(points.shape[0]):
-        x, y, z = points[i, 0], points[i, 1], points[i, 2]
-        along = abs(normals[i, 0] * x + normals[i, 1] * y + normals[i, 2] * z)
-        along = max(along, np.sqrt(x * x + y * y + z * z) * floor)
-        gradient = z * z * np.hypot(normals[i, 0], normals[i, 1]) / (focal * along)
-        out[i] = gradient if np.isfinite(gradient) and np.isfinite(along) else z / focal * unknown_slope
 
 
 def depth_tolerance(gradient: np.ndarray, absolute_mm: float, footprints: float = SAMPLE_FOOTPRINTS) -> np.ndarray:
@@ -113,7 +133,9 @@ def depth_tolerance(gradient: np.ndarray, absolute_mm: float, footprints: float 
 
 def nearest_depth_around(buffer: np.ndarray, radius_px: int) -> np.ndarray:
     """Smallest z-buffer depth within ``radius_px`` pixels (a square window) of each pixel."""
-    return ndimage.minimum_filter(buffer, size=2 * radius_px + 1, mode="nearest")
+    size = 2 * int(radius_px) + 1
+    # replicated borders add no new values to a window minimum: scipy.ndimage's mode="nearest"
+    return cv2.erode(np.ascontiguousarray(buffer), np.ones((size, size), np.uint8), borderType=cv2.BORDER_REPLICATE)
 
 
 def seen_mask(
@@ -121,36 +143,30 @@ def seen_mask(
 ) -> np.ndarray:
     """Points in the view whose depth is within ``tolerance`` of the z-buffer at their nearest pixel."""
     height, width = buffer.shape
-    index = _nearest_pixel_index(pixels, width, height)
-    seen = np.empty(len(index), dtype=bool)
-    _within_tolerance(index, np.ascontiguousarray(depth, dtype=np.float64), np.ascontiguousarray(buffer).ravel(),
-                      np.ascontiguousarray(tolerance, dtype=np.float64), seen)
+    return within_tolerance(_nearest_pixel_index(pixels, width, height), np.asarray(depth, dtype=np.float64),
+                            np.ascontiguousarray(buffer).ravel(), np.asarray(tolerance, dtype=np.float64))
+
+
+def within_tolerance(index: np.ndarray, depth: np.ndarray, buffer: np.ndarray, tolerance: np.ndarray) -> np.ndarray:
+    """Points at flat pixel ``index`` (-1: outside) with 0 < depth <= buffer + tolerance there."""
+    limit = buffer[np.maximum(index, 0)]
+    limit += tolerance
+    seen = depth <= limit  # False for NaN
+    seen &= depth > 0
+    seen &= index >= 0
     return seen
 
 
 def _nearest_pixel_index(pixels: np.ndarray, width: int, height: int) -> np.ndarray:
     """Flat index row * width + column of each point's nearest pixel centre; -1 outside the view (or NaN)."""
-    index = np.empty(len(pixels), dtype=np.intp)
-    _nearest_pixels(np.ascontiguousarray(pixels, dtype=np.float64), width, height, index)
-    return index
+    pixels = np.asarray(pixels, dtype=np.float64)
+    return nearest_pixel_index(pixels[:, 0], pixels[:, 1], width, height)
 
 
-@numba.njit(cache=True, nogil=True)
-def _nearest_pixels(pixels, width, height, out):
-    for i in range(pixels.shape[0]):
-        column, row = np.rint(pixels[i, 0]), np.rint(pixels[i, 1])
-        inside = column >= 0 and column < width and row >= 0 and row < height  # False for NaN
-        out[i] = int(row) * width + int(column) if inside else -1
-
-
-@numba.njit(cache=True, nogil=True)
-def _splat_nearest(index, depth, buffer):
-    for i in range(index.shape[0]):
-        if index[i] >= 0 and depth[i] > 0 and depth[i] < buffer[index[i]]:
-            buffer[index[i]] = depth[i]
-
-
-@numba.njit(cache=True, nogil=True)
-def _within_tolerance(index, depth, buffer, tolerance, out):
-    for i in range(index.shape[0]):
-        out[i] = index[i] >= 0 and depth[i] > 0 and depth[i] <= buffer[index[i]] + tolerance[i]
+def nearest_pixel_index(u: np.ndarray, v: np.ndarray, width: int, height: int) -> np.ndarray:
+    """Flat index row * width + column of the pixel centres nearest (u, v); -1 outside the view (or NaN)."""
+    column, row = np.rint(u), np.rint(v)
+    inside = (column >= 0) & (column < width) & (row >= 0) & (row < height)  # False for NaN
+    row *= width
+    row += column
+    return np.where(inside, row, -1.0).astype(np.intp)
