@@ -9,6 +9,7 @@ combination, with the phase unwrapped against the Gray-code stripe centre.
 from __future__ import annotations
 
 import enum
+import math
 from functools import partial
 from dataclasses import dataclass
 
@@ -136,99 +137,137 @@ def _sequence_tables(sequence: Sequence) -> _Tables:
     )
 
 
+def _above32(value: float) -> np.float32:
+    """The least float32 not below ``value``: ``x < value`` is ``x < _above32(value)`` for every float32 x."""
+    rounded = np.float32(value)
+    return rounded if rounded >= value else np.nextafter(rounded, np.float32(np.inf))
+
+
+def _below32(value: float) -> np.float32:
+    """The greatest float32 not above ``value``: ``x > value`` is ``x > _below32(value)`` for every float32 x."""
+    rounded = np.float32(value)
+    return rounded if rounded <= value else np.nextafter(rounded, np.float32(-np.inf))
+
+
+def _level_limit(dtype: np.dtype, value: float):
+    """``value`` as a scalar of the frames' dtype that compares with the frames as ``value`` itself does
+    (``x >= value`` is ``x >= limit``, and ``x < value`` is ``x < limit``): rounded up for integers, at most
+    one above the dtype's maximum (then held in a wider type)."""
+    if dtype == np.float64:
+        return value
+    if dtype == np.float32:
+        return _above32(value)
+    return min(math.ceil(value), np.iinfo(dtype).max + 1)
+
+
+# Rejection codes by precedence: a pixel gets the code of the highest-ranked condition it meets.
+_PRECEDENCE = (Rejection.INCONSISTENT, Rejection.POOR_FIT, Rejection.LOW_MODULATION, Rejection.SATURATED,
+               Rejection.DARK)
+_RANKED_CODE = np.zeros(256, np.uint8)  # rank (1 for the lowest) -> code
+_RANKED_CODE[1:len(_PRECEDENCE) + 1] = _PRECEDENCE
+_RANKED_SCALE = np.ones(256, np.float32)  # rank -> 1 for a valid pixel, NaN for a rejected one
+_RANKED_SCALE[1:] = np.nan
+
+
 # Plain numpy and OpenCV, a band of rows at a time on the row-band pool (both release the GIL): the
-# phase sums accumulate straight from the uint8/uint16 frames (cv2.accumulate and accumulateSquare read
-# them without a float copy of the stack), and a band's float temporaries stay in the CPU cache.
+# phase sums accumulate from the uint8/uint16 frames one frame at a time (cv2.accumulate and
+# accumulateSquare read them without a float copy of the stack), and a band's temporaries, about
+# 256 kB each, stay in the CPU cache. uint8 samples are summed in float32, where sums and sums of
+# squares are exact (integers below 2**24); wider samples in float64.
 def _decode_rows(frames, tables, saturation_level, min_intensity, min_modulation, min_quality, consistency,
                  coordinates, modulation, intensity, quality, rejection, rows):
     """Decode the camera rows ``rows`` into the output arrays (see :func:`decode`)."""
     band = frames[:, rows]
     shape = band.shape[1:]
-    # uint8 sums are exact in float32 (integers below 2**24); wider samples sum in float64.
     work = np.float32 if frames.dtype == np.uint8 else np.float64
     n_groups = tables.group_period.size
-    saturated_frames = tables.group_frames if n_groups > 0 else range(band.shape[0])
-    brightest = band[saturated_frames[0]].copy()
-    for f in saturated_frames[1:]:
+    # Clipping: any phase frame (any frame without phase) at the saturation level.
+    clipping_frames = tables.group_frames if n_groups > 0 else range(band.shape[0])
+    brightest = band[clipping_frames[0]].copy()
+    for f in clipping_frames[1:]:
         np.maximum(brightest, band[f], out=brightest)
-    saturated = np.greater_equal(brightest, np.float64(saturation_level))
+    saturated = brightest >= _level_limit(frames.dtype, saturation_level)
     sums = []  # per phase group: C, S, the sum and the sum of squares of the samples
     sample = np.empty(shape, work)
     for g in range(n_groups):
         c_sum, s_sum, total, squares = (np.zeros(shape, work) for _ in range(4))
         for i in range(tables.group_start[g], tables.group_start[g + 1]):
             frame = band[tables.group_frames[i]]
-            sample.fill(0)
-            cv2.accumulate(frame, sample)  # the float copy of one frame's band
+            np.copyto(sample, frame)
             cv2.scaleAdd(sample, float(tables.group_cos[i]), c_sum, dst=c_sum)
             cv2.scaleAdd(sample, float(tables.group_sin[i]), s_sum, dst=s_sum)
             cv2.accumulate(frame, total)
             cv2.accumulateSquare(frame, squares)
         sums.append((c_sum, s_sum, total, squares))
-    if n_groups > 0:
+    references = tables.white >= 0 and tables.black >= 0
+    offset = None
+    if n_groups > 0 and not references:
         offset = sums[-1][2] / (tables.group_start[n_groups] - tables.group_start[n_groups - 1])
-        # The intensity without a white frame: the mean of every phase frame, the least noisy
-        # offset (a board image with a twelfth of one frame's noise variance for SLStudio's 12).
-        mean_level = sums[0][2].copy()
-        for g in range(1, n_groups):
-            mean_level += sums[g][2]
-        mean_level /= tables.group_start[n_groups]
-    else:
+    elif n_groups == 0:
         offset = np.zeros(shape, work)
         for f in tables.mean_frames:
             cv2.accumulate(band[f], offset)
         if tables.mean_frames.size > 0:
             offset /= tables.mean_frames.size
     threshold = offset
-    if tables.white >= 0 and tables.black >= 0:
+    if references:
         threshold = np.zeros(shape, work)
         cv2.accumulate(band[tables.white], threshold)
         cv2.accumulate(band[tables.black], threshold)
         threshold *= 0.5
-    level = mean_level if n_groups > 0 else offset
     if tables.white >= 0:
         level = band[tables.white]
+    elif n_groups > 0:
+        # The intensity without a white frame: the mean of every phase frame, the least noisy
+        # offset (a board image with a twelfth of one frame's noise variance for SLStudio's 12).
+        level = sums[0][2].copy()
+        for g in range(1, n_groups):
+            level += sums[g][2]
+        level /= tables.group_start[n_groups]
+    else:
+        level = offset
 
-    pixel_modulation = np.full(shape, np.inf, np.float32)
-    pixel_quality = np.ones(shape, np.float32)
+    pixel_modulation = pixel_quality = None
     poor_fit = np.zeros(shape, bool)
     inconsistent = np.zeros(shape, bool)
+    bit = np.empty(shape, bool)
+    axis_references = []
     for a in range(2):
         first_group, end_group = tables.group_range[a], tables.group_range[a + 1]
-        gray_count = tables.gray_count[a]
+        gray_count = int(tables.gray_count[a])
         if gray_count == 0 and first_group == end_group:
-            coordinates[a, rows] = np.nan
+            axis_references.append(None)
             continue
         referenced = False
         uncertainty = 0.0
         axis_size = float(tables.axis_size[a])
         if gray_count > 0:
             gray_only = first_group == end_group  # the plane margins are then modulation and quality
-            stripe_index = np.zeros(shape, np.int32)
-            binary = np.zeros(shape, bool)
-            bit = np.empty(shape, bool)
+            # The stripe index, built most significant bit first: binary_i = binary_{i+1} XOR gray_i.
+            stripe_index = np.zeros(shape, np.uint8 if gray_count <= 8 else np.uint16 if gray_count <= 16 else np.int64)
+            binary = np.zeros(shape, np.uint8)
             if gray_only:
                 margin_sum = np.zeros(shape, work)
                 margin_min = np.full(shape, np.inf, work)
             for b in range(gray_count):
                 plane = band[tables.gray_frame[a, b]]
                 other = band[tables.gray_complement[a, b]] if tables.gray_complement[a, b] >= 0 else threshold
-                # bit XOR inverted: the plane above its complement or threshold, or for an inverted plane not
+                # The bit XOR inverted: the plane above its complement or threshold, or for an inverted plane not.
                 (np.less_equal if tables.gray_inverted[a, b] else np.greater)(plane, other, out=bit)
-                np.not_equal(binary, bit, out=binary)
-                np.left_shift(stripe_index, 1, out=stripe_index)
-                np.bitwise_or(stripe_index, binary, out=stripe_index)
+                np.bitwise_xor(binary, bit.view(np.uint8), out=binary)
+                np.add(stripe_index, stripe_index, out=stripe_index)
+                np.add(stripe_index, binary, out=stripe_index, casting="unsafe")
                 if gray_only:
                     margin = np.abs(np.subtract(plane, other, dtype=work))
                     if tables.gray_complement[a, b] >= 0:
                         margin *= 0.5
                     margin_sum += margin
                     np.minimum(margin_min, margin, out=margin_min)
-            stripe = float(1 << tables.finest_bit[a])
+            stripe = float(1 << int(tables.finest_bit[a]))
             reference = stripe_index.astype(np.float32)
-            reference *= stripe
-            inconsistent |= reference >= axis_size
-            reference += 0.5 * (stripe - 1.0)
+            reference *= np.float32(stripe)
+            inconsistent |= reference >= axis_size  # stripe indices are exact in float32
+            reference += np.float32(0.5 * (stripe - 1.0))
             if gray_only:
                 axis_modulation = margin_sum / gray_count
                 axis_quality = np.divide(margin_min, axis_modulation, out=np.zeros(shape, work),
@@ -240,22 +279,24 @@ def _decode_rows(frames, tables, saturation_level, min_intensity, min_modulation
             period = float(tables.group_period[g])
             steps = int(tables.group_start[g + 1] - tables.group_start[g])
             tolerance = uncertainty + consistency * (0.5 * period - uncertainty)
-            energy = np.square(c_sum, dtype=np.float64)
-            energy += np.square(s_sum, dtype=np.float64)
-            alternating = np.square(total, dtype=np.float64)
-            alternating *= -1.0 / steps
-            alternating += squares
-            group_quality = np.divide(energy, alternating, out=np.zeros(shape), where=alternating > 0)
-            group_quality *= 2.0 / steps
+            if work == np.float32 and steps > 16:  # beyond, the float32 sums of uint8 samples are no longer exact
+                c_sum, s_sum, total, squares = (np.asarray(x, np.float64) for x in (c_sum, s_sum, total, squares))
+            amplitude = cv2.magnitude(c_sum, s_sum)  # sqrt(C^2 + S^2)
+            # steps * sum (I - A)^2, exact for uint8 samples; the sinusoid's share of it, 0 without any.
+            alternating = squares * float(steps)
+            alternating -= np.square(total)
+            np.copyto(alternating, np.inf, where=alternating <= 0)
+            group_quality = np.square(amplitude)
+            group_quality /= alternating
+            group_quality *= 2.0
             np.minimum(group_quality, 1.0, out=group_quality)
             axis_quality = group_quality if g == first_group else np.minimum(axis_quality, group_quality)
-            axis_modulation = np.sqrt(energy)
+            axis_modulation = amplitude
             axis_modulation *= 2.0 / steps
-            phase = np.arctan2(s_sum, c_sum, dtype=np.float32)  # in (-pi, pi]
-            wrapped = phase
-            wrapped *= np.float32(1 / (2 * np.pi))
-            wrapped += phase < 0
-            wrapped *= np.float32(period)
+            wrapped = np.arctan2(s_sum, c_sum, dtype=np.float32)  # in (-pi, pi]
+            negative = wrapped < 0
+            wrapped *= np.float32(period / (2 * np.pi))
+            wrapped += negative * np.float32(period)
             if referenced:
                 turns = reference - wrapped
                 turns *= np.float32(1 / period)
@@ -263,34 +304,40 @@ def _decode_rows(frames, tables, saturation_level, min_intensity, min_modulation
                 np.floor(turns, out=turns)
                 turns *= np.float32(period)
                 wrapped += turns  # unwrapped
-                turns = np.abs(wrapped - reference)
-                inconsistent |= turns > tolerance
-                reference = wrapped
+                np.subtract(wrapped, reference, out=turns)
+                np.abs(turns, out=turns)
+                inconsistent |= turns > _below32(tolerance)
             else:
-                reference = wrapped
-                np.subtract(wrapped, np.float32(period), out=reference,
-                            where=wrapped > np.float32(0.5 * (axis_size - 1 + period)))
+                np.subtract(wrapped, np.float32(period), out=wrapped,
+                            where=wrapped > _below32(0.5 * (axis_size - 1 + period)))
+            reference = wrapped
             referenced = True
             uncertainty = 0.0
         if first_group < end_group:
-            poor_fit |= axis_quality < np.float64(min_quality)
-        inconsistent |= reference < -0.5
-        inconsistent |= reference > np.float32(axis_size - 0.5)
-        coordinates[a, rows] = reference
-        np.minimum(pixel_modulation, axis_modulation, out=pixel_modulation, casting="unsafe")
-        np.minimum(pixel_quality, axis_quality, out=pixel_quality, casting="unsafe")
+            poor_fit |= axis_quality < (_above32(min_quality) if axis_quality.dtype == np.float32 else min_quality)
+        inconsistent |= reference < np.float32(-0.5)
+        inconsistent |= reference > _below32(axis_size - 0.5)
+        axis_references.append(reference)
+        if pixel_modulation is None:
+            pixel_modulation, pixel_quality = axis_modulation, axis_quality
+        else:
+            pixel_modulation = np.minimum(pixel_modulation, axis_modulation)
+            pixel_quality = np.minimum(pixel_quality, axis_quality)
 
-    reason = rejection[rows]
-    reason.fill(Rejection.VALID)
-    # In reverse order of precedence, so that the first reason that applies is the one kept.
-    np.copyto(reason, np.uint8(Rejection.INCONSISTENT), where=inconsistent)
-    np.copyto(reason, np.uint8(Rejection.POOR_FIT), where=poor_fit)
-    np.copyto(reason, np.uint8(Rejection.LOW_MODULATION), where=pixel_modulation < np.float64(min_modulation))
-    np.copyto(reason, np.uint8(Rejection.SATURATED), where=saturated)
-    np.copyto(reason, np.uint8(Rejection.DARK), where=level < np.float64(min_intensity))
-    rejected = reason != Rejection.VALID
-    coordinates[0, rows][rejected] = np.nan
-    coordinates[1, rows][rejected] = np.nan
+    # The code of the first reason that applies: the highest rank of those met, through a table.
+    low_modulation = pixel_modulation < (_above32(min_modulation) if pixel_modulation.dtype == np.float32
+                                         else min_modulation)
+    dark = level < _level_limit(level.dtype, min_intensity)
+    rank = inconsistent.view(np.uint8).copy()
+    for r, met in enumerate((poor_fit, low_modulation, saturated, dark), start=2):
+        np.maximum(rank, np.multiply(met.view(np.uint8), np.uint8(r)), out=rank)
+    cv2.LUT(rank, _RANKED_CODE, dst=rejection[rows])
+    scale = cv2.LUT(rank, _RANKED_SCALE)  # NaN where rejected
+    for a, reference in enumerate(axis_references):
+        if reference is None:
+            coordinates[a, rows] = np.nan
+        else:
+            np.multiply(reference, scale, out=coordinates[a, rows])
     modulation[rows] = pixel_modulation
     intensity[rows] = level
     quality[rows] = pixel_quality
