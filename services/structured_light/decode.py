@@ -4,6 +4,9 @@ Any sequence a manifest can describe is decoded in one pass over the pixels:
 Gray-code planes (against their inverse, the white/black mid level or the
 phase offset), N-step phase shifting at one or several periods, and their
 combination, with the phase unwrapped against the Gray-code stripe centre.
+The pass is plain numpy and OpenCV over bands of rows on a small thread pool
+(``row_bands``); only the sub-pixel interpolation of Gray-code-only axes
+(``gray_subpixel``) is a numba kernel, imported when such a capture is decoded.
 """
 
 from __future__ import annotations
@@ -188,16 +191,23 @@ def _decode_rows(frames, tables, saturation_level, min_intensity, min_modulation
         np.maximum(brightest, band[f], out=brightest)
     saturated = brightest >= _level_limit(frames.dtype, saturation_level)
     sums = []  # per phase group: C, S, the sum and the sum of squares of the samples
-    sample = np.empty(shape, work)
+    sample, opposite = np.empty(shape, work), np.empty(shape, work)
     for g in range(n_groups):
         c_sum, s_sum, total, squares = (np.zeros(shape, work) for _ in range(4))
-        for i in range(tables.group_start[g], tables.group_start[g + 1]):
-            frame = band[tables.group_frames[i]]
-            np.copyto(sample, frame)
+        first, end = tables.group_start[g], tables.group_start[g + 1]
+        # With an even number of steps, the shift half a period on negates the cosine and sine: the
+        # difference of the two frames enters C and S once, halving the multiply-adds.
+        half = (end - first) // 2 if (end - first) % 2 == 0 else end - first
+        for i in range(first, first + half):
+            np.copyto(sample, band[tables.group_frames[i]])
+            if half < end - first:
+                np.copyto(opposite, band[tables.group_frames[i + half]])
+                sample -= opposite
             cv2.scaleAdd(sample, float(tables.group_cos[i]), c_sum, dst=c_sum)
             cv2.scaleAdd(sample, float(tables.group_sin[i]), s_sum, dst=s_sum)
-            cv2.accumulate(frame, total)
-            cv2.accumulateSquare(frame, squares)
+        for i in range(first, end):
+            cv2.accumulate(band[tables.group_frames[i]], total)
+            cv2.accumulateSquare(band[tables.group_frames[i]], squares)
         sums.append((c_sum, s_sum, total, squares))
     references = tables.white >= 0 and tables.black >= 0
     offset = None
