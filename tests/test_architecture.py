@@ -110,3 +110,37 @@ def test_the_fusion_modules_load_neither_numba_nor_scipy_nor_matplotlib():
     assert seen > 10000
     assert not [name for name in imported if _within(name, ("numba", "scipy", "matplotlib"))]
     assert not [name for name in loaded if _within(name, ("numba", "scipy", "matplotlib"))]
+
+
+def test_reconstructing_a_gray_and_phase_capture_loads_neither_numba_nor_scipy(tmp_path):
+    """numba's import and the loading of its cached kernels alone (about 0.5 s) cost more than a plain numpy
+    decoder's whole run of ``thermofield reconstruct``; scipy's import is most of a second."""
+    import pickle
+
+    import numpy as np
+
+    from services.simulation.presets import forging_rig, forging_scene
+    from services.simulation.render import CameraEffects, render_frames, render_view
+    from services.structured_light.patterns import generate_sequence
+
+    def scaled(device, width, height):
+        K = device.K.copy()
+        K[:2] *= width / device.width
+        K[0, 2], K[1, 2] = (width - 1) / 2, (height - 1) / 2
+        return device.replace(width=width, height=height, K=K.tolist())
+
+    rig = forging_rig()
+    camera, projector = scaled(rig.devices["camera"], 160, 100), scaled(rig.devices["projector"], 320, 200)
+    sequence, patterns = generate_sequence(projector.width, projector.height)
+    frames = render_frames(render_view(forging_scene(), camera, projector, supersample=1), patterns,
+                           np.random.default_rng(0), CameraEffects(noise_sigma=1.0, blur_sigma=0.7))
+    (tmp_path / "capture.pickle").write_bytes(pickle.dumps((frames, sequence, camera, projector)))
+    code = ("import json, pickle, sys\nimport services.structured_light.reconstruct as reconstruct\n"
+            f"frames, sequence, camera, projector = pickle.loads(open({str(tmp_path / 'capture.pickle')!r}, 'rb').read())\n"
+            "cloud = reconstruct.reconstruct_points(frames, sequence, camera, projector)\n"
+            "print(json.dumps([len(cloud['x']), sorted(sys.modules)]))")
+    points, loaded = json.loads(subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True,
+                                               check=True, timeout=120).stdout.splitlines()[-1])
+    assert points > 1000
+    assert "services.structured_light.decode" in loaded and "services.structured_light.outline" in loaded
+    assert not [name for name in loaded if _within(name, ("numba", "scipy"))]

@@ -4,20 +4,23 @@ Any sequence a manifest can describe is decoded in one pass over the pixels:
 Gray-code planes (against their inverse, the white/black mid level or the
 phase offset), N-step phase shifting at one or several periods, and their
 combination, with the phase unwrapped against the Gray-code stripe centre.
+The pass is plain numpy and OpenCV over bands of rows on a small thread pool
+(``row_bands``); only the sub-pixel interpolation of Gray-code-only axes
+(``gray_subpixel``) is a numba kernel, imported when such a capture is decoded.
 """
 
 from __future__ import annotations
 
 import enum
 import math
+from functools import partial
 from dataclasses import dataclass
 
+import cv2
 import numpy as np
-from numba import get_num_threads, njit, prange
 
 from services.formats.sequence import AXES, Sequence
-from services.numba_options import SAFE_FASTMATH
-from services.structured_light.gray_subpixel import gray_subpixel
+from services.structured_light.row_bands import map_row_bands
 
 
 class Rejection(enum.IntEnum):
@@ -137,270 +140,256 @@ def _sequence_tables(sequence: Sequence) -> _Tables:
     )
 
 
-# Abramowitz and Stegun 4.4.49: atan(a) = a (1 + sum_k c_k a^2k) on [0, 1], |error| <= 2e-8 rad.
-_ATAN_COEFFICIENTS = (-0.3333314528, 0.1999355085, -0.1420889944, 0.1065626393, -0.0752896400, 0.0429096138,
-                      -0.0161657367, 0.0028662257)
+def _above32(value: float) -> np.float32:
+    """The least float32 not below ``value``: ``x < value`` is ``x < _above32(value)`` for every float32 x."""
+    rounded = np.float32(value)
+    return rounded if rounded >= value else np.nextafter(rounded, np.float32(np.inf))
 
 
-@njit(cache=True, inline="always", fastmath=False)
-def _polynomial_atan2(y, x):
-    """atan2(y, x) in (-pi, pi] to 2e-8 rad, branch-free so that the column loops vectorise.
-
-    libm's atan2 is a scalar call that costs half the decoding time; 2e-8 rad is 5e-8 px at a
-    16-pixel period.
-    """
-    ax, ay = abs(x), abs(y)
-    high, low = max(ax, ay), min(ax, ay)
-    a = low / high if high > 0 else 0.0
-    s = a * a
-    c = _ATAN_COEFFICIENTS
-    r = (((((((c[7] * s + c[6]) * s + c[5]) * s + c[4]) * s + c[3]) * s + c[2]) * s + c[1]) * s + c[0]) * s
-    r = (r + 1.0) * a
-    r = 0.5 * math.pi - r if ay > ax else r
-    r = math.pi - r if x < 0 else r
-    return -r if y < 0 else r
+def _below32(value: float) -> np.float32:
+    """The greatest float32 not above ``value``: ``x > value`` is ``x > _below32(value)`` for every float32 x."""
+    rounded = np.float32(value)
+    return rounded if rounded <= value else np.nextafter(rounded, np.float32(-np.inf))
 
 
-# Hand-written numba kernels: one pass over the rows reading the uint8/uint16 stack in place, with
-# row buffers so the inner loops over columns vectorise; numpy would need float copies of the stack.
-@njit(parallel=True, cache=True, fastmath=SAFE_FASTMATH)
-def _decode_kernel(frames, saturation_level, white, black, mean_frames, axis_size, gray_count,
-                   gray_frame, gray_complement, gray_inverted, finest_bit, group_range, group_start, group_frames,
-                   group_cos, group_sin, group_period, min_intensity, min_modulation, min_quality, consistency,
-                   chunks, coordinates, modulation, intensity, quality, rejection):
-    height, width = frames.shape[1], frames.shape[2]
-    n_groups = group_period.size
-    for chunk in prange(chunks):
-        # Row buffers allocated once per chunk of rows: allocating them per row cost a tenth of the kernel.
-        saturated = np.empty(width, np.bool_)
-        c_sum = np.empty((n_groups, width))
-        s_sum = np.empty((n_groups, width))
-        total = np.empty((n_groups, width))
-        squares = np.empty((n_groups, width))
-        offset = np.empty(width)
-        mean_level = np.empty(width)
-        mid_level = np.empty(width)
-        white_level = np.empty(width)
-        pixel_modulation = np.empty(width)
-        pixel_quality = np.empty(width)
-        poor_fit = np.empty(width, np.bool_)
-        inconsistent = np.empty(width, np.bool_)
-        reference = np.empty(width)
-        axis_modulation = np.empty(width)
-        axis_quality = np.empty(width)
-        stripe_index = np.empty(width, np.int32)
-        binary = np.empty(width, np.int32)
-        margin_sum = np.empty(width)
-        margin_min = np.empty(width)
-        for row in range(chunk * height // chunks, (chunk + 1) * height // chunks):
-            # Phase sums first: the same pass over the phase frames finds clipping and the offset level.
-            saturated[:] = False
-            c_sum[:] = 0.0
-            s_sum[:] = 0.0
-            total[:] = 0.0
-            squares[:] = 0.0
-            for g in range(n_groups):
-                first, end = group_start[g], group_start[g + 1]
-                # Four frames per pass over the row: a quarter of the accumulator loads and stores.
-                for i in range(first, end - 3, 4):
-                    p0, p1 = frames[group_frames[i], row], frames[group_frames[i + 1], row]
-                    p2, p3 = frames[group_frames[i + 2], row], frames[group_frames[i + 3], row]
-                    c0, c1, c2, c3 = group_cos[i], group_cos[i + 1], group_cos[i + 2], group_cos[i + 3]
-                    s0, s1, s2, s3 = group_sin[i], group_sin[i + 1], group_sin[i + 2], group_sin[i + 3]
-                    for col in range(width):
-                        v0, v1, v2, v3 = float(p0[col]), float(p1[col]), float(p2[col]), float(p3[col])
-                        c_sum[g, col] += v0 * c0 + v1 * c1 + v2 * c2 + v3 * c3
-                        s_sum[g, col] += v0 * s0 + v1 * s1 + v2 * s2 + v3 * s3
-                        total[g, col] += v0 + v1 + v2 + v3
-                        squares[g, col] += v0 * v0 + v1 * v1 + v2 * v2 + v3 * v3
-                        saturated[col] |= max(max(v0, v1), max(v2, v3)) >= saturation_level
-                for i in range(first + (end - first) // 4 * 4, end):
-                    samples = frames[group_frames[i], row]
-                    cosine, sine = group_cos[i], group_sin[i]
-                    for col in range(width):
-                        value = float(samples[col])
-                        c_sum[g, col] += value * cosine
-                        s_sum[g, col] += value * sine
-                        total[g, col] += value
-                        squares[g, col] += value * value
-                        saturated[col] |= value >= saturation_level
-            if n_groups > 0:
-                steps = group_start[n_groups] - group_start[n_groups - 1]
-                for col in range(width):
-                    offset[col] = total[n_groups - 1, col] / steps
-                # The intensity without a white frame: the mean of every phase frame, the least noisy
-                # offset (a board image with a twelfth of one frame's noise variance for SLStudio's 12).
-                mean_level[:] = 0.0
-                for g in range(n_groups):
-                    for col in range(width):
-                        mean_level[col] += total[g, col]
-                mean_level /= group_start[n_groups]
+def _level_limit(dtype: np.dtype, value: float):
+    """``value`` as a scalar of the frames' dtype that compares with the frames as ``value`` itself does
+    (``x >= value`` is ``x >= limit``, and ``x < value`` is ``x < limit``): rounded up for integers, at most
+    one above the dtype's maximum (then held in a wider type)."""
+    if dtype == np.float64:
+        return value
+    if dtype == np.float32:
+        return _above32(value)
+    return min(math.ceil(value), np.iinfo(dtype).max + 1)
+
+
+# Rejection codes by precedence: a pixel gets the code of the highest-ranked condition it meets.
+_PRECEDENCE = (Rejection.INCONSISTENT, Rejection.POOR_FIT, Rejection.LOW_MODULATION, Rejection.SATURATED,
+               Rejection.DARK)
+_RANKED_CODE = np.zeros(256, np.uint8)  # rank (1 for the lowest) -> code
+_RANKED_CODE[1:len(_PRECEDENCE) + 1] = _PRECEDENCE
+_RANKED_SCALE = np.ones(256, np.float32)  # rank -> 1 for a valid pixel, NaN for a rejected one
+_RANKED_SCALE[1:] = np.nan
+
+
+# Plain numpy and OpenCV, a band of rows at a time on the row-band pool (both release the GIL): the
+# phase sums accumulate from the uint8/uint16 frames one frame at a time (cv2.accumulate and
+# accumulateSquare read them without a float copy of the stack), and a band's temporaries, about
+# 256 kB each, stay in the CPU cache. uint8 samples are summed in float32, where sums and sums of
+# squares are exact (integers below 2**24); wider samples in float64.
+def _decode_rows(frames, tables, saturation_level, min_intensity, min_modulation, min_quality, consistency,
+                 coordinates, modulation, intensity, quality, rejection, rows):
+    """Decode the camera rows ``rows`` into the output arrays (see :func:`decode`)."""
+    band = frames[:, rows]
+    shape = band.shape[1:]
+    work = np.float32 if frames.dtype == np.uint8 else np.float64
+    n_groups = tables.group_period.size
+    # Clipping: any phase frame (any frame without phase) at the saturation level.
+    clipping_frames = tables.group_frames if n_groups > 0 else range(band.shape[0])
+    brightest = band[clipping_frames[0]].copy()
+    for f in clipping_frames[1:]:
+        np.maximum(brightest, band[f], out=brightest)
+    saturated = brightest >= _level_limit(frames.dtype, saturation_level)
+    sums = []  # per phase group: C, S, the sum and the sum of squares of the samples
+    sample, opposite = np.empty(shape, work), np.empty(shape, work)
+    for g in range(n_groups):
+        c_sum, s_sum, total, squares = (np.zeros(shape, work) for _ in range(4))
+        first, end = tables.group_start[g], tables.group_start[g + 1]
+        # With an even number of steps, the shift half a period on negates the cosine and sine: the
+        # difference of the two frames enters C and S once, halving the multiply-adds.
+        half = (end - first) // 2 if (end - first) % 2 == 0 else end - first
+        for i in range(first, first + half):
+            np.copyto(sample, band[tables.group_frames[i]])
+            if half < end - first:
+                np.copyto(opposite, band[tables.group_frames[i + half]])
+                sample -= opposite
+            cv2.scaleAdd(sample, float(tables.group_cos[i]), c_sum, dst=c_sum)
+            cv2.scaleAdd(sample, float(tables.group_sin[i]), s_sum, dst=s_sum)
+        for i in range(first, end):
+            cv2.accumulate(band[tables.group_frames[i]], total)
+            cv2.accumulateSquare(band[tables.group_frames[i]], squares)
+        sums.append((c_sum, s_sum, total, squares))
+    references = tables.white >= 0 and tables.black >= 0
+    offset = None
+    if n_groups > 0 and not references:
+        offset = sums[-1][2] / (tables.group_start[n_groups] - tables.group_start[n_groups - 1])
+    elif n_groups == 0:
+        offset = np.zeros(shape, work)
+        for f in tables.mean_frames:
+            cv2.accumulate(band[f], offset)
+        if tables.mean_frames.size > 0:
+            offset /= tables.mean_frames.size
+    threshold = offset
+    if references:
+        threshold = np.zeros(shape, work)
+        cv2.accumulate(band[tables.white], threshold)
+        cv2.accumulate(band[tables.black], threshold)
+        threshold *= 0.5
+    if tables.white >= 0:
+        level = band[tables.white]
+    elif n_groups > 0:
+        # The intensity without a white frame: the mean of every phase frame, the least noisy
+        # offset (a board image with a twelfth of one frame's noise variance for SLStudio's 12).
+        level = sums[0][2].copy()
+        for g in range(1, n_groups):
+            level += sums[g][2]
+        level /= tables.group_start[n_groups]
+    else:
+        level = offset
+
+    pixel_modulation = pixel_quality = None
+    poor_fit = np.zeros(shape, bool)
+    inconsistent = np.zeros(shape, bool)
+    bit = np.empty(shape, bool)
+    axis_references = []
+    for a in range(2):
+        first_group, end_group = tables.group_range[a], tables.group_range[a + 1]
+        gray_count = int(tables.gray_count[a])
+        if gray_count == 0 and first_group == end_group:
+            axis_references.append(None)
+            continue
+        referenced = False
+        uncertainty = 0.0
+        axis_size = float(tables.axis_size[a])
+        if gray_count > 0:
+            gray_only = first_group == end_group  # the plane margins are then modulation and quality
+            # The stripe index, built most significant bit first: binary_i = binary_{i+1} XOR gray_i.
+            stripe_index = np.zeros(shape, np.uint8 if gray_count <= 8 else np.uint16 if gray_count <= 16 else np.int64)
+            binary = np.zeros(shape, np.uint8)
+            if gray_only:
+                margin_sum = np.zeros(shape, work)
+                margin_min = np.full(shape, np.inf, work)
+            for b in range(gray_count):
+                plane = band[tables.gray_frame[a, b]]
+                other = band[tables.gray_complement[a, b]] if tables.gray_complement[a, b] >= 0 else threshold
+                # The bit XOR inverted: the plane above its complement or threshold, or for an inverted plane not.
+                (np.less_equal if tables.gray_inverted[a, b] else np.greater)(plane, other, out=bit)
+                np.bitwise_xor(binary, bit.view(np.uint8), out=binary)
+                np.add(stripe_index, stripe_index, out=stripe_index)
+                np.add(stripe_index, binary, out=stripe_index, casting="unsafe")
+                if gray_only:
+                    margin = np.abs(np.subtract(plane, other, dtype=work))
+                    if tables.gray_complement[a, b] >= 0:
+                        margin *= 0.5
+                    margin_sum += margin
+                    np.minimum(margin_min, margin, out=margin_min)
+            stripe = float(1 << int(tables.finest_bit[a]))
+            reference = stripe_index.astype(np.float32)
+            reference *= np.float32(stripe)
+            inconsistent |= reference >= axis_size  # stripe indices are exact in float32
+            reference += np.float32(0.5 * (stripe - 1.0))
+            if gray_only:
+                axis_modulation = margin_sum / gray_count
+                axis_quality = np.divide(margin_min, axis_modulation, out=np.zeros(shape, work),
+                                         where=axis_modulation > 0)
+            referenced = True
+            uncertainty = 0.5 * stripe
+        for g in range(first_group, end_group):
+            c_sum, s_sum, total, squares = sums[g]
+            period = float(tables.group_period[g])
+            steps = int(tables.group_start[g + 1] - tables.group_start[g])
+            tolerance = uncertainty + consistency * (0.5 * period - uncertainty)
+            if work == np.float32 and steps > 16:  # beyond, the float32 sums of uint8 samples are no longer exact
+                c_sum, s_sum, total, squares = (np.asarray(x, np.float64) for x in (c_sum, s_sum, total, squares))
+            amplitude = cv2.magnitude(c_sum, s_sum)  # sqrt(C^2 + S^2)
+            # steps * sum (I - A)^2, exact for uint8 samples; the sinusoid's share of it, 0 without any.
+            alternating = squares * float(steps)
+            alternating -= np.square(total)
+            np.copyto(alternating, np.inf, where=alternating <= 0)
+            group_quality = np.square(amplitude)
+            group_quality /= alternating
+            group_quality *= 2.0
+            np.minimum(group_quality, 1.0, out=group_quality)
+            axis_quality = group_quality if g == first_group else np.minimum(axis_quality, group_quality)
+            axis_modulation = amplitude
+            axis_modulation *= 2.0 / steps
+            wrapped = np.arctan2(s_sum, c_sum, dtype=np.float32)  # in (-pi, pi]
+            negative = wrapped < 0
+            wrapped *= np.float32(period / (2 * np.pi))
+            wrapped += negative * np.float32(period)
+            if referenced:
+                turns = reference - wrapped
+                turns *= np.float32(1 / period)
+                turns += np.float32(0.5)
+                np.floor(turns, out=turns)
+                turns *= np.float32(period)
+                wrapped += turns  # unwrapped
+                np.subtract(wrapped, reference, out=turns)
+                np.abs(turns, out=turns)
+                inconsistent |= turns > _below32(tolerance)
             else:
-                for f in range(frames.shape[0]):
-                    samples = frames[f, row]
-                    for col in range(width):
-                        saturated[col] |= samples[col] >= saturation_level
-                offset[:] = 0.0
-                for f in mean_frames:
-                    samples = frames[f, row]
-                    for col in range(width):
-                        offset[col] += samples[col]
-                if mean_frames.size > 0:
-                    offset /= mean_frames.size
-            threshold = offset
-            if white >= 0 and black >= 0:
-                threshold = mid_level
-                for col in range(width):
-                    threshold[col] = 0.5 * (float(frames[white, row, col]) + float(frames[black, row, col]))
-            level = mean_level if n_groups > 0 else offset
-            if white >= 0:
-                level = white_level
-                for col in range(width):
-                    level[col] = frames[white, row, col]
+                np.subtract(wrapped, np.float32(period), out=wrapped,
+                            where=wrapped > _below32(0.5 * (axis_size - 1 + period)))
+            reference = wrapped
+            referenced = True
+            uncertainty = 0.0
+        if first_group < end_group:
+            poor_fit |= axis_quality < (_above32(min_quality) if axis_quality.dtype == np.float32 else min_quality)
+        inconsistent |= reference < np.float32(-0.5)
+        inconsistent |= reference > _below32(axis_size - 0.5)
+        axis_references.append(reference)
+        if pixel_modulation is None:
+            pixel_modulation, pixel_quality = axis_modulation, axis_quality
+        else:
+            pixel_modulation = np.minimum(pixel_modulation, axis_modulation)
+            pixel_quality = np.minimum(pixel_quality, axis_quality)
 
-            pixel_modulation[:] = np.inf
-            pixel_quality[:] = 1.0
-            poor_fit[:] = False
-            inconsistent[:] = False
-            for a in range(2):
-                first_group, end_group = group_range[a], group_range[a + 1]
-                if gray_count[a] == 0 and first_group == end_group:
-                    coordinates[a, row] = np.nan
-                    continue
-                referenced = False
-                uncertainty = 0.0
-                if gray_count[a] > 0:
-                    gray_only = first_group == end_group  # the plane margins are then modulation and quality
-                    stripe_index[:] = 0
-                    binary[:] = 0
-                    margin_sum[:] = 0.0
-                    margin_min[:] = np.inf
-                    for b in range(gray_count[a]):
-                        plane = frames[gray_frame[a, b], row]
-                        inverted = np.int32(gray_inverted[a, b])
-                        if gray_complement[a, b] >= 0:
-                            complement = frames[gray_complement[a, b], row]
-                            for col in range(width):
-                                binary[col] ^= np.int32(plane[col] > complement[col]) ^ inverted
-                                stripe_index[col] = 2 * stripe_index[col] + binary[col]
-                            if gray_only:
-                                for col in range(width):
-                                    margin = 0.5 * abs(float(plane[col]) - float(complement[col]))
-                                    margin_sum[col] += margin
-                                    margin_min[col] = min(margin_min[col], margin)
-                        else:
-                            for col in range(width):
-                                binary[col] ^= np.int32(plane[col] > threshold[col]) ^ inverted
-                                stripe_index[col] = 2 * stripe_index[col] + binary[col]
-                            if gray_only:
-                                for col in range(width):
-                                    margin = abs(plane[col] - threshold[col])
-                                    margin_sum[col] += margin
-                                    margin_min[col] = min(margin_min[col], margin)
-                    stripe = float(1 << finest_bit[a])
-                    for col in range(width):
-                        inconsistent[col] |= stripe_index[col] * stripe >= axis_size[a]
-                        reference[col] = stripe_index[col] * stripe + 0.5 * (stripe - 1.0)
-                        axis_modulation[col] = margin_sum[col] / gray_count[a]
-                        axis_quality[col] = margin_min[col] / axis_modulation[col] if axis_modulation[col] > 0 else 0.0
-                    referenced = True
-                    uncertainty = 0.5 * stripe
-                for g in range(first_group, end_group):
-                    period = group_period[g]
-                    steps = group_start[g + 1] - group_start[g]
-                    tolerance = uncertainty + consistency * (0.5 * period - uncertainty)
-                    for col in range(width):
-                        energy = c_sum[g, col] * c_sum[g, col] + s_sum[g, col] * s_sum[g, col]
-                        alternating = squares[g, col] - total[g, col] * total[g, col] / steps
-                        group_quality = min(1.0, 2.0 * energy / steps / alternating) if alternating > 0 else 0.0
-                        axis_quality[col] = group_quality if g == first_group else min(axis_quality[col], group_quality)
-                        axis_modulation[col] = 2.0 * math.sqrt(energy) / steps
-                        phase = _polynomial_atan2(s_sum[g, col], c_sum[g, col])
-                        wrapped = (phase / (2 * math.pi) + (1.0 if phase < 0 else 0.0)) * period
-                        if referenced:
-                            unwrapped = wrapped + period * math.floor((reference[col] - wrapped) / period + 0.5)
-                            inconsistent[col] |= abs(unwrapped - reference[col]) > tolerance
-                            reference[col] = unwrapped
-                        else:
-                            reference[col] = wrapped - period if wrapped > 0.5 * (axis_size[a] - 1 + period) else wrapped
-                    referenced = True
-                    uncertainty = 0.0
-                phased = first_group < end_group
-                for col in range(width):
-                    poor_fit[col] |= phased and axis_quality[col] < min_quality
-                    inconsistent[col] |= reference[col] < -0.5 or reference[col] > axis_size[a] - 0.5
-                    coordinates[a, row, col] = reference[col]
-                    pixel_modulation[col] = min(pixel_modulation[col], axis_modulation[col])
-                    pixel_quality[col] = min(pixel_quality[col], axis_quality[col])
-
-            for col in range(width):
-                if level[col] < min_intensity:
-                    reason = 1
-                elif saturated[col]:
-                    reason = 2
-                elif pixel_modulation[col] < min_modulation:
-                    reason = 3
-                elif poor_fit[col]:
-                    reason = 4
-                elif inconsistent[col]:
-                    reason = 5
-                else:
-                    reason = 0
-                if reason != 0:
-                    coordinates[0, row, col] = np.nan
-                    coordinates[1, row, col] = np.nan
-                modulation[row, col] = pixel_modulation[col]
-                intensity[row, col] = level[col]
-                quality[row, col] = pixel_quality[col]
-                rejection[row, col] = reason
+    # The code of the first reason that applies: the highest rank of those met, through a table.
+    low_modulation = pixel_modulation < (_above32(min_modulation) if pixel_modulation.dtype == np.float32
+                                         else min_modulation)
+    dark = level < _level_limit(level.dtype, min_intensity)
+    rank = inconsistent.view(np.uint8).copy()
+    for r, met in enumerate((poor_fit, low_modulation, saturated, dark), start=2):
+        np.maximum(rank, np.multiply(met.view(np.uint8), np.uint8(r)), out=rank)
+    cv2.LUT(rank, _RANKED_CODE, dst=rejection[rows])
+    scale = cv2.LUT(rank, _RANKED_SCALE)  # NaN where rejected
+    for a, reference in enumerate(axis_references):
+        if reference is None:
+            coordinates[a, rows] = np.nan
+        else:
+            np.multiply(reference, scale, out=coordinates[a, rows])
+    modulation[rows] = pixel_modulation
+    intensity[rows] = level
+    quality[rows] = pixel_quality
 
 
-# Serial: a few passes over bytes cost about a millisecond, less than waking threads for them.
-@njit(cache=True, fastmath=False)
-def _edge_kernel(coordinates, rejection, margin, max_jump):
-    """Mark valid pixels within ``margin`` pixels of a rejected one, or beside a jump above ``max_jump``."""
-    height, width = rejection.shape
-    near_row = np.zeros((height, width), np.bool_)  # a rejected pixel within margin along the row
-    for row in range(height):
-        for col in range(width):
-            if rejection[row, col] != 0:
-                near_row[row, max(0, col - margin):min(width, col + margin + 1)] = True
-    jumps = np.isfinite(max_jump)
-    for row in range(height):
-        edge = np.zeros(width, np.bool_)
-        for r in range(max(0, row - margin), min(height, row + margin + 1)):
-            edge |= near_row[r]
-        if jumps:
-            for a in range(2):
-                here = coordinates[a, row]
-                for col in range(width - 1):
-                    step = abs(here[col + 1] - here[col]) > max_jump
-                    edge[col] |= step
-                    edge[col + 1] |= step
-                if row > 0:
-                    edge |= np.abs(coordinates[a, row - 1] - here) > max_jump
-                if row + 1 < height:
-                    edge |= np.abs(coordinates[a, row + 1] - here) > max_jump
-        for col in range(width):
-            if edge[col] and rejection[row, col] == 0:
-                rejection[row, col] = 6
-    for row in range(height):  # after the jump test, which reads the neighbouring rows' coordinates
-        for col in range(width):
-            if rejection[row, col] == 6:
-                coordinates[0, row, col] = np.nan
-                coordinates[1, row, col] = np.nan
+def _reject_edges(coordinates: np.ndarray, rejection: np.ndarray, margin: int, max_jump: float) -> None:
+    """Mark valid pixels within ``margin`` pixels of a rejected one, or beside a jump above ``max_jump``,
+    ``EDGE``, in place."""
+    if margin > 0:
+        rejected = np.not_equal(rejection, Rejection.VALID).view(np.uint8)
+        edge = cv2.dilate(rejected, np.ones((2 * margin + 1, 2 * margin + 1), np.uint8)).view(bool)
+    else:
+        edge = np.zeros(rejection.shape, bool)
+    if np.isfinite(max_jump):
+        limit = np.float64(max_jump)
+        for axis in coordinates:  # NaN beside a rejected pixel compares False: no jump
+            step = np.abs(np.diff(axis, axis=1)) > limit
+            edge[:, :-1] |= step
+            edge[:, 1:] |= step
+            step = np.abs(np.diff(axis, axis=0)) > limit
+            edge[:-1] |= step
+            edge[1:] |= step
+    edge &= rejection == Rejection.VALID
+    rejection[edge] = Rejection.EDGE
+    coordinates[:, edge] = np.nan  # after the jump test, which reads the neighbours' coordinates
 
 
 def _interpolate_gray_only_axes(frames: np.ndarray, sequence: Sequence, coordinates: np.ndarray,
                                 rejection: np.ndarray) -> None:
     """Replace the stripe centres of Gray-code-only axes by ``gray_subpixel``'s coordinates, in place;
     pixels it cannot interpolate become ``INCONSISTENT``."""
-    for a, axis in enumerate(AXES):
-        if sequence.gray_planes(axis) and not sequence.phase_groups(axis):
-            coordinates[a] = gray_subpixel(frames, sequence, axis, coordinates[a])
-            lost = (rejection == Rejection.VALID) & np.isnan(coordinates[a])
-            rejection[lost] = Rejection.INCONSISTENT
-            coordinates[:, lost] = np.nan
+    gray_only = [a for a, axis in enumerate(AXES) if sequence.gray_planes(axis) and not sequence.phase_groups(axis)]
+    if not gray_only:
+        return
+    # Imported here: it is a numba kernel, and only Gray-code-only captures need it.
+    from services.structured_light.gray_subpixel import gray_subpixel
+
+    for a in gray_only:
+        coordinates[a] = gray_subpixel(frames, sequence, AXES[a], coordinates[a])
+        lost = (rejection == Rejection.VALID) & np.isnan(coordinates[a])
+        rejection[lost] = Rejection.INCONSISTENT
+        coordinates[:, lost] = np.nan
 
 
 def _reject_indirect(coordinates: np.ndarray, modulation: np.ndarray, intensity: np.ndarray, rejection: np.ndarray,
@@ -548,17 +537,13 @@ def decode(
     intensity = np.empty((height, width), np.float32)
     quality = np.empty((height, width), np.float32)
     rejection = np.empty((height, width), np.uint8)
-    _decode_kernel(
-        np.ascontiguousarray(frames), full_scale, tables.white, tables.black, tables.mean_frames, tables.axis_size,
-        tables.gray_count, tables.gray_frame, tables.gray_complement, tables.gray_inverted, tables.finest_bit,
-        tables.group_range, tables.group_start, tables.group_frames, tables.group_cos, tables.group_sin,
-        tables.group_period, float(min_intensity), float(min_modulation), float(min_quality), float(consistency),
-        min(height, 4 * get_num_threads()), coordinates, modulation, intensity, quality, rejection,
-    )
+    map_row_bands(partial(_decode_rows, np.ascontiguousarray(frames), tables, full_scale, float(min_intensity),
+                          float(min_modulation), float(min_quality), float(consistency), coordinates, modulation,
+                          intensity, quality, rejection), height, width)
     if np.isfinite(max_indirect) and sequence.phase_groups():
         _reject_indirect(coordinates, modulation, intensity, rejection, max_indirect)
     if edge_margin > 0 or np.isfinite(max_jump):
-        _edge_kernel(coordinates, rejection, int(edge_margin), float(max_jump))
+        _reject_edges(coordinates, rejection, int(edge_margin), float(max_jump))
     if gray_boundaries:
         _interpolate_gray_only_axes(frames, sequence, coordinates, rejection)
     return DecodedCapture(

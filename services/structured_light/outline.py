@@ -3,10 +3,7 @@ coordinates beside it, corrected for the bias that the blur causes there or drop
 
 from __future__ import annotations
 
-import math
-
 import cv2
-import numba
 import numpy as np
 
 from services.structured_light.decode import Rejection
@@ -42,89 +39,94 @@ _MAX_DARK_SHARE = 0.2
 _MIN_BLUR_SAMPLES = 100
 
 
-@numba.njit(cache=True, inline="always")
-def _standard_normal_quantile(p):
-    """z with Phi(z) = p, by Newton's method on the error function (p within 0.01..0.99: at most 7 steps)."""
-    z = 0.0
-    for _ in range(20):
-        step = (0.5 * math.erfc(-z / math.sqrt(2.0)) - p) * math.sqrt(2.0 * math.pi) * math.exp(0.5 * z * z)
-        z -= step
-        if abs(step) < 1e-7:
-            break
+# Acklam's rational approximation of the standard normal quantile (relative error below 1.15e-9):
+# P. J. Acklam, "An algorithm for computing the inverse normal cumulative distribution function" (2003),
+# https://web.archive.org/web/20151030215612/http://home.online.no/~pjacklam/notes/invnorm/
+_ACKLAM_A = (-3.969683028665376e+01, 2.209460984245205e+02, -2.759285104469687e+02, 1.383577518672690e+02,
+             -3.066479806614716e+01, 2.506628277459239e+00)
+_ACKLAM_B = (-5.447609879822406e+01, 1.615858368580409e+02, -1.556989798598866e+02, 6.680131188771972e+01,
+             -1.328068155288572e+01, 1.0)
+_ACKLAM_C = (-7.784894002430293e-03, -3.223964580411365e-01, -2.400758277161838e+00, -2.549732539343734e+00,
+             4.374664141464968e+00, 2.938163982698783e+00)
+_ACKLAM_D = (7.784695709041462e-03, 3.224671290700398e-01, 2.445134137142996e+00, 3.754408661907416e+00, 1.0)
+_ACKLAM_TAIL = 0.02425
+
+
+def _standard_normal_quantile(p: np.ndarray) -> np.ndarray:
+    """z with Phi(z) = p for p in (0, 1), elementwise, to a relative 1.15e-9 (Acklam's approximation)."""
+    p = np.asarray(p, np.float64)
+    q = p - 0.5
+    r = q * q
+    z = q * np.polyval(_ACKLAM_A, r) / np.polyval(_ACKLAM_B, r)
+    tail = np.minimum(p, 1.0 - p) < _ACKLAM_TAIL
+    if tail.any():
+        pt = p[tail]
+        t = np.sqrt(-2.0 * np.log(np.minimum(pt, 1.0 - pt)))
+        zt = np.polyval(_ACKLAM_C, t) / np.polyval(_ACKLAM_D, t)
+        z[tail] = np.where(pt < 0.5, zt, -zt)
     return z
 
 
-@numba.njit(cache=True, inline="always")
-def _step_share(value, dark, bright):
-    """Where a grey level lies between the dark and bright sides of a step, 0..1; NaN outside the usable range."""
+def _step_share(value: np.ndarray, dark: np.ndarray, bright: np.ndarray) -> np.ndarray:
+    """Where grey levels lie between the dark and bright sides of a step, 0..1; NaN outside the usable range."""
     share = (value - dark) / (bright - dark)
-    return share if _USABLE_SHARE[0] <= share <= _USABLE_SHARE[1] else np.nan
+    return np.where((share >= _USABLE_SHARE[0]) & (share <= _USABLE_SHARE[1]), share, np.nan)
 
 
-# Hand-written with numba: a per-pixel edge-width measurement at the few pixels of an outline has no
-# library form, and whole-image gradients would cost more than the whole outline step may.
-@numba.njit(parallel=True, cache=True)
-def _blur_samples_kernel(intensity, rejection, candidate, radius, samples, counts):
+def _rounded(values: np.ndarray) -> np.ndarray:
+    """Python's round to an integer (half to even), elementwise."""
+    return np.rint(values).astype(np.intp)
+
+
+# In numpy on the few candidate pixels of the outline (np.nonzero of the candidate mask, then arithmetic
+# on their index arrays): whole-image gradients would cost more than the whole outline step may.
+def _blur_samples(intensity: np.ndarray, rejection: np.ndarray, candidate: np.ndarray, radius: int) -> np.ndarray:
+    """1 / |grad Phi^-1(share)| at the outline pixels that show a clean step (see
+    :func:`estimate_camera_blur`), float32."""
     height, width = intensity.shape
-    for row in numba.prange(radius, height - radius):
-        n = 0
-        for col in range(radius + 1, width - radius - 1):
-            if candidate[row, col] == 0 or rejection[row, col] != 0:
-                continue
-            # On a step's middle the intensity changes by more than a tenth of itself per pixel: skip the rest.
-            change_x = 0.5 * (intensity[row, col + 1] - intensity[row, col - 1])
-            change_y = 0.5 * (intensity[row + 1, col] - intensity[row - 1, col])
-            change = math.sqrt(change_x * change_x + change_y * change_y)
-            if not change > 0.1 * intensity[row, col]:
-                continue
-            # The step's dark and bright levels from the profile across it, along the intensity gradient.
-            dark, bright, has_dark, has_saturated = np.inf, -np.inf, False, False
-            for t in range(-radius, radius + 1):
-                r = row + int(round(t * change_y / change))
-                c = col + int(round(t * change_x / change))
-                dark = min(dark, intensity[r, c])
-                bright = max(bright, intensity[r, c])
-                has_dark |= rejection[r, c] == Rejection.DARK
-                has_saturated |= rejection[r, c] == Rejection.SATURATED
-            if not has_dark or has_saturated or not dark <= _MAX_DARK_SHARE * bright:
-                continue
-            share = (intensity[row, col] - dark) / (bright - dark)
-            if not _SAMPLED_SHARE[0] <= share <= _SAMPLED_SHARE[1]:
-                continue
-            left = _step_share(intensity[row, col - 1], dark, bright)
-            right = _step_share(intensity[row, col + 1], dark, bright)
-            up = _step_share(intensity[row - 1, col], dark, bright)
-            down = _step_share(intensity[row + 1, col], dark, bright)
-            if not (np.isfinite(left) and np.isfinite(right) and np.isfinite(up) and np.isfinite(down)):
-                continue
-            slope_x = 0.5 * (_standard_normal_quantile(right) - _standard_normal_quantile(left))
-            slope_y = 0.5 * (_standard_normal_quantile(down) - _standard_normal_quantile(up))
-            slope = math.sqrt(slope_x * slope_x + slope_y * slope_y)
-            reach = _STEP_EXTENT / slope if slope > 0.0 else np.inf
-            if not reach <= radius:
-                continue
-            # A step complete within its own width, not a gradual fade (a terminator) or a texture edge.
-            bright_r = row + int(round(reach * slope_y / slope))
-            bright_c = col + int(round(reach * slope_x / slope))
-            dark_r = row - int(round(reach * slope_y / slope))
-            dark_c = col - int(round(reach * slope_x / slope))
-            if (intensity[bright_r, bright_c] - dark) / (bright - dark) < 1.0 - _STEP_TAIL or (
-                    intensity[dark_r, dark_c] - dark) / (bright - dark) > _STEP_TAIL:
-                continue
-            samples[row, n] = 1.0 / slope
-            n += 1
-        counts[row] = n
+    inner = np.zeros(candidate.shape, bool)
+    inner[radius:height - radius, radius + 1:width - radius - 1] = True
+    row, col = np.nonzero(inner & (candidate != 0) & (rejection == 0))
 
+    def at(r, c):
+        return intensity[r, c].astype(np.float64)
 
-@numba.njit(cache=True)
-def _median_of_rows(samples, counts):
-    """Median of samples[row, :counts[row]] over all rows."""
-    pooled = np.empty(counts.sum(), dtype=samples.dtype)
-    n = 0
-    for row in range(samples.shape[0]):
-        pooled[n:n + counts[row]] = samples[row, :counts[row]]
-        n += counts[row]
-    return np.median(pooled)
+    # On a step's middle the intensity changes by more than a tenth of itself per pixel: skip the rest.
+    change_x = 0.5 * (intensity[row, col + 1] - intensity[row, col - 1]).astype(np.float64)
+    change_y = 0.5 * (intensity[row + 1, col] - intensity[row - 1, col]).astype(np.float64)
+    change = np.sqrt(change_x * change_x + change_y * change_y)
+    keep = change > 0.1 * at(row, col)
+    row, col, change_x, change_y, change = row[keep], col[keep], change_x[keep], change_y[keep], change[keep]
+    # The step's dark and bright levels from the profile across it, along the intensity gradient.
+    t = np.arange(-radius, radius + 1)[None, :]
+    profile_r = row[:, None] + _rounded(t * change_y[:, None] / change[:, None])
+    profile_c = col[:, None] + _rounded(t * change_x[:, None] / change[:, None])
+    values = intensity[profile_r, profile_c]
+    codes = rejection[profile_r, profile_c]
+    dark, bright = values.min(axis=1).astype(np.float64), values.max(axis=1).astype(np.float64)
+    keep = ((codes == Rejection.DARK).any(axis=1) & ~(codes == Rejection.SATURATED).any(axis=1)
+            & (dark <= _MAX_DARK_SHARE * bright))
+    share = (at(row, col) - dark) / (bright - dark)
+    keep &= (share >= _SAMPLED_SHARE[0]) & (share <= _SAMPLED_SHARE[1])
+    row, col, dark, bright = row[keep], col[keep], dark[keep], bright[keep]
+    shares = [_step_share(at(r, c), dark, bright) for r, c in
+              ((row, col - 1), (row, col + 1), (row - 1, col), (row + 1, col))]
+    keep = np.all(np.isfinite(shares), axis=0)
+    row, col, dark, bright = row[keep], col[keep], dark[keep], bright[keep]
+    left, right, up, down = (_standard_normal_quantile(share[keep]) for share in shares)
+    slope_x = 0.5 * (right - left)
+    slope_y = 0.5 * (down - up)
+    slope = np.sqrt(slope_x * slope_x + slope_y * slope_y)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        reach = np.where(slope > 0.0, _STEP_EXTENT / slope, np.inf)
+    keep = reach <= radius
+    row, col, dark, bright = row[keep], col[keep], dark[keep], bright[keep]
+    slope_x, slope_y, slope, reach = slope_x[keep], slope_y[keep], slope[keep], reach[keep]
+    # A step complete within its own width, not a gradual fade (a terminator) or a texture edge.
+    step_r, step_c = _rounded(reach * slope_y / slope), _rounded(reach * slope_x / slope)
+    keep = ~(((at(row + step_r, col + step_c) - dark) / (bright - dark) < 1.0 - _STEP_TAIL)
+             | ((at(row - step_r, col - step_c) - dark) / (bright - dark) > _STEP_TAIL))
+    return (1.0 / slope[keep]).astype(np.float32)
 
 
 def _no_signal_near(rejection: np.ndarray, radius: int) -> np.ndarray:
@@ -180,72 +182,64 @@ def estimate_camera_blur(intensity: np.ndarray, rejection: np.ndarray) -> float 
        frequency responses" (edge-based measurement of a camera's spread).
     """
     intensity, rejection = _checked(intensity, rejection)
-    height, width = intensity.shape
-    samples = np.empty((height, width), dtype=np.float32)  # row buffers, filled only at the outline
-    counts = np.zeros(height, dtype=np.int64)
-    _blur_samples_kernel(intensity, rejection, _no_signal_near(rejection, _OUTLINE_REACH_PX), _PROFILE_RADIUS_PX,
-                         samples, counts)
-    if counts.sum() < _MIN_BLUR_SAMPLES:
+    samples = _blur_samples(intensity, rejection, _no_signal_near(rejection, _OUTLINE_REACH_PX), _PROFILE_RADIUS_PX)
+    if samples.size < _MIN_BLUR_SAMPLES:
         return None
-    return float(_median_of_rows(samples, counts))
+    return float(np.median(samples))
 
 
-@numba.njit(cache=True, inline="always")
-def _log_intensity(intensity, row, col):
-    return math.log(max(intensity[row, col], 0.5))
+def _log_intensity(intensity: np.ndarray, row: np.ndarray, col: np.ndarray) -> np.ndarray:
+    return np.log(np.maximum(intensity[row, col].astype(np.float64), 0.5))
 
 
-@numba.njit(cache=True, inline="always")
-def _distance_to_no_signal(rejection, row, col, limit):
-    """Chessboard distance from a pixel to the nearest dark or saturated one, ring by ring; limit + 1 if further."""
-    height, width = rejection.shape
-    for reach in range(1, limit + 1):
-        for r in range(max(0, row - reach), min(height, row + reach + 1)):
-            step = 1 if abs(r - row) == reach else 2 * reach
-            for c in range(col - reach, col + reach + 1, step):
-                if 0 <= c < width and (rejection[r, c] == Rejection.DARK or rejection[r, c] == Rejection.SATURATED):
-                    return reach
-    return limit + 1
+def _distance_to_no_signal(rejection: np.ndarray, row: np.ndarray, col: np.ndarray, limit: int) -> np.ndarray:
+    """Chessboard distance from each pixel to the nearest other dark or saturated one; limit + 1 if further."""
+    no_signal = cv2.inRange(rejection, int(Rejection.DARK), int(Rejection.SATURATED))
+    distance = np.full(row.shape, limit + 1, np.int64)
+    for reach in range(limit, 0, -1):  # nearest last
+        ring = np.ones((2 * reach + 1, 2 * reach + 1), np.uint8)
+        ring[reach, reach] = 0  # the pixel itself does not count
+        distance[cv2.dilate(no_signal, ring)[row, col] != 0] = reach
+    return distance
 
 
-@numba.njit(cache=True, inline="always")
-def _brightest_within(intensity, row, col, reach):
+def _brightest_within(intensity: np.ndarray, row: np.ndarray, col: np.ndarray, reach: int) -> np.ndarray:
+    """The largest grey level within ``reach`` pixels (chessboard) of each pixel, inside the image."""
     height, width = intensity.shape
-    brightest = -np.inf
-    for r in range(max(0, row - reach), min(height, row + reach + 1)):
-        for c in range(max(0, col - reach), min(width, col + reach + 1)):
-            brightest = max(brightest, intensity[r, c])
+    brightest = np.full(row.shape, -np.inf, np.float32)
+    for dr in range(-reach, reach + 1):
+        r = np.clip(row + dr, 0, height - 1)  # a clipped index repeats a pixel of the window
+        for dc in range(-reach, reach + 1):
+            np.maximum(brightest, intensity[r, np.clip(col + dc, 0, width - 1)], out=brightest)
     return brightest
 
 
-# Hand-written with numba: the margin and the bias need gradients only at the few pixels near the
-# outline, where whole-image gradients and dilations would cost more than the whole outline step may.
-@numba.njit(parallel=True, cache=True)
-def _outline_kernel(decoded, intensity, rejection, near, margin, reach, variance, wavenumber, out):
+# In numpy on the few pixels near the outline (np.nonzero of the mask, then arithmetic on their index
+# arrays), where whole-image gradients and dilations would cost more than the whole outline step may.
+def _outline_pixels(decoded, intensity, rejection, near, margin, reach, variance, wavenumber) -> np.ndarray:
     height, width = decoded.shape
-    for row in numba.prange(height):
-        for col in range(width):
-            out[row, col] = decoded[row, col]
-            if near[row, col] == 0 or not np.isfinite(decoded[row, col]):
-                continue
-            distance = _distance_to_no_signal(rejection, row, col, reach)
-            if distance <= 1 or (distance <= margin
-                                 and intensity[row, col] < _OUTLINE_RAMP * _brightest_within(intensity, row, col, margin)):
-                out[row, col] = np.nan
-                continue
-            if variance == 0.0 or distance > reach:
-                continue
-            if row == 0 or col == 0 or row == height - 1 or col == width - 1:
-                continue
-            slope_x = 0.5 * (decoded[row, col + 1] - decoded[row, col - 1])
-            slope_y = 0.5 * (decoded[row + 1, col] - decoded[row - 1, col])
-            washout = 0.5 * variance * wavenumber * wavenumber * (slope_x * slope_x + slope_y * slope_y)
-            if not washout <= _MAX_WASHOUT:  # NaN: a neighbour without a coordinate, left as decoded
-                continue
-            log_x = 0.5 * (_log_intensity(intensity, row, col + 1) - _log_intensity(intensity, row, col - 1))
-            log_y = 0.5 * (_log_intensity(intensity, row + 1, col) - _log_intensity(intensity, row - 1, col))
-            bias = variance * (log_x * slope_x + log_y * slope_y)
-            out[row, col] = decoded[row, col] - bias if abs(bias) <= _MAX_CORRECTED_BIAS else np.nan
+    out = decoded.copy()
+    row, col = np.nonzero((near != 0) & np.isfinite(decoded))
+    distance = _distance_to_no_signal(rejection, row, col, reach)
+    ramp = (distance > 1) & (distance <= margin)
+    dropped = distance <= 1
+    dropped[ramp] = intensity[row[ramp], col[ramp]] < _OUTLINE_RAMP * _brightest_within(
+        intensity, row[ramp], col[ramp], margin).astype(np.float64)
+    out[row[dropped], col[dropped]] = np.nan
+    if variance == 0.0:
+        return out
+    keep = ~dropped & (distance <= reach) & (row > 0) & (col > 0) & (row < height - 1) & (col < width - 1)
+    row, col = row[keep], col[keep]
+    slope_x = 0.5 * (decoded[row, col + 1] - decoded[row, col - 1]).astype(np.float64)
+    slope_y = 0.5 * (decoded[row + 1, col] - decoded[row - 1, col]).astype(np.float64)
+    washout = 0.5 * variance * wavenumber * wavenumber * (slope_x * slope_x + slope_y * slope_y)
+    keep = washout <= _MAX_WASHOUT  # NaN: a neighbour without a coordinate, left as decoded
+    row, col, slope_x, slope_y = row[keep], col[keep], slope_x[keep], slope_y[keep]
+    log_x = 0.5 * (_log_intensity(intensity, row, col + 1) - _log_intensity(intensity, row, col - 1))
+    log_y = 0.5 * (_log_intensity(intensity, row + 1, col) - _log_intensity(intensity, row - 1, col))
+    bias = variance * (log_x * slope_x + log_y * slope_y)
+    out[row, col] = np.where(np.abs(bias) <= _MAX_CORRECTED_BIAS, decoded[row, col] - bias, np.nan)
+    return out
 
 
 def outline_corrected(coordinates: np.ndarray, intensity: np.ndarray, rejection: np.ndarray,
@@ -314,7 +308,5 @@ def outline_corrected(coordinates: np.ndarray, intensity: np.ndarray, rejection:
     spread = ASSUMED_CAMERA_BLUR_PX if blur_sigma is None else float(blur_sigma)
     margin = max(1, round((_MARGIN_SIGMAS if corrected else _UNCORRECTED_MARGIN_SIGMAS) * spread))
     reach = margin + 1 if corrected else margin
-    out = np.empty_like(coordinates)
-    _outline_kernel(coordinates, intensity, rejection, _no_signal_near(rejection, reach), margin, reach,
-                    spread**2 if corrected else 0.0, 2 * np.pi / period if corrected else 0.0, out)
-    return out
+    return _outline_pixels(coordinates, intensity, rejection, _no_signal_near(rejection, reach), margin, reach,
+                           spread**2 if corrected else 0.0, 2 * np.pi / period if corrected else 0.0)
