@@ -13,8 +13,8 @@ from __future__ import annotations
 
 import enum
 import math
-from functools import partial
 from dataclasses import dataclass
+from functools import partial
 
 import cv2
 import numpy as np
