@@ -135,8 +135,9 @@ def test_reconstructing_a_gray_and_phase_capture_loads_neither_numba_nor_scipy(t
     frames = render_frames(render_view(forging_scene(), camera, projector, supersample=1), patterns,
                            np.random.default_rng(0), CameraEffects(noise_sigma=1.0, blur_sigma=0.7))
     (tmp_path / "capture.pickle").write_bytes(pickle.dumps((frames, sequence, camera, projector)))
+    capture = str(tmp_path / "capture.pickle")
     code = ("import json, pickle, sys\nimport services.structured_light.reconstruct as reconstruct\n"
-            f"frames, sequence, camera, projector = pickle.loads(open({str(tmp_path / 'capture.pickle')!r}, 'rb').read())\n"
+            f"frames, sequence, camera, projector = pickle.loads(open({capture!r}, 'rb').read())\n"
             "cloud = reconstruct.reconstruct_points(frames, sequence, camera, projector)\n"
             "print(json.dumps([len(cloud['x']), sorted(sys.modules)]))")
     points, loaded = json.loads(subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True,

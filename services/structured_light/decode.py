@@ -13,8 +13,8 @@ from __future__ import annotations
 
 import enum
 import math
-from functools import partial
 from dataclasses import dataclass
+from functools import partial
 
 import cv2
 import numpy as np
@@ -203,8 +203,10 @@ def _decode_rows(frames, tables, saturation_level, min_intensity, min_modulation
             if half < end - first:
                 np.copyto(opposite, band[tables.group_frames[i + half]])
                 sample -= opposite
-            cv2.scaleAdd(sample, float(tables.group_cos[i]), c_sum, dst=c_sum)
-            cv2.scaleAdd(sample, float(tables.group_sin[i]), s_sum, dst=s_sum)
+            # numpy's multiply and add, not cv2.scaleAdd: its vector body fuses the multiply-add and its
+            # scalar tail does not, so the last bit would depend on where the allocator put the band.
+            c_sum += np.multiply(sample, tables.group_cos[i].astype(work), out=opposite)
+            s_sum += np.multiply(sample, tables.group_sin[i].astype(work), out=opposite)
         for i in range(first, end):
             cv2.accumulate(band[tables.group_frames[i]], total)
             cv2.accumulateSquare(band[tables.group_frames[i]], squares)
@@ -291,12 +293,14 @@ def _decode_rows(frames, tables, saturation_level, min_intensity, min_modulation
             tolerance = uncertainty + consistency * (0.5 * period - uncertainty)
             if work == np.float32 and steps > 16:  # beyond, the float32 sums of uint8 samples are no longer exact
                 c_sum, s_sum, total, squares = (np.asarray(x, np.float64) for x in (c_sum, s_sum, total, squares))
-            amplitude = cv2.magnitude(c_sum, s_sum)  # sqrt(C^2 + S^2)
+            energy = np.square(c_sum)  # C^2 + S^2 (not cv2.magnitude, which also fuses multiply-adds)
+            energy += np.square(s_sum)
+            amplitude = np.sqrt(energy)
             # steps * sum (I - A)^2, exact for uint8 samples; the sinusoid's share of it, 0 without any.
             alternating = squares * float(steps)
             alternating -= np.square(total)
             np.copyto(alternating, np.inf, where=alternating <= 0)
-            group_quality = np.square(amplitude)
+            group_quality = energy
             group_quality /= alternating
             group_quality *= 2.0
             np.minimum(group_quality, 1.0, out=group_quality)
