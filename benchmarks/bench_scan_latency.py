@@ -142,6 +142,7 @@ def main() -> None:
              f"| median of {len(latencies)} scans (the first included) | {statistics.median(latencies):.3f} s | "
              "at most 1.0 s |",
              f"| all scans | {', '.join(f'{s:.3f}' for s in latencies)} s | |",
+             f"| stages of the first scan (worker) | {stages[0]} | |",
              f"| stages of the median scan (worker) | {stages[latencies.index(statistics.median(latencies))] if len(latencies) % 2 else stages[len(stages) // 2]} | |",
              f"| CPU time per scan, median: service (API + worker) / gateway | {statistics.median(service_cpu):.2f} / "
              f"{statistics.median(gateway_cpu):.2f} s | |",

@@ -2,9 +2,11 @@
 
 A calibration's triangulation table takes longer to build than a scan, and a scan's first run in a process
 pays for the modules it imports on first use (the PLY writer, the Rerun recording), the thread pools and
-OpenCV's first calls; all would fall on the first scan. :func:`warm_up` builds the active calibration's
-table and runs every stage of a scan once, on a small synthetic capture of a plane seen by the same rig
-scaled down.
+OpenCV's first calls, and the first arrays of a scan's size: glibc's malloc maps each large array afresh
+(a page fault for every 4 kB) until freeing one has raised its mapping threshold. All would fall on the
+first scan. :func:`warm_up` builds the active calibration's table and runs every stage of a scan once, on
+a synthetic capture of a plane seen by the same rig at its full size (a warm-up on the rig scaled down to
+an eighth left the first scan 0.5 s slower than the next; ``benchmarks/bench_scan_latency.py``).
 """
 
 from __future__ import annotations
@@ -21,16 +23,6 @@ from services.geometry.camera_model import CameraModel
 from services.pipeline.scan import process_scan, scan_artifacts
 from services.pipeline.tables import TriangulationTables
 from services.structured_light.reconstruct import coded_axis
-
-_SCALE = 8  # the small rig's devices have an eighth of the pixels along each side
-
-
-def _scaled(device: CameraModel, factor: int) -> CameraModel:
-    K = np.array(device.K)
-    K[:2] /= factor
-    K[:2, 2] = (device.K[:2, 2] + 0.5) / factor - 0.5
-    return device.replace(width=max(device.width // factor, 8), height=max(device.height // factor, 8), K=K)
-
 
 def _meeting_point(camera: CameraModel, projector: CameraModel) -> np.ndarray:
     """The point nearest to both optical axes: where the rig looks at."""
@@ -61,11 +53,11 @@ def _plane_frames(camera: CameraModel, projector: CameraModel, patterns: np.ndar
 
 
 def warm_up(*, rig: Rig, sequence: Sequence, tables: TriangulationTables) -> dict[str, float]:
-    """Build the rig's triangulation table for ``sequence`` and run a small scan through every stage.
+    """Build the rig's triangulation table for ``sequence`` and run a scan of a plane through every stage.
 
     Returns the seconds each part took (``table``, ``stages``).
     """
-    from services.structured_light.patterns import generate_sequence
+    from services.structured_light.patterns import render_patterns
     from services.streaming.field import field_scene
     from services.streaming.recording import scan_recording
 
@@ -77,16 +69,11 @@ def warm_up(*, rig: Rig, sequence: Sequence, tables: TriangulationTables) -> dic
     seconds["table"] = round(time.perf_counter() - start, 3)
 
     start = time.perf_counter()
-    small = Rig({name: _scaled(device, _SCALE) for name, device in rig.devices.items()})
-    _, small_camera = small.device(None, "camera")
-    _, small_projector = small.device(None, "projector")
-    small_sequence, patterns = generate_sequence(small_projector.width, small_projector.height)
-    frames = _plane_frames(small_camera, small_projector, patterns, np.random.default_rng(0))
-    _, thermal = small.device(None, "thermal")
+    frames = _plane_frames(camera, projector, render_patterns(sequence), np.random.default_rng(0))
+    _, thermal = rig.device(None, "thermal")
     thermal_frames = np.full((1, thermal.height, thermal.width), 900.0, np.float32)
-    outcome = process_scan(frames=frames, sequence=small_sequence, thermal=thermal_frames, rig=small,
-                           tables=TriangulationTables())
-    scan_artifacts(frames=frames, sequence=small_sequence, thermal=thermal_frames, outcome=outcome)
-    scan_recording("warm-up", field_scene(outcome.field, small, thermal_frames[0]))
+    outcome = process_scan(frames=frames, sequence=sequence, thermal=thermal_frames, rig=rig, tables=tables)
+    scan_artifacts(frames=frames, sequence=sequence, thermal=thermal_frames, outcome=outcome)
+    scan_recording("warm-up", field_scene(outcome.field, rig, thermal_frames[0]))
     seconds["stages"] = round(time.perf_counter() - start, 3)
     return seconds
