@@ -47,9 +47,12 @@ def _plane_frames(camera: CameraModel, projector: CameraModel, patterns: np.ndar
     points = origin + ((target - origin) @ normal / (directions @ normal))[:, None] * directions
     pixels = project_points(points, projector.K, projector.dist, projector.R, projector.t).astype(np.float32)
     maps = pixels.reshape(camera.height, camera.width, 2)
-    frames = np.stack([cv2.remap(pattern, maps[..., 0], maps[..., 1], cv2.INTER_LINEAR) for pattern in patterns])
-    levels = 20.0 + frames * (200.0 / 255.0) + rng.normal(0.0, 1.5, frames.shape)
-    return np.clip(np.rint(levels), 0, 255).astype(np.uint8)
+    frames = np.empty((len(patterns), camera.height, camera.width), np.uint8)
+    for frame, pattern in zip(frames, patterns):  # frame by frame in float32: a scan's frames in float64 are 0.25 GB
+        levels = cv2.remap(pattern, maps[..., 0], maps[..., 1], cv2.INTER_LINEAR).astype(np.float32)
+        levels = 20.0 + levels * (200.0 / 255.0) + 1.5 * rng.standard_normal(levels.shape, dtype=np.float32)
+        frame[:] = np.clip(np.rint(levels), 0, 255)
+    return frames
 
 
 def warm_up(*, rig: Rig, sequence: Sequence, tables: TriangulationTables) -> dict[str, float]:
