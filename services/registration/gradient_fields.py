@@ -75,9 +75,46 @@ def _window_sums(image: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
     return (total[height:, width:] - total[:-height, width:] - total[height:, :-width] + total[:-height, :-width])
 
 
+class FieldTemplate:
+    """A moving field's structure tensor, transformed once for correlation with canvases of one shape.
+
+    ``cv2.matchTemplate`` would transform the template again on every call; the coarse search correlates
+    the same moving field with a canvas for each rotation and scale, so its spectra are kept here.
+    """
+
+    def __init__(self, moving_x: np.ndarray, moving_y: np.ndarray, canvas_shape: tuple[int, int]) -> None:
+        self.shape, self.canvas_shape = moving_x.shape, canvas_shape
+        if canvas_shape[0] < self.shape[0] or canvas_shape[1] < self.shape[1]:
+            raise ValueError(f"The canvas {canvas_shape} must be at least the moving field's shape {self.shape}.")
+        self.dft_shape = (cv2.getOptimalDFTSize(canvas_shape[0]), cv2.getOptimalDFTSize(canvas_shape[1]))
+        mxx, mxy, myy = moving_x * moving_x, moving_x * moving_y, moving_y * moving_y
+        self.tensor_spectra = [self.spectrum(component) for component in _tensor_components(mxx, mxy, myy)]
+        self.power_spectrum = self.spectrum((mxx + myy) ** 2)
+
+    def spectrum(self, image: np.ndarray) -> np.ndarray:
+        """The packed real DFT of ``image`` zero-padded to the DFT size."""
+        padded = np.zeros(self.dft_shape, np.float32)
+        padded[:image.shape[0], :image.shape[1]] = image
+        return cv2.dft(padded)
+
+    def correlate(self, spectra: list[np.ndarray], templates: list[np.ndarray]) -> np.ndarray:
+        """sum_k (canvas_k correlated with template_k) at every offset that keeps the template inside the canvas.
+
+        A circular correlation over a DFT at least the canvas' size wraps only at offsets outside that range.
+        """
+        product = sum(cv2.mulSpectrums(spectrum, template, 0, conjB=True)
+                      for spectrum, template in zip(spectra, templates))
+        full = cv2.dft(product, flags=cv2.DFT_INVERSE | cv2.DFT_SCALE | cv2.DFT_REAL_OUTPUT)
+        return full[:self.canvas_shape[0] - self.shape[0] + 1, :self.canvas_shape[1] - self.shape[1] + 1]
+
+
+def _tensor_components(xx: np.ndarray, xy: np.ndarray, yy: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The structure tensor's components weighted so that their products sum to (n_a . n_b)^2."""
+    return xx, np.float32(np.sqrt(2.0)) * xy, yy
+
+
 def tensor_similarity_map(
-    fixed_x: np.ndarray, fixed_y: np.ndarray, fixed_valid: np.ndarray, moving_x: np.ndarray, moving_y: np.ndarray,
-    min_weight: float,
+    fixed_x: np.ndarray, fixed_y: np.ndarray, fixed_valid: np.ndarray, template: FieldTemplate, min_weight: float,
 ) -> np.ndarray:
     """Tensor similarity S of the moving field against every integer offset of a larger fixed field.
 
@@ -87,8 +124,8 @@ def tensor_similarity_map(
         Fixed field on a canvas of the moving grid widened by m on each side.
     fixed_valid : same shape, float32
         1 where the fixed field is defined, else 0 (the field is 0 there too).
-    moving_x, moving_y : (H, W) float32 arrays
-        Moving field.
+    template : FieldTemplate
+        The moving (H, W) field, prepared for canvases of this shape.
     min_weight : float
         Least number of overlapping pixels; offsets with fewer get -inf.
 
@@ -96,16 +133,22 @@ def tensor_similarity_map(
     -------
     (2m + 1, 2m + 1) array; entry (dy, dx) compares moving pixel u with
     canvas pixel u + (dx, dy).
+
+    Notes
+    -----
+    The numerator sum_u (n_m . n_f)^2 = sum_u n_m n_m^T : n_f n_f^T and the
+    moving power are correlations, computed by the convolution theorem; the
+    fixed power and the overlap are box sums, from integral images.
     """
+    if fixed_x.shape != template.canvas_shape:
+        raise ValueError(f"The fixed field {fixed_x.shape} must have the template's canvas shape "
+                         f"{template.canvas_shape}.")
     fxx, fxy, fyy = fixed_x * fixed_x, fixed_x * fixed_y, fixed_y * fixed_y
-    mxx, mxy, myy = moving_x * moving_x, moving_x * moving_y, moving_y * moving_y
-    # n_m . n_f squared summed over the three tensor components at once: matchTemplate sums over channels
-    root2 = np.float32(np.sqrt(2.0))
-    numerator = cv2.matchTemplate(cv2.merge([fxx, root2 * fxy, fyy]), cv2.merge([mxx, root2 * mxy, myy]),
-                                  cv2.TM_CCORR)
-    fixed_power = _window_sums((fxx + fyy) ** 2, moving_x.shape)
-    moving_power = cv2.matchTemplate(fixed_valid, (mxx + myy) ** 2, cv2.TM_CCORR)
-    overlap = _window_sums(fixed_valid, moving_x.shape)
+    numerator = template.correlate([template.spectrum(component) for component in _tensor_components(fxx, fxy, fyy)],
+                                   template.tensor_spectra)
+    moving_power = template.correlate([template.spectrum(fixed_valid)], [template.power_spectrum])
+    fixed_power = _window_sums((fxx + fyy) ** 2, template.shape)
+    overlap = _window_sums(fixed_valid, template.shape)
     denominator = np.sqrt(np.maximum(fixed_power, 0.0) * np.maximum(moving_power, 0.0))
     values = np.where(denominator > 0.0, numerator / np.where(denominator > 0.0, denominator, 1.0), 0.0)
     return np.where(overlap >= min_weight, values, -np.inf)

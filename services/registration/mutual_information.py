@@ -7,7 +7,14 @@ hard-binned histogram this makes MI a continuous, piecewise-smooth function of
 the intensities, hence of the transform parameters, which a derivative-free
 optimiser needs to reach sub-pixel accuracy; compared with Mattes' cubic
 B-spline window it costs four cell updates per sample instead of sixteen.
-The histogram is four weighted ``np.bincount`` calls, one per neighbouring cell.
+
+The moving image does not move: its intensities are rounded once to
+1/``MOVING_SUBBINS`` of a bin, so that its half of the window is a fixed
+matrix of those levels' weights. The histogram is then two ``np.bincount``
+calls over (fixed bin, moving level) cells, a count and a sum of the fixed
+side's upper weight, folded onto the bins by that matrix: half the passes of
+four weighted counts, one per neighbouring cell, for the same estimator with the
+moving intensities rounded by at most 1/16 of a bin.
 """
 
 from __future__ import annotations
@@ -16,62 +23,73 @@ import numpy as np
 
 DEFAULT_BINS = 32
 DEFAULT_LOG_BASE = 2.0
+MOVING_SUBBINS = 8  # moving intensities rounded to 1/8 bin: the counts of 33 x 264 cells stay in the L2 cache;
+# the fastest on 9 000 to 150 000 samples of 4, 8, 16 and 32 sub-bins (0.27 against 0.82 ms for 32 at 9 000)
 
 
 class MovingWindow:
     """The moving image's half of the bilinear Parzen window, computed once per image (see :func:`moving_window`).
 
-    ``column`` is each sample's lower bin, ``down`` and ``up`` the weights of that bin and the one above,
-    both zero where the sample is invalid. The window also keeps the per-sample work arrays of the fixed
-    side, reused by every histogram against it: allocating a dozen arrays of a full image for each of the
-    optimiser's evaluations cost more (page faults) than the arithmetic. So one window serves one thread.
+    The cells of the level histogram are (fixed row, moving level): row 0 collects the invalid fixed
+    samples, row r + 1 those of lower fixed bin r, and a last row stays empty; moving level c S + k
+    (S = ``MOVING_SUBBINS``) is the intensity c + k / S, and level ``bins`` S collects the invalid moving
+    pixels. ``level_offset`` is each pixel's level plus one row. The window also keeps the per-sample work
+    arrays of the fixed side, reused by every histogram against it: allocating arrays of a full image for
+    each of the optimiser's evaluations cost more (page faults) than the arithmetic. So one window serves
+    one thread.
     """
 
-    def __init__(self, column: np.ndarray, down: np.ndarray, up: np.ndarray) -> None:
-        self.column, self.down, self.up = column, down, up
-        size = column.size
-        self._floor = np.empty(size, np.float32)
-        self._fixed_up = np.empty(size, np.float32)
-        self._fixed_down = np.empty(size, np.float32)
-        self._valid = np.empty(size, bool)
+    def __init__(self, level_offset: np.ndarray, bins: int) -> None:
+        self.level_offset, self.bins = level_offset, bins
+        self.row_width = (bins + 1) * MOVING_SUBBINS
+        size = level_offset.size
+        self._row = np.empty(size, np.float32)
+        self._cell_value = np.empty(size, np.float32)
         self._cell = np.empty(size, np.intp)
-        self._weights = np.empty(size, np.float64)  # np.bincount converts other weights to float64
+        self._up = np.empty(size, np.float64)  # np.bincount converts other weights to float64
+        self._upper_weights = np.arange(MOVING_SUBBINS) / MOVING_SUBBINS  # of the upper bin, per sub-bin
 
 
 def moving_window(moving: np.ndarray, bins: int) -> MovingWindow:
     """The Parzen-window terms of an image scaled to [0, bins - 1] (negatives invalid), flattened."""
     moving = np.ravel(moving).astype(np.float32)
-    valid = (moving >= 0.0).astype(np.float32)
-    column = np.clip(moving.astype(np.intp), 0, bins - 2)
-    up = np.minimum(moving - column, 1.0).astype(np.float64) * valid  # float64: np.bincount converts other weights
-    return MovingWindow(column, valid - up, up)
+    level = np.where(moving >= 0.0, np.rint(np.clip(moving, 0.0, bins - 1.0) * MOVING_SUBBINS), bins * MOVING_SUBBINS)
+    return MovingWindow((level + (bins + 1) * MOVING_SUBBINS).astype(np.float32), bins)
+
+
+def _fold_levels(by_level: np.ndarray, window: MovingWindow) -> np.ndarray:
+    """(bins, row width) weights onto (bins, bins): each moving level shared by its two bins, bilinearly."""
+    bins = window.bins
+    by_subbin = by_level.reshape(bins, bins + 1, MOVING_SUBBINS)
+    # not @ or np.dot: BLAS threads spin on a shared machine
+    upper = np.einsum("ick,k->ic", by_subbin, window._upper_weights)  # the share of bin c + 1
+    histogram = np.einsum("ick->ic", by_subbin)[:, :bins] - upper[:, :bins]  # bin c keeps the rest
+    histogram[:, 1:] += upper[:, :bins - 1]  # the invalid moving level, c = bins, is left out
+    return histogram
 
 
 def windowed_joint_histogram(fixed: np.ndarray, window: MovingWindow, bins: int) -> np.ndarray:
     """Bilinear-Parzen joint histogram of a fixed image scaled to [0, bins - 1] (negatives skipped) and a window."""
     fixed = np.ravel(np.asarray(fixed, dtype=np.float32))
-    if fixed.size != window.column.size:
+    if fixed.size != window.level_offset.size:
         raise ValueError(f"The fixed samples ({fixed.size}) must match the moving window's pixels "
-                         f"({window.column.size}).")
-    row = np.floor(fixed, out=window._floor)
-    np.clip(row, 0.0, bins - 2.0, out=row)
-    up = np.subtract(fixed, row, out=window._fixed_up)
+                         f"({window.level_offset.size}).")
+    if bins != window.bins:
+        raise ValueError(f"The histogram's {bins} bins must be the moving window's {window.bins}.")
+    row = np.floor(fixed, out=window._row)
+    np.clip(row, -1.0, bins - 2.0, out=row)  # row -1 (0 once offset) collects the invalid, negative, samples
+    cell = np.multiply(row, window.row_width, out=window._cell_value)
+    np.add(cell, window.level_offset, out=cell)  # exact in float32: fewer than 2**24 cells
+    window._cell[...] = cell
+    up = np.subtract(fixed, row, out=window._up, dtype=np.float64)
     np.minimum(up, 1.0, out=up)
-    valid = np.greater_equal(fixed, 0.0, out=window._valid)  # invalid samples weigh nothing
-    np.multiply(up, valid, out=up)
-    down = np.subtract(valid, up, out=window._fixed_down)
-    cell = np.multiply(row, bins, out=window._cell, casting="unsafe")
-    np.add(cell, window.column, out=cell)
-
-    def counts(fixed_weight: np.ndarray, moving_weight: np.ndarray) -> np.ndarray:
-        np.multiply(fixed_weight, moving_weight, out=window._weights)
-        return np.bincount(cell, window._weights, bins * bins).reshape(bins, bins)
-
-    histogram = counts(down, window.down)
-    histogram[1:, :] += counts(up, window.down)[:-1, :]  # the row above each sample's lower bin
-    histogram[:, 1:] += counts(down, window.up)[:, :-1]  # the column above
-    histogram[1:, 1:] += counts(up, window.up)[:-1, :-1]
-    return histogram
+    size = (bins + 1) * window.row_width
+    count = np.bincount(window._cell, minlength=size).reshape(bins + 1, window.row_width)
+    upper = np.bincount(window._cell, up, minlength=size).reshape(bins + 1, window.row_width)
+    upper[0] = 0.0  # the invalid fixed samples' row
+    by_level = np.subtract(count, upper)[1:]  # each sample's lower fixed bin gets 1 - up...
+    by_level += upper[:-1]  # ...and the bin above it up
+    return _fold_levels(by_level, window)
 
 
 def quantized_joint_histogram(fixed: np.ndarray, moving: np.ndarray, bins: int) -> np.ndarray:

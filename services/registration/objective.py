@@ -77,7 +77,7 @@ def score(
     ``moving`` is the moving image's :func:`services.registration.mutual_information.moving_window`.
     """
     mi, nmi, count = information(fixed_samples, moving, bins, log_base)
-    if count < min_overlap * moving.column.size:
+    if count < min_overlap * moving.level_offset.size:
         return -np.inf
     return mi if metric == "mi" else nmi
 

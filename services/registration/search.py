@@ -6,7 +6,7 @@ coarsest pyramid level the whole plausible range is cheap to scan: for each
 (rotation, scale) the fixed image is warped once onto a moving-grid canvas
 widened by the shift range, and every integer shift is then a slice of it.
 Every shift is scored at once by correlation of the normalised gradient
-fields' structure tensors (``cv2.matchTemplate``); for MI and NMI the best few
+fields' structure tensors (a correlation by the DFT); for MI and NMI the best few
 shifts of each canvas are then scored by a hard-binned joint histogram
 (one ``np.bincount`` for all of them): a histogram for every shift would be
 sixty times as many histogram entries.
@@ -19,7 +19,12 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from services.registration.gradient_fields import gradient_epsilon, normalized_gradient_field, tensor_similarity_map
+from services.registration.gradient_fields import (
+    FieldTemplate,
+    gradient_epsilon,
+    normalized_gradient_field,
+    tensor_similarity_map,
+)
 from services.registration.models import corner_error, similarity_about_centres
 from services.registration.objective import sample_fixed
 
@@ -166,13 +171,14 @@ def coarse_search(
     canvas_to_moving = np.array([[1.0, 0.0, -margin], [0.0, 1.0, -margin], [0.0, 0.0, 1.0]])
     moving_bins = _bin_indices(moving)
     fixed_epsilon = gradient_epsilon(fixed)
-    moving_x, moving_y = normalized_gradient_field(moving, gradient_epsilon(moving))
+    template = FieldTemplate(*normalized_gradient_field(moving, gradient_epsilon(moving)),
+                             (height + 2 * margin, width + 2 * margin))
     candidates = []
     for angle in angles:
         for factor in scale_factors:
             base = similarity_about_centres(moving_centre, fixed_centre, scale * factor, angle, np.zeros(2))
             canvas = sample_fixed(fixed, base @ canvas_to_moving, width + 2 * margin, height + 2 * margin)
-            proposals = _best_shifts(tensor_similarity_map(*_field_canvas(canvas, fixed_epsilon), moving_x, moving_y,
+            proposals = _best_shifts(tensor_similarity_map(*_field_canvas(canvas, fixed_epsilon), template,
                                                            min_overlap * moving.size), _PROPOSALS_PER_CANVAS)
             values = _hard_binned_scores(_bin_indices(canvas), moving_bins, proposals, bins, log_base,
                                          metric == "nmi", min_overlap * moving.size)
@@ -226,14 +232,14 @@ def gradient_field_search(
     margin = int(max_shift)
     canvas_to_moving = np.array([[1.0, 0.0, -margin], [0.0, 1.0, -margin], [0.0, 0.0, 1.0]])
     fixed_epsilon = gradient_epsilon(fixed)
-    moving_x, moving_y = normalized_gradient_field(moving, gradient_epsilon(moving))
+    template = FieldTemplate(*normalized_gradient_field(moving, gradient_epsilon(moving)),
+                             (height + 2 * margin, width + 2 * margin))
     candidates = []
     for angle in angles:
         for factor in scale_factors:
             base = similarity_about_centres(moving_centre, fixed_centre, scale * factor, angle, np.zeros(2))
             canvas = sample_fixed(fixed, base @ canvas_to_moving, width + 2 * margin, height + 2 * margin)
-            values = tensor_similarity_map(*_field_canvas(canvas, fixed_epsilon), moving_x, moving_y,
-                                           min_overlap * moving.size)
+            values = tensor_similarity_map(*_field_canvas(canvas, fixed_epsilon), template, min_overlap * moving.size)
             shifts = _best_shifts(values)
             candidates += _shift_candidates(base, shifts, values[shifts[:, 0], shifts[:, 1]], margin)
     return _distinct_best(candidates, count, width, height, spacing=1.5)

@@ -3,6 +3,7 @@ import numpy as np
 import pytest
 
 from services.registration.gradient_fields import (
+    FieldTemplate,
     gradient_epsilon,
     normalized_gradient_field,
     sampled_tensor_similarity,
@@ -49,7 +50,7 @@ def test_similarity_map_peaks_at_the_true_offset_and_agrees_with_the_sampled_sim
     fx, fy = normalized_gradient_field(canvas, epsilon)
     valid = np.ones_like(canvas)
     mx, my = normalized_gradient_field(moving, epsilon)
-    values = tensor_similarity_map(fx, fy, valid, mx, my, 0.5 * moving.size)
+    values = tensor_similarity_map(fx, fy, valid, FieldTemplate(mx, my, canvas.shape), 0.5 * moving.size)
     assert np.unravel_index(np.argmax(values), values.shape) == (9, 4)
     windowed_x, windowed_y = fx[2:52, 6:76], fy[2:52, 6:76]
     expected = np.sum((windowed_x * mx + windowed_y * my) ** 2) / np.sqrt(
@@ -63,8 +64,16 @@ def test_too_little_overlap_gives_minus_infinity():
     valid[:, :5] = 1.0
     fx, fy = normalized_gradient_field(canvas, 0.01)
     mx, my = normalized_gradient_field(canvas[:30, :30], 0.01)
-    values = tensor_similarity_map(fx * valid, fy * valid, valid, mx, my, 0.3 * 900)
+    values = tensor_similarity_map(fx * valid, fy * valid, valid, FieldTemplate(mx, my, canvas.shape), 0.3 * 900)
     assert np.isneginf(values[0, 10])
+
+
+def test_a_canvas_smaller_than_the_template_or_of_another_shape_is_refused():
+    field = np.zeros((30, 30), np.float32)
+    with pytest.raises(ValueError, match="must be at least the moving field's shape"):
+        FieldTemplate(field, field, (20, 40))
+    with pytest.raises(ValueError, match="must have the template's canvas shape"):
+        tensor_similarity_map(field, field, field, FieldTemplate(field[:10, :10], field[:10, :10], (20, 20)), 1.0)
 
 
 def test_epsilon_must_be_positive():

@@ -2,6 +2,7 @@ import numpy as np
 import pytest
 
 from services.registration.mutual_information import (
+    MOVING_SUBBINS,
     information_from_histogram,
     joint_histogram,
     moving_window,
@@ -27,13 +28,14 @@ def test_histogram_of_bin_centred_values_equals_the_hard_histogram():
 
 
 def test_fractional_values_are_spread_over_the_four_nearest_cells_with_bilinear_weights():
+    """The fixed values exactly; the moving ones rounded to 1/MOVING_SUBBINS of a bin (the module's docstring)."""
     rng = np.random.default_rng(5)
     fixed = (rng.random(300) * 7).astype(np.float32)
     moving = (rng.random(300) * 7).astype(np.float32)
     fixed[:20] = -1.0  # invalid samples are skipped
     moving[[0, 30]] = 7.0  # the top value goes wholly to the top bin
     expected = np.zeros((8, 8))
-    for a, b in zip(fixed, moving):
+    for a, b in zip(fixed, np.rint(moving * MOVING_SUBBINS) / MOVING_SUBBINS):
         if a < 0:
             continue
         row, column = min(int(a), 6), min(int(b), 6)
