@@ -93,7 +93,7 @@ METHODS = {
 
 def command_against_simpleitk(repeats: int) -> None:
     """Whole `thermofield register` processes against SimpleITK in-process on one 500x300 pair (see the docstring)."""
-    from benchmarks.bench_commands import ROOT, _make_pair, _thermofield
+    from benchmarks.bench_commands import ROOT, _make_pair, _thermofield, child_environment
 
     times: dict[str, dict[str, list[float]]] = {name: {"wall": [], "cpu": []} for name in ("command", "SimpleITK")}
     with tempfile.TemporaryDirectory() as scratch:
@@ -101,7 +101,7 @@ def command_against_simpleitk(repeats: int) -> None:
         visible_path, infrared_path, visible, infrared = _make_pair(work)
         command = _thermofield("register", "--fixed", visible_path, "--moving", infrared_path, "--model", "similarity",
                                "--out", work / "reg.json")
-        env = os.environ | {"PYTHONPATH": str(ROOT)}
+        env = child_environment(PYTHONPATH=str(ROOT))
         for _ in range(repeats):
             before = resource.getrusage(resource.RUSAGE_CHILDREN)
             wall = time.perf_counter()

@@ -154,9 +154,54 @@ def tensor_similarity_map(
     return np.where(overlap >= min_weight, values, -np.inf)
 
 
-def _weighted_sum(values: np.ndarray, weights: np.ndarray) -> float:
-    """sum values * weights in float64 (not np.vdot: BLAS threads spin on this shared machine)."""
-    return float(np.multiply(values, weights).sum(dtype=np.float64))
+class SampledFieldSimilarity:
+    """S between the field of fixed images sampled on the moving grid and one moving field, with reused arrays.
+
+    The moving field's terms are computed once; the work arrays of an evaluation are kept, since the
+    refinement evaluates hundreds of samplings of a full image (see :func:`sampled_tensor_similarity`).
+    """
+
+    def __init__(self, epsilon: float, moving_x: np.ndarray, moving_y: np.ndarray) -> None:
+        self.epsilon2 = np.float32(epsilon) ** 2
+        self.moving_size = moving_x.size
+        self.moving_x, self.moving_y = moving_x[1:-1, 1:-1], moving_y[1:-1, 1:-1]
+        moving_m = self.moving_x * self.moving_x + self.moving_y * self.moving_y
+        self.moving_m2 = moving_m * moving_m
+        shape = self.moving_x.shape
+        self._work = [np.empty(shape, np.float32) for _ in range(5)]
+        self._valid = np.empty(shape, bool)
+
+    def __call__(self, samples: np.ndarray) -> tuple[float, float]:
+        """S and the number of pixels where the sampled field is defined (all four neighbours inside)."""
+        left, right = samples[1:-1, :-2], samples[1:-1, 2:]
+        up, down = samples[:-2, 1:-1], samples[2:, 1:-1]
+        gx, gy, first, second, product = self._work
+        np.minimum(left, right, out=first)
+        np.minimum(up, down, out=second)
+        np.minimum(first, second, out=first)
+        valid = np.greater_equal(first, 0.0, out=self._valid)
+        weight = second
+        np.copyto(weight, valid)
+        np.multiply(np.subtract(right, left, out=gx), np.float32(0.5), out=gx)
+        np.multiply(np.subtract(down, up, out=gy), np.float32(0.5), out=gy)
+        magnitude2 = np.multiply(gx, gx, out=first)
+        magnitude2 += np.multiply(gy, gy, out=product)
+        inverse_norm2 = np.divide(weight, np.add(magnitude2, self.epsilon2, out=product), out=weight)  # 0 outside
+        count = float(np.count_nonzero(valid))
+        moving_power = _weighted_sum(self.moving_m2, valid, product)
+        dot = np.multiply(gx, self.moving_x, out=gx)
+        dot += np.multiply(gy, self.moving_y, out=gy)
+        numerator = _weighted_sum(np.multiply(dot, dot, out=dot), inverse_norm2, product)
+        np.multiply(magnitude2, magnitude2, out=magnitude2)
+        fixed_power = _weighted_sum(magnitude2, np.multiply(inverse_norm2, inverse_norm2, out=inverse_norm2), product)
+        if fixed_power <= 0.0 or moving_power <= 0.0:
+            return 0.0, count
+        return numerator / np.sqrt(fixed_power * moving_power), count
+
+
+def _weighted_sum(values: np.ndarray, weights: np.ndarray, out: np.ndarray) -> float:
+    """sum values * weights in float64, the products written into ``out`` (not np.vdot: BLAS threads spin)."""
+    return float(np.multiply(values, weights, out=out).sum(dtype=np.float64))
 
 
 def sampled_tensor_similarity(
@@ -165,21 +210,7 @@ def sampled_tensor_similarity(
     """S between the field of a fixed image sampled on the moving grid (negative = outside) and the moving field.
 
     Returns S and the number of pixels where the sampled field is defined
-    (all four neighbours inside).
+    (all four neighbours inside). :class:`SampledFieldSimilarity` keeps the
+    moving terms and work arrays for repeated evaluations.
     """
-    left, right = samples[1:-1, :-2], samples[1:-1, 2:]
-    up, down = samples[:-2, 1:-1], samples[2:, 1:-1]
-    valid = (np.minimum(np.minimum(left, right), np.minimum(up, down)) >= 0.0).astype(np.float32)
-    gx, gy = 0.5 * (right - left), 0.5 * (down - up)
-    magnitude2 = gx * gx + gy * gy
-    inverse_norm2 = valid / (magnitude2 + np.float32(epsilon) ** 2)
-    mx, my = moving_x[1:-1, 1:-1], moving_y[1:-1, 1:-1]
-    dot = gx * mx + gy * my
-    numerator = _weighted_sum(dot * dot, inverse_norm2)
-    fixed_power = _weighted_sum(magnitude2 * magnitude2, inverse_norm2 * inverse_norm2)
-    moving_m = mx * mx + my * my
-    moving_power = _weighted_sum(moving_m * moving_m, valid)
-    count = float(valid.sum())
-    if fixed_power <= 0.0 or moving_power <= 0.0:
-        return 0.0, count
-    return numerator / np.sqrt(fixed_power * moving_power), count
+    return SampledFieldSimilarity(epsilon, moving_x, moving_y)(samples)

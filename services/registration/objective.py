@@ -14,7 +14,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from services.registration.gradient_fields import sampled_tensor_similarity
+from services.registration.gradient_fields import SampledFieldSimilarity
 from services.registration.mutual_information import MovingWindow, quantized_information
 
 METRICS = ("mi", "nmi", "ngf")
@@ -26,15 +26,46 @@ def _is_affine(matrix: np.ndarray) -> bool:
     return matrix[2, 0] == 0.0 and matrix[2, 1] == 0.0 and matrix[2, 2] == 1.0
 
 
-def sample_fixed(fixed: np.ndarray, matrix: np.ndarray, width: int, height: int, cubic: bool = False,
-                 out: np.ndarray | None = None) -> np.ndarray:
+class FixedSampler:
+    """Samples one fixed image on a ``width`` x ``height`` moving grid, again and again, into reused arrays.
+
+    Each call returns the same array, overwritten: the refinement evaluates hundreds of matrices, and a new
+    array of a full image for each cost more in page faults than the warp itself. See :func:`sample_fixed`.
+    """
+
+    def __init__(self, fixed: np.ndarray, width: int, height: int, cubic: bool = False) -> None:
+        self.fixed, self.size, self.cubic = np.asarray(fixed, dtype=np.float32), (width, height), cubic
+        self.samples = np.empty((height, width), np.float32)
+        if cubic:
+            self._ring = self.fixed.copy()
+            self._ring[[0, -1], :] = OUTSIDE  # a bilinear sample touching this ring or the outside has a 4 x 4
+            self._ring[:, [0, -1]] = OUTSIDE  # support that is not wholly inside the image
+            self._support = np.empty((height, width), np.float32)
+            self._outside = np.empty((height, width), bool)
+
+    def _warp(self, image: np.ndarray, matrix: np.ndarray, out: np.ndarray, cubic: bool) -> np.ndarray:
+        flags = (cv2.INTER_CUBIC if cubic else cv2.INTER_LINEAR) | cv2.WARP_INVERSE_MAP
+        border = {"borderMode": cv2.BORDER_REPLICATE} if cubic else {"borderMode": cv2.BORDER_CONSTANT,
+                                                                     "borderValue": OUTSIDE}
+        if _is_affine(matrix):
+            return cv2.warpAffine(image, matrix[:2], self.size, dst=out, flags=flags, **border)
+        return cv2.warpPerspective(image, matrix, self.size, dst=out, flags=flags, **border)
+
+    def __call__(self, matrix: np.ndarray) -> np.ndarray:
+        samples = self._warp(self.fixed, matrix, self.samples, self.cubic)
+        if self.cubic:
+            np.maximum(samples, 0.0, out=samples)
+            support = self._warp(self._ring, matrix, self._support, cubic=False)
+            np.copyto(samples, np.float32(OUTSIDE), where=np.less(support, 0.0, out=self._outside))
+        return samples
+
+
+def sample_fixed(fixed: np.ndarray, matrix: np.ndarray, width: int, height: int, cubic: bool = False) -> np.ndarray:
     """The fixed image sampled at ``matrix @ (x, y, 1)`` for each pixel of a ``width`` x ``height`` grid.
 
     Bilinear by default; pixels mapped (even partly) outside the fixed image are negative. With ``cubic``,
     bicubic (OpenCV's Keys kernel, a = -0.75) of an image that must be non-negative: negative where the 4 x 4
-    support touches the outside, overshoots below 0 clipped to 0. A bilinear sampling may write into ``out``, a
-    (height, width) float32 array (the refinement reuses one: a new array of a full image for each of its
-    hundreds of evaluations cost more in page faults than the warp itself).
+    support touches the outside, overshoots below 0 clipped to 0. A new array; :class:`FixedSampler` reuses one.
 
     Notes
     -----
@@ -43,23 +74,7 @@ def sample_fixed(fixed: np.ndarray, matrix: np.ndarray, width: int, height: int,
     artefact of Pluim et al., "Interpolation artefacts in mutual information-based image registration",
     CVIU 77(2), 2000); a bicubic kernel varies much less.
     """
-    if cubic:
-        inner = np.array(fixed, dtype=np.float32)
-        inner[[0, -1], :] = OUTSIDE  # a bilinear sample touching this ring or the outside has a 4 x 4 support
-        inner[:, [0, -1]] = OUTSIDE  # that is not wholly inside the image
-        support_inside = sample_fixed(inner, matrix, width, height) >= 0.0
-        flags = cv2.INTER_CUBIC | cv2.WARP_INVERSE_MAP
-        if _is_affine(matrix):
-            values = cv2.warpAffine(fixed, matrix[:2], (width, height), flags=flags, borderMode=cv2.BORDER_REPLICATE)
-        else:
-            values = cv2.warpPerspective(fixed, matrix, (width, height), flags=flags, borderMode=cv2.BORDER_REPLICATE)
-        return np.where(support_inside, np.maximum(values, 0.0), OUTSIDE).astype(np.float32)
-    flags = cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP
-    if _is_affine(matrix):
-        return cv2.warpAffine(fixed, matrix[:2], (width, height), dst=out, flags=flags,
-                              borderMode=cv2.BORDER_CONSTANT, borderValue=OUTSIDE)
-    return cv2.warpPerspective(fixed, matrix, (width, height), dst=out, flags=flags,
-                               borderMode=cv2.BORDER_CONSTANT, borderValue=OUTSIDE)
+    return FixedSampler(fixed, width, height, cubic)(matrix)
 
 
 def information(
@@ -82,11 +97,9 @@ def score(
     return mi if metric == "mi" else nmi
 
 
-def field_score(
-    fixed_samples: np.ndarray, fixed_epsilon: float, moving_x: np.ndarray, moving_y: np.ndarray, min_overlap: float
-) -> float:
+def field_score(fixed_samples: np.ndarray, similarity: SampledFieldSimilarity, min_overlap: float) -> float:
     """Normalised-gradient-field similarity of the sampled fixed image and the moving field, -inf below overlap."""
-    value, count = sampled_tensor_similarity(fixed_samples, fixed_epsilon, moving_x, moving_y)
-    if count < min_overlap * moving_x.size:
+    value, count = similarity(fixed_samples)
+    if count < min_overlap * similarity.moving_size:
         return -np.inf
     return value

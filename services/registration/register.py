@@ -23,11 +23,11 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from services.registration.gradient_fields import gradient_epsilon, normalized_gradient_field
+from services.registration.gradient_fields import SampledFieldSimilarity, gradient_epsilon, normalized_gradient_field
 from services.registration.models import MODELS, PARAMETER_COUNTS, update_matrix
 from services.registration.newton import maximize
 from services.registration.mutual_information import DEFAULT_BINS, DEFAULT_LOG_BASE, moving_window, quantize
-from services.registration.objective import METRICS, field_score, information, sample_fixed, score
+from services.registration.objective import METRICS, FixedSampler, field_score, information, sample_fixed, score
 from services.registration.preprocess import PREPROCESSING, preprocess
 from services.registration.search import coarse_search, gradient_field_search
 
@@ -123,9 +123,9 @@ def _level_objective(
     ``fixed`` and ``moving`` are quantised images for MI and NMI, smoothed grey images for NGF.
     """
     if metric == "ngf":
-        fixed_epsilon = gradient_epsilon(fixed)
-        moving_x, moving_y = normalized_gradient_field(moving, gradient_epsilon(moving))
-        return lambda samples: field_score(samples, fixed_epsilon, moving_x, moving_y, min_overlap)
+        similarity = SampledFieldSimilarity(gradient_epsilon(fixed),
+                                            *normalized_gradient_field(moving, gradient_epsilon(moving)))
+        return lambda samples: field_score(samples, similarity, min_overlap)
     window = moving_window(moving, bins)
     return lambda samples: score(samples, window, bins, log_base, metric, min_overlap)
 
@@ -138,14 +138,13 @@ def _refine(
 
     ``stencil`` is the first and smallest finite-difference step and the step tolerance, in pixels of corner
     motion, and the relative-gain stop; ``cubic`` samples the fixed image by bicubic instead of bilinear interpolation
-    (:func:`services.registration.objective.sample_fixed`). Returns the matrix and its objective value.
+    (:class:`services.registration.objective.FixedSampler`). Returns the matrix and its objective value.
     """
     height, width = moving.shape
-    samples = np.empty((height, width), np.float32)  # reused by every bilinear evaluation
+    sampler = FixedSampler(fixed, width, height, cubic)
 
     def value(parameters: np.ndarray) -> float:
-        return objective(sample_fixed(fixed, start @ update_matrix(model, parameters, width, height), width, height,
-                                      cubic, samples))
+        return objective(sampler(start @ update_matrix(model, parameters, width, height)))
 
     step, min_step, tolerance, relative_gain = stencil
     parameters, best = maximize(value, PARAMETER_COUNTS[model], step, min_step, tolerance, relative_gain,
