@@ -75,6 +75,11 @@ def _window_sums(image: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
     return (total[height:, width:] - total[:-height, width:] - total[height:, :-width] + total[:-height, :-width])
 
 
+def _tensor_components(xx: np.ndarray, xy: np.ndarray, yy: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The structure tensor's components weighted so that their products sum to (n_a . n_b)^2."""
+    return xx, np.float32(np.sqrt(2.0)) * xy, yy
+
+
 class FieldTemplate:
     """A moving field's structure tensor, transformed once for correlation with canvases of one shape.
 
@@ -106,11 +111,6 @@ class FieldTemplate:
                       for spectrum, template in zip(spectra, templates))
         full = cv2.dft(product, flags=cv2.DFT_INVERSE | cv2.DFT_SCALE | cv2.DFT_REAL_OUTPUT)
         return full[:self.canvas_shape[0] - self.shape[0] + 1, :self.canvas_shape[1] - self.shape[1] + 1]
-
-
-def _tensor_components(xx: np.ndarray, xy: np.ndarray, yy: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The structure tensor's components weighted so that their products sum to (n_a . n_b)^2."""
-    return xx, np.float32(np.sqrt(2.0)) * xy, yy
 
 
 def tensor_similarity_map(
