@@ -4,6 +4,7 @@ import pytest
 
 from services.registration.gradient_fields import (
     FieldTemplate,
+    SampledFieldSimilarity,
     gradient_epsilon,
     normalized_gradient_field,
     sampled_tensor_similarity,
@@ -32,6 +33,18 @@ def test_similarity_ignores_contrast_polarity_and_drops_when_misaligned():
     assert same == pytest.approx(1.0, abs=1e-5) and count == 58 * 78
     shifted, _ = sampled_tensor_similarity(np.roll(image, 3, axis=1), epsilon, nx, ny)
     assert shifted < 0.6 * same
+
+
+def test_a_similarity_reused_for_other_samples_gives_what_a_fresh_one_gives():
+    image = _texture((50, 60), 6)
+    epsilon = gradient_epsilon(image)
+    nx, ny = normalized_gradient_field(image, epsilon)
+    similarity = SampledFieldSimilarity(epsilon, nx, ny)  # its work arrays are overwritten by every call
+    partly_outside = np.roll(image, 2, axis=0)
+    partly_outside[:, :7] = -1.0e4
+    for samples in (image, partly_outside, np.roll(image, 5, axis=1), image):
+        assert similarity(samples) == sampled_tensor_similarity(samples, epsilon, nx, ny)
+    assert similarity(partly_outside)[1] < similarity(image)[1]
 
 
 def test_pixels_next_to_the_outside_are_left_out():

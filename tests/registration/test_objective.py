@@ -2,7 +2,7 @@ import numpy as np
 import pytest
 
 from services.registration.mutual_information import moving_window, quantize
-from services.registration.objective import information, sample_fixed, score
+from services.registration.objective import FixedSampler, information, sample_fixed, score
 
 
 def test_samples_outside_the_fixed_image_are_negative_and_inside_ones_exact():
@@ -25,6 +25,19 @@ def test_bicubic_samples_are_valid_only_where_their_four_by_four_support_is_insi
     # a linear ramp is reproduced exactly by the bicubic kernel
     rows, columns = np.nonzero(inside)
     np.testing.assert_allclose(samples[inside], 10.0 * (rows + 0.5) + (columns + 4.5), rtol=0, atol=1e-3)
+
+
+@pytest.mark.parametrize("cubic", [False, True])
+def test_a_sampler_reused_for_other_matrices_gives_what_a_fresh_sampling_gives(cubic):
+    rng = np.random.default_rng(4)
+    fixed = rng.random((30, 40)).astype(np.float32)
+    sampler = FixedSampler(fixed, 25, 20, cubic)
+    matrices = [np.array([[1.0, 0.02, dx], [-0.02, 1.0, dy], [0.0, 0.0, 1.0]]) for dx, dy in ((3.3, 2.1), (17.0, 12.6))]
+    matrices.append(np.array([[1.0, 0.0, 2.0], [0.0, 1.0, 1.0], [0.0005, 0.0, 1.0]]))  # perspective, then affine again
+    for matrix in matrices + matrices[:1]:
+        expected = sample_fixed(fixed, matrix, 25, 20, cubic)
+        np.testing.assert_array_equal(sampler(matrix), expected)
+    assert np.any(sampler(matrices[1]) < 0) and np.any(sampler(matrices[0]) >= 0)  # the outside marks move too
 
 
 def test_perspective_matrices_are_sampled_too():
