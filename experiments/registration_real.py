@@ -20,7 +20,7 @@ the centred start). Times: each method in-process, and the whole
 included) on the moved pair.
 
 Usage: .venv/bin/python experiments/registration_real.py [--pairs 1 2 ...] [--seed 0] [--methods NAME ...]
-       [--no-cli] [--figure N] [--rows-out rows.json] [--from-rows a.json b.json ...]
+       [--no-cli] [--figure N] [--rows-out rows.json] [--from-rows a.json b.json ...] [--objective-check]
 Prints Markdown tables; --figure N writes docs/figures/registration/real_pair_NN_edges.png.
 """
 
@@ -43,7 +43,7 @@ sys.path.insert(0, str(ROOT))
 from services.formats.registration import load_registration  # noqa: E402
 from services.registration.consistency import move_consistency  # noqa: E402
 from services.registration.models import corner_error  # noqa: E402
-from services.registration.register import register  # noqa: E402
+from services.registration.register import objective_value, register  # noqa: E402
 
 TNO_DIR = ROOT.parent / "shared" / "data" / "tno-ir-visible"  # shared/ beside the clone
 FIGURES = ROOT / "docs" / "figures" / "registration"
@@ -185,6 +185,24 @@ def figure(number: int) -> None:
                 np.hstack([_edge_overlay(visible, infrared, np.eye(3)), gap, _edge_overlay(visible, infrared, matrix)]))
 
 
+def objective_check(numbers: list[int], seed: int) -> None:
+    """Whether NGF's inconsistency is the optimiser's or the objective's: each registration's NGF value beside
+    the value of the other registration carried over by the known move, on the view and on the whole image."""
+    print("| pair | consistency (px) | S(view) at H1 | S(view) at H0 S^-1 | S(whole) at H0 | S(whole) at H1 S |")
+    print("|---|---|---|---|---|---|")
+    for number in numbers:
+        visible, infrared = load_pair(number)
+        result = move_consistency(thermofield_matrix, visible, infrared, np.random.default_rng([seed, number]))
+        unmoved, view, view_to_infrared = result.unmoved, result.view, result.view_to_infrared
+
+        def value(infrared_image: np.ndarray, matrix: np.ndarray) -> float:
+            return objective_value(visible, infrared_image, matrix, metric="ngf", scale=1.0)
+
+        print(f"| {number:02d} | {result.consistency:.3f} | {value(result.moved, view):.5f} | "
+              f"{value(result.moved, unmoved @ view_to_infrared):.5f} | {value(infrared, unmoved):.5f} | "
+              f"{value(infrared, view @ np.linalg.inv(view_to_infrared)):.5f} |")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--pairs", type=int, nargs="+", default=list(range(1, 26)))
@@ -194,11 +212,16 @@ def main() -> None:
     parser.add_argument("--no-cli", action="store_true")
     parser.add_argument("--figure", type=int, metavar="PAIR", help="write the before/after overlay of this pair")
     parser.add_argument("--rows-out", type=Path, help="also save the per-pair results as JSON")
+    parser.add_argument("--objective-check", action="store_true",
+                        help="print NGF's value at each registration and at the other one carried over by the move")
     parser.add_argument("--from-rows", type=Path, nargs="+",
                         help="print the tables of saved results (e.g. of runs on parts of the pairs) instead")
     args = parser.parse_args()
     if not args.no_cli and "thermofield NGF" not in args.methods:
         parser.error("the command's run (without --no-cli) is compared with 'thermofield NGF': run that method too")
+    if args.objective_check:
+        objective_check(args.pairs, args.seed)
+        return
     if args.from_rows:
         rows = {}
         for path in args.from_rows:  # runs on parts of the pairs, or of the methods, merged pair by pair

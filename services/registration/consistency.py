@@ -24,13 +24,14 @@ from services.registration.synthetic_pairs import moved_view
 class MoveConsistency:
     """Consistency and distance to the hand alignment (visible pixels) of one pair, with what produced them.
 
-    ``unmoved`` is the whole image's registration H0, ``moved`` the moved
+    ``unmoved`` is the whole image's registration H0, ``view`` the moved view's H1, ``moved`` the moved
     infrared view and ``view_to_infrared`` S^-1 (view pixels to infrared pixels).
     """
 
     consistency: float
     from_hand: float
     unmoved: np.ndarray
+    view: np.ndarray
     moved: np.ndarray
     view_to_infrared: np.ndarray
 
@@ -68,6 +69,7 @@ def move_consistency(
         consistency=corner_error(unmoved @ view_to_infrared, view, moved.shape[1], moved.shape[0]),
         from_hand=corner_error(np.eye(3), unmoved, width, height),
         unmoved=unmoved,
+        view=view,
         moved=moved,
         view_to_infrared=view_to_infrared,
     )

@@ -172,6 +172,68 @@ def _search_grid(
     return angles, factors
 
 
+def _nominal_scale(fixed: np.ndarray, moving: np.ndarray, scale: float | None) -> float:
+    """Fixed pixels per moving pixel: ``scale``, or the ratio that fits the moving image inside the fixed one."""
+    nominal = scale if scale is not None else min(np.shape(fixed)[1] / np.shape(moving)[1],
+                                                  np.shape(fixed)[0] / np.shape(moving)[0])
+    if not nominal > 0.0:
+        raise ValueError(f"The nominal scale must be positive; got {nominal}.")
+    return nominal
+
+
+def _prepared(
+    fixed: np.ndarray, moving: np.ndarray, reduction: float, metric: str, preprocessing: str | None
+) -> tuple[np.ndarray, np.ndarray]:
+    """The images the objective compares: the fixed one reduced by ``reduction``, both preprocessed (and, for
+    NGF, smoothed)."""
+    preprocessing = preprocessing if preprocessing is not None else DEFAULT_PREPROCESSING[metric]
+    fixed_pre = preprocess(_reduce(fixed, reduction), preprocessing, invert=True)
+    moving_pre = preprocess(moving, preprocessing)
+    if metric == "ngf":
+        fixed_pre = cv2.GaussianBlur(fixed_pre, (0, 0), _FIELD_SIGMA)
+        moving_pre = cv2.GaussianBlur(moving_pre, (0, 0), _FIELD_SIGMA)
+    return fixed_pre, moving_pre
+
+
+def objective_value(
+    fixed: np.ndarray,
+    moving: np.ndarray,
+    matrix: np.ndarray,
+    *,
+    metric: str = "nmi",
+    preprocessing: str | None = None,
+    bins: int = DEFAULT_BINS,
+    log_base: float = DEFAULT_LOG_BASE,
+    scale: float | None = None,
+    min_overlap: float = 0.3,
+) -> float:
+    """The full-resolution objective that :func:`register` maximises, at a given matrix.
+
+    Parameters
+    ----------
+    fixed, moving, metric, preprocessing, bins, log_base, scale, min_overlap
+        As :func:`register`.
+    matrix : (3, 3) array
+        Moving (infrared) pixels to fixed (visible) pixels, as :attr:`Registration.matrix`.
+
+    Returns
+    -------
+    float
+        MI, NMI or the normalised-gradient-field similarity S (see :func:`register`'s Notes), -inf below
+        the minimum overlap. Comparing two matrices' values tells whether a registration stopped short of
+        a better maximum of its own objective or the objective prefers it.
+    """
+    _check_inputs(fixed, moving, "similarity", preprocessing, metric)
+    moving_height, moving_width = np.shape(moving)
+    reduction = min(1.0, 1.0 / _nominal_scale(fixed, moving, scale))
+    fixed_pre, moving_pre = _prepared(fixed, moving, reduction, metric, preprocessing)
+    if metric != "ngf":
+        fixed_pre, moving_pre = quantize(fixed_pre, bins), quantize(moving_pre, bins)
+    objective = _level_objective(fixed_pre, moving_pre, bins, log_base, metric, min_overlap)
+    sampler = FixedSampler(fixed_pre, moving_width, moving_height, cubic=metric == "ngf")
+    return objective(sampler(_scaling(reduction) @ np.asarray(matrix, dtype=np.float64)))
+
+
 def register(
     fixed: np.ndarray,
     moving: np.ndarray,
@@ -258,16 +320,9 @@ def register(
     if not 0.0 < min_overlap <= 1.0:
         raise ValueError(f"The minimum overlap must be a fraction in (0, 1]; got {min_overlap}.")
     moving_height, moving_width = np.shape(moving)
-    nominal = scale if scale is not None else min(np.shape(fixed)[1] / moving_width, np.shape(fixed)[0] / moving_height)
-    if not nominal > 0.0:
-        raise ValueError(f"The nominal scale must be positive; got {nominal}.")
+    nominal = _nominal_scale(fixed, moving, scale)
     reduction = min(1.0, 1.0 / nominal)
-    preprocessing = preprocessing if preprocessing is not None else DEFAULT_PREPROCESSING[metric]
-    fixed_pre = preprocess(_reduce(fixed, reduction), preprocessing, invert=True)
-    moving_pre = preprocess(moving, preprocessing)
-    if metric == "ngf":
-        fixed_pre = cv2.GaussianBlur(fixed_pre, (0, 0), _FIELD_SIGMA)
-        moving_pre = cv2.GaussianBlur(moving_pre, (0, 0), _FIELD_SIGMA)
+    fixed_pre, moving_pre = _prepared(fixed, moving, reduction, metric, preprocessing)
     levels = int(np.floor(np.log2(min(moving_height, moving_width) / _COARSEST_SIZE)))  # >= 1 by the size check
     fixed_levels, moving_levels = _pyramid(fixed_pre, levels), _pyramid(moving_pre, levels)
     if metric == "ngf":

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from services.registration.models import corner_error, similarity_about_centres
-from services.registration.register import register
+from services.registration.register import objective_value, register
 from services.registration.synthetic_pairs import render_scene_pair
 from tests.registration.conftest import INFRARED_SIZE, chessboard_pair, scene_pair
 
@@ -27,6 +27,19 @@ def test_similarity_on_rendered_scenes_of_different_resolution_is_subpixel(seed)
     visible, infrared, truth = scene_pair(seed)
     result = register(visible, infrared, "similarity")
     assert corner_error(truth, result.matrix, *INFRARED_SIZE) < 0.5
+
+
+@pytest.mark.parametrize("metric", ["nmi", "ngf"])
+def test_the_objective_value_is_what_the_registration_maximised(metric):
+    visible, infrared, _ = chessboard_pair(11, 1)
+    result = register(visible, infrared, "similarity", metric=metric, scale=1.8)
+    best = objective_value(visible, infrared, result.matrix, metric=metric, scale=1.8)
+    if metric == "nmi":  # the reported NMI is this objective at full resolution
+        assert best == pytest.approx(result.nmi, rel=1e-9)
+    nudge = np.array([[1.0, 0.0, 0.7], [0.0, 1.0, -0.5], [0.0, 0.0, 1.0]])  # 0.7 and 0.5 infrared pixels
+    assert best > objective_value(visible, infrared, result.matrix @ nudge, metric=metric, scale=1.8)
+    far = result.matrix @ np.array([[1.0, 0.0, 300.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]])
+    assert objective_value(visible, infrared, far, metric=metric, scale=1.8) == -np.inf  # too little overlap
 
 
 def test_paper_preprocessing_also_registers_real_photographs():
