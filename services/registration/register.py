@@ -69,7 +69,10 @@ class Registration:
     log_base: float
 
 
-def _check_inputs(fixed: np.ndarray, moving: np.ndarray, model: str, preprocessing: str | None, metric: str) -> None:
+def _check_inputs(
+    fixed: np.ndarray, moving: np.ndarray, model: str, preprocessing: str | None, metric: str, bins: int,
+    log_base: float, min_overlap: float,
+) -> None:
     for name, image in (("fixed", fixed), ("moving", moving)):
         if np.ndim(image) != 2:
             raise ValueError(f"The {name} image must be a 2-D grey image; got shape {np.shape(image)}.")
@@ -82,6 +85,12 @@ def _check_inputs(fixed: np.ndarray, moving: np.ndarray, model: str, preprocessi
         raise ValueError(f"Unknown preprocessing {preprocessing!r}; choose one of {', '.join(PREPROCESSING)}.")
     if metric not in METRICS:
         raise ValueError(f"Unknown metric {metric!r}; choose one of {', '.join(METRICS)}.")
+    if bins < 4:
+        raise ValueError(f"Registration needs at least 4 histogram bins; got {bins}.")
+    if log_base <= 0.0 or log_base == 1.0:
+        raise ValueError(f"The log base must be positive and not 1; got {log_base}.")
+    if not 0.0 < min_overlap <= 1.0:
+        raise ValueError(f"The minimum overlap must be a fraction in (0, 1]; got {min_overlap}.")
 
 
 def _scaling(factor: float) -> np.ndarray:
@@ -223,7 +232,9 @@ def objective_value(
         the minimum overlap. Comparing two matrices' values tells whether a registration stopped short of
         a better maximum of its own objective or the objective prefers it.
     """
-    _check_inputs(fixed, moving, "similarity", preprocessing, metric)
+    _check_inputs(fixed, moving, "similarity", preprocessing, metric, bins, log_base, min_overlap)
+    if np.shape(matrix) != (3, 3):
+        raise ValueError(f"The matrix must be 3x3; got shape {np.shape(matrix)}.")
     moving_height, moving_width = np.shape(moving)
     reduction = min(1.0, 1.0 / _nominal_scale(fixed, moving, scale))
     fixed_pre, moving_pre = _prepared(fixed, moving, reduction, metric, preprocessing)
@@ -310,15 +321,9 @@ def register(
     .. [3] E. Haber, J. Modersitzki, "Intensity gradient based registration and
        fusion of multi-modal images", MICCAI 2006.
     """
-    _check_inputs(fixed, moving, model, preprocessing, metric)
-    if bins < 4:
-        raise ValueError(f"Registration needs at least 4 histogram bins; got {bins}.")
-    if log_base <= 0.0 or log_base == 1.0:
-        raise ValueError(f"The log base must be positive and not 1; got {log_base}.")
+    _check_inputs(fixed, moving, model, preprocessing, metric, bins, log_base, min_overlap)
     if max_angle < 0.0 or max_scale_change < 0.0 or (max_shift is not None and max_shift < 0.0):
         raise ValueError("The search ranges (max_shift, max_angle, max_scale_change) must be non-negative.")
-    if not 0.0 < min_overlap <= 1.0:
-        raise ValueError(f"The minimum overlap must be a fraction in (0, 1]; got {min_overlap}.")
     moving_height, moving_width = np.shape(moving)
     nominal = _nominal_scale(fixed, moving, scale)
     reduction = min(1.0, 1.0 / nominal)

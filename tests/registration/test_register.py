@@ -42,6 +42,18 @@ def test_the_objective_value_is_what_the_registration_maximised(metric):
     assert objective_value(visible, infrared, far, metric=metric, scale=1.8) == -np.inf  # too little overlap
 
 
+@pytest.mark.parametrize(("arguments", "message"), [
+    ({"matrix": np.eye(2)}, "must be 3x3"),
+    ({"bins": 3}, "at least 4 histogram bins"),
+    ({"metric": "ssd"}, "Unknown metric"),
+    ({"min_overlap": 0.0}, "minimum overlap"),
+])
+def test_objective_value_refuses_bad_arguments_with_a_sentence(arguments, message):
+    visible, infrared, truth = chessboard_pair(11, 1)
+    with pytest.raises(ValueError, match=message):
+        objective_value(visible, infrared, arguments.pop("matrix", truth), **arguments)
+
+
 def test_paper_preprocessing_also_registers_real_photographs():
     visible, infrared, truth = chessboard_pair(13, 3)
     result = register(visible, infrared, "similarity", preprocessing="paper", metric="mi", scale=1.8)
