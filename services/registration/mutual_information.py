@@ -46,6 +46,7 @@ class MovingWindow:
         self._row = np.empty(size, np.float32)
         self._cell_value = np.empty(size, np.float32)
         self._cell = np.empty(size, np.intp)
+        self._up_single = np.empty(size, np.float32)
         self._up = np.empty(size, np.float64)  # np.bincount converts other weights to float64
         self._upper_weights = np.arange(MOVING_SUBBINS) / MOVING_SUBBINS  # of the upper bin, per sub-bin
 
@@ -81,8 +82,11 @@ def windowed_joint_histogram(fixed: np.ndarray, window: MovingWindow, bins: int)
     cell = np.multiply(row, window.row_width, out=window._cell_value)
     np.add(cell, window.level_offset, out=cell)  # exact in float32: fewer than 2**24 cells
     window._cell[...] = cell
-    up = np.subtract(fixed, row, out=window._up, dtype=np.float64)
-    np.minimum(up, 1.0, out=up)
+    # in float32, then widened: exact (x - floor(x)), and half the time of the float64 arithmetic
+    up_single = np.subtract(fixed, row, out=window._up_single)
+    np.minimum(up_single, np.float32(1.0), out=up_single)  # bilinear samples of bins - 1 come out a few ulp above
+    up = window._up
+    up[...] = up_single
     size = (bins + 1) * window.row_width
     count = np.bincount(window._cell, minlength=size).reshape(bins + 1, window.row_width)
     upper = np.bincount(window._cell, up, minlength=size).reshape(bins + 1, window.row_width)

@@ -87,7 +87,9 @@ def gradient_magnitude(image: np.ndarray, sigma: float = 1.0) -> np.ndarray:
         grey = cv2.GaussianBlur(grey, (0, 0), sigma)
     dx = cv2.Scharr(grey, cv2.CV_32F, 1, 0)
     dy = cv2.Scharr(grey, cv2.CV_32F, 0, 1)
-    magnitude = cv2.magnitude(dx, dy)
+    # not cv2.magnitude: its SIMD path rounds by the buffers' memory alignment, so the same image could
+    # register to a different matrix from one call to the next
+    magnitude = np.sqrt(dx * dx + dy * dy)
     top = float(np.percentile(magnitude, STRETCH_PERCENTILES[1]))
     return np.clip(magnitude / (top if top > 0.0 else 1.0), 0.0, 1.0).astype(np.float32)
 

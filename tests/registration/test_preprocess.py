@@ -1,3 +1,4 @@
+import cv2
 import numpy as np
 import pytest
 
@@ -46,6 +47,17 @@ def test_gradient_magnitude_peaks_on_the_edge_and_ignores_polarity():
     magnitude = gradient_magnitude(step)
     assert set(np.argmax(magnitude, axis=1)) <= {31, 32}
     np.testing.assert_allclose(gradient_magnitude(255 - step), magnitude, atol=1e-6)
+
+
+
+def test_gradient_magnitude_is_the_same_to_the_bit_from_one_call_to_the_next():
+    rng = np.random.default_rng(3)
+    image = cv2.GaussianBlur(rng.integers(0, 256, (300, 500)).astype(np.uint8), (0, 0), 2.0)
+    results, allocations = set(), []
+    for size in rng.integers(1, 200, 60):  # allocations of odd sizes shift where the next arrays start in memory
+        allocations.append(np.empty(int(size), np.float32))
+        results.add(gradient_magnitude(image).tobytes())
+    assert len(results) == 1
 
 
 @pytest.mark.parametrize("method", PREPROCESSING)
