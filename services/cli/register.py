@@ -45,7 +45,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--scale", type=float,
                         help="nominal visible pixels per infrared pixel (default: fit the infrared image inside)")
     parser.add_argument("--max-shift", type=float, metavar="PX",
-                        help="search range of the shift, visible pixels (default: 20%% of the infrared image)")
+                        help="search range of the shift of the image centres, visible pixels (default: 12%% of the "
+                             "infrared image's smaller side, scaled to visible pixels)")
     parser.add_argument("--max-angle", type=float, default=6.0, metavar="DEG",
                         help="search range of the rotation (default %(default)s)")
     parser.add_argument("--max-scale-change", type=float, default=0.12,
