@@ -44,3 +44,22 @@ def test_bad_settings_are_refused_with_a_sentence():
         maximize(lambda p: 0.0, 2, step=0.5, min_step=1.0)
     with pytest.raises(ValueError, match="at least one parameter"):
         maximize(lambda p: 0.0, 0)
+
+
+def test_a_model_that_predicted_well_lends_its_curvature_and_the_peak_is_still_reached(monkeypatch):
+    from services.registration import newton
+
+    peak = np.array([5.0, -4.0, 3.0, 2.0])
+    curvature = np.array([[2.0, 0.8, 0.0, 0.3], [0.8, 1.5, 0.4, 0.0], [0.0, 0.4, 1.0, 0.2], [0.3, 0.0, 0.2, 1.2]])
+    models = []
+    measure = newton._quadratic_model
+
+    def recorded(function, centre, value, step, kept=None):
+        models.append(kept is not None)
+        return measure(function, centre, value, step, kept)
+
+    monkeypatch.setattr(newton, "_quadratic_model", recorded)
+    parameters, _ = maximize(lambda p: -0.5 * (p - peak) @ curvature @ (p - peak), 4, step=0.5, tolerance=1e-6,
+                             max_iterations=30)
+    np.testing.assert_allclose(parameters, peak, atol=1e-3)
+    assert models[0] is False and any(models)  # the first model measures its mixed terms; later ones reuse them
