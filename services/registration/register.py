@@ -360,6 +360,7 @@ def register(
                          "check the nominal scale and the search range.")
 
     cubic = metric == "ngf"  # bilinear sampling blurs by how far off the grid it samples; NGF's gradients feel it
+
     def coarse_refinement(start: np.ndarray, stencil: tuple[float, float, float, float]) -> tuple[np.ndarray, float]:
         return _refine(coarse_fixed, coarse_moving, start, _coarse_model(model), objectives[levels], stencil, cubic)
 

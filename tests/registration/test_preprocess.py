@@ -49,7 +49,6 @@ def test_gradient_magnitude_peaks_on_the_edge_and_ignores_polarity():
     np.testing.assert_allclose(gradient_magnitude(255 - step), magnitude, atol=1e-6)
 
 
-
 def test_gradient_magnitude_is_the_same_to_the_bit_from_one_call_to_the_next():
     rng = np.random.default_rng(3)
     image = cv2.GaussianBlur(rng.integers(0, 256, (300, 500)).astype(np.uint8), (0, 0), 2.0)
