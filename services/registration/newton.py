@@ -21,38 +21,37 @@ import numpy as np
 
 
 def _quadratic_model(
-    function: Callable[[np.ndarray], float], centre: np.ndarray, value: float, step: float,
+    evaluate: Callable[[list[np.ndarray]], list[float]], centre: np.ndarray, value: float, step: float,
     kept: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
-    """Gradient and Hessian of ``function`` at ``centre`` by finite differences, and the best stencil point.
+    """Gradient and Hessian by finite differences at ``centre``, and the best stencil point.
 
     Central differences on the axes, one forward point per pair of axes for the mixed derivatives:
     1 + n (n + 3) / 2 points, of which the centre's ``value`` is given. With a ``kept`` Hessian, its mixed
-    derivatives are reused and only the 2 n axis points are evaluated.
+    derivatives are reused and only the 2 n axis points are evaluated. ``evaluate`` maps a list of points
+    to their values (-inf where invalid).
     """
     count = centre.size
-    plus, minus = np.empty(count), np.empty(count)
+    offsets = [(axis, sign) for axis in range(count) for sign in (1.0, -1.0)]
+    points = [centre + sign * step * np.eye(count)[axis] for axis, sign in offsets]
+    values = np.asarray(evaluate(points), dtype=float)
+    plus, minus = values[0::2], values[1::2]
+    if kept is None:
+        pairs = [(first, second) for first in range(count) for second in range(first + 1, count)]
+        mixed_points = [centre + step * (np.eye(count)[first] + np.eye(count)[second]) for first, second in pairs]
+        mixed = np.asarray(evaluate(mixed_points), dtype=float)
+        points, values = points + mixed_points, np.concatenate([values, mixed])
     best_point, best_value = centre, value
-    for axis in range(count):
-        for sign, values in ((1.0, plus), (-1.0, minus)):
-            point = centre.copy()
-            point[axis] += sign * step
-            values[axis] = function(point)
-            if values[axis] > best_value:
-                best_point, best_value = point, values[axis]
+    for point, point_value in zip(points, values):  # the first of equal values, in the stencil's order
+        if point_value > best_value:
+            best_point, best_value = point, float(point_value)
     with np.errstate(invalid="ignore"):  # an invalid (-inf) stencil point makes the model nan, checked by the caller
         gradient = (plus - minus) / (2.0 * step)
         hessian = np.diag((plus - 2.0 * value + minus) / step**2)
         if kept is not None:
             return gradient, hessian + kept - np.diag(np.diag(kept)), best_point, best_value
-        for first in range(count):
-            for second in range(first + 1, count):
-                point = centre.copy()
-                point[[first, second]] += step
-                both = function(point)
-                if both > best_value:
-                    best_point, best_value = point, both
-                hessian[first, second] = hessian[second, first] = (both - plus[first] - plus[second] + value) / step**2
+        for (first, second), both in zip(pairs, mixed):
+            hessian[first, second] = hessian[second, first] = (both - plus[first] - plus[second] + value) / step**2
     return gradient, hessian, best_point, best_value
 
 
@@ -73,6 +72,7 @@ def maximize(
     tolerance: float = 0.02,
     relative_gain: float = 1e-5,
     max_iterations: int = 20,
+    evaluate_many: Callable[[list[np.ndarray]], list[float]] | None = None,
 ) -> tuple[np.ndarray, float]:
     """Maximise ``function`` of ``count`` parameters from the origin.
 
@@ -93,6 +93,10 @@ def maximize(
         ...or raises ``function`` by less than this fraction of its value.
     max_iterations : int
         Largest number of model fits.
+    evaluate_many : callable, optional
+        Maps a list of points to their ``function`` values, in order (by default one after the other):
+        a stencil's points are independent, so a caller may spread them over threads. The result does
+        not depend on it.
 
     Returns
     -------
@@ -134,12 +138,17 @@ def maximize(
         value = float(function(point))
         return value if np.isfinite(value) else -np.inf
 
+    def finite_many(points: list[np.ndarray]) -> list[float]:
+        if evaluate_many is None:
+            return [finite(point) for point in points]
+        return [float(value) if np.isfinite(value) else -np.inf for value in evaluate_many(points)]
+
     parameters = np.zeros(count)
     value = finite(parameters)
     radius = 2.0 * step
     kept = None  # the Hessian whose mixed derivatives the next model reuses
     for _ in range(max_iterations):
-        gradient, hessian, stencil_point, stencil_value = _quadratic_model(finite, parameters, value, step, kept)
+        gradient, hessian, stencil_point, stencil_value = _quadratic_model(finite_many, parameters, value, step, kept)
         kept, trial = None, -np.inf
         if np.all(np.isfinite(gradient)) and np.all(np.isfinite(hessian)):
             move = _ascent_step(gradient, hessian, radius)

@@ -17,8 +17,11 @@ median corner error on the rendered scenes).
 
 from __future__ import annotations
 
+import os
 from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
+from functools import cache, partial
 
 import cv2
 import numpy as np
@@ -26,7 +29,8 @@ import numpy as np
 from services.registration.gradient_fields import SampledFieldSimilarity, gradient_epsilon, normalized_gradient_field
 from services.registration.models import MODELS, PARAMETER_COUNTS, update_matrix
 from services.registration.newton import maximize
-from services.registration.mutual_information import DEFAULT_BINS, DEFAULT_LOG_BASE, moving_window, quantize
+from services.registration.mutual_information import (DEFAULT_BINS, DEFAULT_LOG_BASE, MovingWindow, moving_window,
+                                                      quantize)
 from services.registration.objective import METRICS, FixedSampler, field_score, information, sample_fixed, score
 from services.registration.preprocess import PREPROCESSING, preprocess
 from services.registration.search import coarse_search, gradient_field_search
@@ -52,6 +56,8 @@ _FINE_REFINEMENT = (0.5, 0.125, 0.02, 1e-5)  # the levels below
 _FINEST_REFINEMENT = {"mi": (0.25, 0.125, 0.02, 1e-5), "nmi": (0.25, 0.125, 0.02, 1e-5),
                       "ngf": (1.0, 1.0, 0.005, 0.0)}
 _MAX_ITERATIONS = 40  # NGF's step convergence may take more than 20 models; MI and NMI stop well before 20
+_PARALLEL_PIXELS = 20_000  # levels with fewer moving pixels evaluate in one thread: a stencil point takes too little
+_MAX_THREADS = 4  # a similarity's stencil has 8 points, an affine's 12
 _FIELD_SIGMA = 1.0  # Gaussian smoothing (pixels) before gradient fields are taken
 DEFAULT_PREPROCESSING = {"mi": "gradient", "nmi": "gradient", "ngf": "none"}  # NGF takes its own gradients
 
@@ -129,38 +135,75 @@ def _level_matrix(matrix: np.ndarray, level: int) -> np.ndarray:
 
 def _level_objective(
     fixed: np.ndarray, moving: np.ndarray, bins: int, log_base: float, metric: str, min_overlap: float
-) -> Callable[[np.ndarray], float]:
+) -> Callable[[], Callable[[np.ndarray], float]]:
     """The objective of one pyramid level, as a function of the fixed image sampled on the moving grid.
 
-    ``fixed`` and ``moving`` are quantised images for MI and NMI, smoothed grey images for NGF.
+    ``fixed`` and ``moving`` are quantised images for MI and NMI, smoothed grey images for NGF. Returns a
+    factory: each call gives the objective with its own work arrays, so that each thread has one.
     """
     if metric == "ngf":
-        similarity = SampledFieldSimilarity(gradient_epsilon(fixed),
-                                            *normalized_gradient_field(moving, gradient_epsilon(moving)))
-        return lambda samples: field_score(samples, similarity, min_overlap)
+        epsilon, field = gradient_epsilon(fixed), normalized_gradient_field(moving, gradient_epsilon(moving))
+
+        def field_objective() -> Callable[[np.ndarray], float]:
+            similarity = SampledFieldSimilarity(epsilon, *field)
+            return lambda samples: field_score(samples, similarity, min_overlap)
+
+        return field_objective
     window = moving_window(moving, bins)
-    return lambda samples: score(samples, window, bins, log_base, metric, min_overlap)
+
+    def information_objective() -> Callable[[np.ndarray], float]:
+        own_window = MovingWindow(window.level_offset, bins)
+        return lambda samples: score(samples, own_window, bins, log_base, metric, min_overlap)
+
+    return information_objective
+
+
+@cache
+def _thread_pool(workers: int) -> ThreadPoolExecutor:
+    """The threads that evaluate stencil points beside the calling thread, kept for the process's life."""
+    return ThreadPoolExecutor(max_workers=workers, thread_name_prefix="registration")
+
+
+def _evaluate_in_threads(functions: list[Callable[[np.ndarray], float]], points: list[np.ndarray]) -> list[float]:
+    """Every len(functions)-th point by each function, the first in the calling thread, the others in the pool.
+
+    OpenCV's warps and numpy's array arithmetic release the GIL, so the evaluations of a full-resolution
+    stencil run side by side; each function has its own sampler and work arrays.
+    """
+    count = len(functions)
+    chunks = [points[index::count] for index in range(count)]
+    futures = [_thread_pool(count - 1).submit(lambda function, chunk: [function(point) for point in chunk], *job)
+               for job in zip(functions[1:], chunks[1:])]
+    results = [[functions[0](point) for point in chunks[0]]] + [future.result() for future in futures]
+    values = [0.0] * len(points)
+    for index, result in enumerate(results):
+        values[index::count] = result
+    return values
 
 
 def _refine(
-    fixed: np.ndarray, moving: np.ndarray, start: np.ndarray, model: str, objective: Callable[[np.ndarray], float],
-    stencil: tuple[float, float, float, float], cubic: bool = False,
+    fixed: np.ndarray, moving: np.ndarray, start: np.ndarray, model: str,
+    objective: Callable[[], Callable[[np.ndarray], float]], stencil: tuple[float, float, float, float],
+    cubic: bool, threads: int,
 ) -> tuple[np.ndarray, float]:
     """Maximise the objective over ``start @ G(p)`` (:func:`services.registration.newton.maximize`).
 
     ``stencil`` is the first and smallest finite-difference step and the step tolerance, in pixels of corner
     motion, and the relative-gain stop; ``cubic`` samples the fixed image by bicubic instead of bilinear interpolation
-    (:class:`services.registration.objective.FixedSampler`). Returns the matrix and its objective value.
+    (:class:`services.registration.objective.FixedSampler`); ``threads`` evaluate each stencil's points side by side
+    on levels of at least ``_PARALLEL_PIXELS`` moving pixels. Returns the matrix and its objective value.
     """
     height, width = moving.shape
-    sampler = FixedSampler(fixed, width, height, cubic)
 
-    def value(parameters: np.ndarray) -> float:
-        return objective(sampler(start @ update_matrix(model, parameters, width, height)))
+    def parameter_objective() -> Callable[[np.ndarray], float]:
+        sampler, level_objective = FixedSampler(fixed, width, height, cubic), objective()
+        return lambda parameters: level_objective(sampler(start @ update_matrix(model, parameters, width, height)))
 
+    functions = [parameter_objective() for _ in range(threads if moving.size >= _PARALLEL_PIXELS else 1)]
+    evaluate_many = partial(_evaluate_in_threads, functions) if len(functions) > 1 else None
     step, min_step, tolerance, relative_gain = stencil
-    parameters, best = maximize(value, PARAMETER_COUNTS[model], step, min_step, tolerance, relative_gain,
-                                _MAX_ITERATIONS)
+    parameters, best = maximize(functions[0], PARAMETER_COUNTS[model], step, min_step, tolerance, relative_gain,
+                                _MAX_ITERATIONS, evaluate_many)
     return start @ update_matrix(model, parameters, width, height), best
 
 
@@ -245,7 +288,7 @@ def objective_value(
         fixed_pre, moving_pre = quantize(fixed_pre, bins), quantize(moving_pre, bins)
     objective = _level_objective(fixed_pre, moving_pre, bins, log_base, metric, min_overlap)
     sampler = FixedSampler(fixed_pre, moving_width, moving_height, cubic=metric == "ngf")
-    return objective(sampler(_scaling(reduction) @ np.asarray(matrix, dtype=np.float64)))
+    return objective()(sampler(_scaling(reduction) @ np.asarray(matrix, dtype=np.float64)))
 
 
 def register(
@@ -262,6 +305,7 @@ def register(
     max_angle: float = 6.0,
     max_scale_change: float = 0.12,
     min_overlap: float = 0.3,
+    threads: int | None = None,
 ) -> Registration:
     """Find the matrix mapping moving (infrared) pixels to fixed (visible) pixels that maximises MI.
 
@@ -301,6 +345,10 @@ def register(
         Search range of the relative scale change (similarity and above).
     min_overlap : float
         Least fraction of moving pixels that must fall on the fixed image.
+    threads : int, optional
+        Threads that evaluate the refinement's stencil points side by side on
+        the finer levels; by default the CPUs this process may use, at most 4.
+        The result is the same, to the bit, for any number.
 
     Returns
     -------
@@ -325,6 +373,9 @@ def register(
        fusion of multi-modal images", MICCAI 2006.
     """
     _check_inputs(fixed, moving, model, preprocessing, metric, bins, log_base, min_overlap)
+    if threads is not None and threads < 1:
+        raise ValueError(f"The registration needs at least one thread; got {threads}.")
+    threads = threads if threads is not None else min(_MAX_THREADS, len(os.sched_getaffinity(0)))
     if max_angle < 0.0 or max_scale_change < 0.0 or (max_shift is not None and max_shift < 0.0):
         raise ValueError("The search ranges (max_shift, max_angle, max_scale_change) must be non-negative.")
     moving_height, moving_width = np.shape(moving)
@@ -362,7 +413,8 @@ def register(
     cubic = metric == "ngf"  # bilinear sampling blurs by how far off the grid it samples; NGF's gradients feel it
 
     def coarse_refinement(start: np.ndarray, stencil: tuple[float, float, float, float]) -> tuple[np.ndarray, float]:
-        return _refine(coarse_fixed, coarse_moving, start, _coarse_model(model), objectives[levels], stencil, cubic)
+        return _refine(coarse_fixed, coarse_moving, start, _coarse_model(model), objectives[levels], stencil, cubic,
+                       threads)
 
     chosen_level = levels
     if metric == "ngf":
@@ -371,7 +423,8 @@ def register(
             chosen_level = levels - 1
             refined = [_refine(fixed_pyramid[chosen_level], moving_pyramid[chosen_level],
                                _level_matrix(_level_matrix(candidate, -levels), chosen_level), _coarse_model(model),
-                               objectives[chosen_level], _CHOICE_REFINEMENT, cubic) for candidate, _ in refined]
+                               objectives[chosen_level], _CHOICE_REFINEMENT, cubic, threads)
+                       for candidate, _ in refined]
     else:  # MI and NMI rank the candidates after the first stencil; only the best is refined on
         first, smallest, tolerance, relative_gain = _COARSE_REFINEMENT
         ranked = [coarse_refinement(candidate.matrix, (first, first, tolerance, relative_gain))
@@ -384,7 +437,7 @@ def register(
         level_model = "affine" if model == "homography" and level > 0 else model
         level_matrix, _ = _refine(fixed_pyramid[level], moving_pyramid[level], level_start, level_model,
                                   objectives[level],
-                                  _FINEST_REFINEMENT[metric] if level == 0 else _FINE_REFINEMENT, cubic)
+                                  _FINEST_REFINEMENT[metric] if level == 0 else _FINE_REFINEMENT, cubic, threads)
         matrix = _level_matrix(level_matrix, -level)
 
     fixed_quantized, moving_quantized = (quantize(fixed_levels[0], bins), quantize(moving_levels[0], bins)) if (

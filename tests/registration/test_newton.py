@@ -63,3 +63,23 @@ def test_a_model_that_predicted_well_lends_its_curvature_and_the_peak_is_still_r
                              max_iterations=30)
     np.testing.assert_allclose(parameters, peak, atol=1e-3)
     assert models[0] is False and any(models)  # the first model measures its mixed terms; later ones reuse them
+
+
+def test_a_batch_evaluator_changes_neither_the_path_nor_the_result():
+    peak = np.array([1.5, -0.7, 0.4, 2.0])
+    curvature = np.diag([2.0, 1.0, 0.5, 1.5]) + 0.2
+
+    def function(point):
+        return float(-0.5 * (point - peak) @ curvature @ (point - peak) + 0.01 * np.sin(40.0 * point).sum())
+
+    batches = []
+
+    def evaluate_many(points):
+        batches.append(len(points))
+        return [function(point) for point in reversed(points)][::-1]
+
+    alone = maximize(function, 4, step=0.5, min_step=0.125, tolerance=1e-4, max_iterations=30)
+    batched = maximize(function, 4, step=0.5, min_step=0.125, tolerance=1e-4, max_iterations=30,
+                       evaluate_many=evaluate_many)
+    assert np.array_equal(alone[0], batched[0]) and alone[1] == batched[1]
+    assert batches[0] == 8 and 6 in batches  # the axis points, then the mixed points, as batches

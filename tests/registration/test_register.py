@@ -97,6 +97,7 @@ def test_partial_overlap_far_off_centre():
         ({"log_base": 1.0}, "log base"),
         ({"max_angle": -1.0}, "non-negative"),
         ({"scale": -2.0}, "positive"),
+        ({"threads": 0}, "at least one thread"),
     ],
 )
 def test_bad_arguments_are_refused_with_a_sentence(arguments, message):
@@ -108,3 +109,11 @@ def test_bad_arguments_are_refused_with_a_sentence(arguments, message):
 def test_images_too_small_are_refused():
     with pytest.raises(ValueError, match="too small"):
         register(np.zeros((400, 400)), np.zeros((40, 400)))
+
+
+@pytest.mark.parametrize("metric", ["nmi", "ngf"])
+def test_the_result_does_not_depend_on_the_number_of_threads(metric):
+    visible, infrared, _ = scene_pair(23)
+    alone = register(visible, infrared, "similarity", metric=metric, threads=1)
+    shared = register(visible, infrared, "similarity", metric=metric, threads=3)
+    assert np.array_equal(alone.matrix, shared.matrix) and alone.mi == shared.mi
