@@ -159,8 +159,11 @@ def _level_objective(
 
 
 @cache
-def _thread_pool(workers: int) -> ThreadPoolExecutor:
-    """The threads that evaluate stencil points beside the calling thread, kept for the process's life."""
+def _thread_pool(workers: int, process: int) -> ThreadPoolExecutor:
+    """The threads that evaluate stencil points beside the calling thread, kept for the life of ``process``.
+
+    Keyed by the process id: a forked child (a worker process) inherits the pool object but not its threads.
+    """
     return ThreadPoolExecutor(max_workers=workers, thread_name_prefix="registration")
 
 
@@ -172,7 +175,8 @@ def _evaluate_in_threads(functions: list[Callable[[np.ndarray], float]], points:
     """
     count = len(functions)
     chunks = [points[index::count] for index in range(count)]
-    futures = [_thread_pool(count - 1).submit(lambda function, chunk: [function(point) for point in chunk], *job)
+    pool = _thread_pool(count - 1, os.getpid())
+    futures = [pool.submit(lambda function, chunk: [function(point) for point in chunk], *job)
                for job in zip(functions[1:], chunks[1:])]
     results = [[functions[0](point) for point in chunks[0]]] + [future.result() for future in futures]
     values = [0.0] * len(points)

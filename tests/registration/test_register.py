@@ -4,6 +4,8 @@ The statistics over many pairs (median, share under 1 px) are in
 experiments/registration_accuracy.py; here each pair must be accurate.
 """
 
+import multiprocessing
+
 import numpy as np
 import pytest
 
@@ -117,3 +119,12 @@ def test_the_result_does_not_depend_on_the_number_of_threads(metric):
     alone = register(visible, infrared, "similarity", metric=metric, threads=1)
     shared = register(visible, infrared, "similarity", metric=metric, threads=3)
     assert np.array_equal(alone.matrix, shared.matrix) and alone.mi == shared.mi
+
+
+def test_a_forked_process_registers_with_threads_of_its_own():
+    visible, infrared, _ = scene_pair(23)
+    before = register(visible, infrared, "similarity", metric="ngf", threads=2).matrix  # the parent's pool runs
+    context = multiprocessing.get_context("fork")
+    with context.Pool(1) as pool:
+        child = pool.apply_async(register, (visible, infrared, "similarity"), {"metric": "ngf", "threads": 2})
+        assert np.array_equal(child.get(timeout=60).matrix, before)
