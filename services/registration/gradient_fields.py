@@ -167,6 +167,7 @@ class SampledFieldSimilarity:
         self.moving_x, self.moving_y = moving_x[1:-1, 1:-1], moving_y[1:-1, 1:-1]
         moving_m = self.moving_x * self.moving_x + self.moving_y * self.moving_y
         self.moving_m2 = moving_m * moving_m
+        self._whole_moving_power = float(self.moving_m2.sum(dtype=np.float64))  # the sum below, every weight 1
         shape = self.moving_x.shape
         self._work = [np.empty(shape, np.float32) for _ in range(5)]
         self._valid = np.empty(shape, bool)
@@ -176,19 +177,26 @@ class SampledFieldSimilarity:
         left, right = samples[1:-1, :-2], samples[1:-1, 2:]
         up, down = samples[:-2, 1:-1], samples[2:, 1:-1]
         gx, gy, first, second, product = self._work
-        np.minimum(left, right, out=first)
-        np.minimum(up, down, out=second)
-        np.minimum(first, second, out=first)
-        valid = np.greater_equal(first, 0.0, out=self._valid)
-        weight = second
-        np.copyto(weight, valid)
+        inside = samples.min() >= 0.0  # then every field pixel is defined: the mask's passes are skipped
+        if not inside:
+            np.minimum(left, right, out=first)
+            np.minimum(up, down, out=second)
+            np.minimum(first, second, out=first)
+            valid = np.greater_equal(first, 0.0, out=self._valid)
+            weight = second
+            np.copyto(weight, valid)
         np.multiply(np.subtract(right, left, out=gx), np.float32(0.5), out=gx)
         np.multiply(np.subtract(down, up, out=gy), np.float32(0.5), out=gy)
         magnitude2 = np.multiply(gx, gx, out=first)
         magnitude2 += np.multiply(gy, gy, out=product)
-        inverse_norm2 = np.divide(weight, np.add(magnitude2, self.epsilon2, out=product), out=weight)  # 0 outside
-        count = float(np.count_nonzero(valid))
-        moving_power = _weighted_sum(self.moving_m2, valid, product)
+        np.add(magnitude2, self.epsilon2, out=product)
+        if inside:
+            inverse_norm2 = np.divide(np.float32(1.0), product, out=second)
+            count, moving_power = float(self.moving_m2.size), self._whole_moving_power
+        else:
+            inverse_norm2 = np.divide(weight, product, out=weight)  # 0 outside
+            count = float(np.count_nonzero(valid))
+            moving_power = _weighted_sum(self.moving_m2, valid, product)
         dot = np.multiply(gx, self.moving_x, out=gx)
         dot += np.multiply(gy, self.moving_y, out=gy)
         numerator = _weighted_sum(np.multiply(dot, dot, out=dot), inverse_norm2, product)

@@ -51,12 +51,29 @@ class FixedSampler:
             return cv2.warpAffine(image, matrix[:2], self.size, dst=out, flags=flags, **border)
         return cv2.warpPerspective(image, matrix, self.size, dst=out, flags=flags, **border)
 
+    def _support_inside(self, matrix: np.ndarray) -> bool:
+        """Whether every bicubic support lies wholly inside the fixed image, so the ring's warp would mark none.
+
+        An affine map takes the grid's rectangle to a parallelogram: its four corners decide. They must map
+        0.05 px inside the ring's inner edge, beyond OpenCV's 1/32 px quantisation of warp coordinates.
+        """
+        if not _is_affine(matrix):
+            return False
+        width, height = self.size
+        corners = matrix[:2] @ np.array([[0.0, width - 1.0, 0.0, width - 1.0], [0.0, 0.0, height - 1.0, height - 1.0],
+                                         [1.0, 1.0, 1.0, 1.0]])
+        fixed_height, fixed_width = self.fixed.shape
+        margin = 1.05
+        return bool(corners[0].min() >= margin and corners[0].max() <= fixed_width - 1 - margin
+                    and corners[1].min() >= margin and corners[1].max() <= fixed_height - 1 - margin)
+
     def __call__(self, matrix: np.ndarray) -> np.ndarray:
         samples = self._warp(self.fixed, matrix, self.samples, self.cubic)
         if self.cubic:
             np.maximum(samples, 0.0, out=samples)
-            support = self._warp(self._ring, matrix, self._support, cubic=False)
-            np.copyto(samples, np.float32(OUTSIDE), where=np.less(support, 0.0, out=self._outside))
+            if not self._support_inside(matrix):
+                support = self._warp(self._ring, matrix, self._support, cubic=False)
+                np.copyto(samples, np.float32(OUTSIDE), where=np.less(support, 0.0, out=self._outside))
         return samples
 
 
