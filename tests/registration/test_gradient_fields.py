@@ -92,3 +92,16 @@ def test_a_canvas_smaller_than_the_template_or_of_another_shape_is_refused():
 def test_epsilon_must_be_positive():
     with pytest.raises(ValueError, match="epsilon must be positive"):
         normalized_gradient_field(np.zeros((5, 5)), 0.0)
+
+
+def test_the_similarity_does_not_depend_on_where_its_arrays_sit_in_memory():
+    image = _texture((50, 60), 6)
+    epsilon = gradient_epsilon(image)
+    nx, ny = normalized_gradient_field(image, epsilon)
+    partly_outside = np.roll(image, 2, axis=0)
+    partly_outside[:, :7] = -1.0e4
+    values, spacers = set(), []
+    for size in range(64):  # each spacer, of the work arrays' size and 16 bytes more each time, moves them
+        spacers.append(np.empty(partly_outside.size + 4 * size, np.float32))
+        values.add(SampledFieldSimilarity(epsilon, nx, ny)(partly_outside))
+    assert len(values) == 1
