@@ -29,6 +29,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--fixed", required=True, type=Path, help="visible image (PNG, BMP, TIFF)")
     parser.add_argument("--moving", required=True, type=Path,
                         help="infrared image (PNG, BMP, TIFF of any bit depth, or 2-D .npy)")
+    parser.add_argument("--moving-mask", type=Path, metavar="IMAGE",
+                        help="the infrared pixels that have data: an image of the infrared image's size, non-zero "
+                             "where they do (a lens housing, a text overlay or a border without data is left out)")
     parser.add_argument("--model", choices=MODELS, default="similarity", help="geometric model (default %(default)s)")
     parser.add_argument("--out", required=True, type=Path, help="output registration (REG.json)")
     parser.add_argument("--overlay", type=Path, metavar="PNG", help="write a fused grey overlay (paper's Figure 12)")
@@ -74,6 +77,17 @@ def _read_image(path: Path) -> np.ndarray:
     return image
 
 
+def _read_mask(path: Path, shape: tuple[int, ...]) -> np.ndarray:
+    """The mask of the infrared pixels that have data (non-zero), checked against the infrared image's shape."""
+    mask = _read_image(path) != 0
+    if mask.shape != shape:
+        raise InputError(f"--moving-mask {path}: the mask is {mask.shape[1]}x{mask.shape[0]} pixels, the infrared "
+                         f"image {shape[1]}x{shape[0]}")
+    if not mask.any():
+        raise InputError(f"--moving-mask {path}: the mask is zero everywhere, so no infrared pixel has data")
+    return mask
+
+
 def _run_register(args: argparse.Namespace) -> int:
     cv2.setNumThreads(1)  # OpenCV's worker threads gain no wall time on images this small, only spin (measured)
     for option in ("out", "overlay", "checkerboard"):
@@ -86,11 +100,12 @@ def _run_register(args: argparse.Namespace) -> int:
             raise InputError(f"--{option} {path}: the directory {path.parent} does not exist")
     fixed = _read_image(args.fixed)
     moving = _read_image(args.moving)
+    mask = None if args.moving_mask is None else _read_mask(args.moving_mask, moving.shape)
     try:
         result = register_images(
             fixed, moving, args.model, preprocessing=args.preprocess, bins=args.bins, log_base=args.log_base,
             metric=args.metric, scale=args.scale, max_shift=args.max_shift, max_angle=args.max_angle,
-            max_scale_change=args.max_scale_change,
+            max_scale_change=args.max_scale_change, moving_mask=mask,
         )
     except ValueError as error:
         raise InputError(f"{args.fixed} + {args.moving}: {error}") from None

@@ -33,10 +33,13 @@ def _central_gradients(image: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return gx, gy
 
 
-def gradient_epsilon(image: np.ndarray) -> float:
-    """The edge-strength scale eps of an image: the 80th percentile of its gradient magnitude (central differences)."""
+def gradient_epsilon(image: np.ndarray, valid: np.ndarray | None = None) -> float:
+    """The edge-strength scale eps of an image: the 80th percentile of its gradient magnitude (central differences),
+    over the pixels ``valid`` marks (every pixel by default)."""
     gx, gy = _central_gradients(np.asarray(image, dtype=np.float32))
     magnitude = np.hypot(gx, gy)[1:-1, 1:-1]
+    if valid is not None and np.count_nonzero(valid[1:-1, 1:-1]):
+        magnitude = magnitude[np.asarray(valid, dtype=bool)[1:-1, 1:-1]]
     epsilon = float(np.percentile(magnitude, _EPSILON_PERCENTILE))
     return epsilon if epsilon > 0.0 else float(magnitude.max()) or 1.0
 
@@ -87,14 +90,25 @@ class FieldTemplate:
     the same moving field with a canvas for each rotation and scale, so its spectra are kept here.
     """
 
-    def __init__(self, moving_x: np.ndarray, moving_y: np.ndarray, canvas_shape: tuple[int, int]) -> None:
+    def __init__(self, moving_x: np.ndarray, moving_y: np.ndarray, canvas_shape: tuple[int, int],
+                 moving_valid: np.ndarray | None = None) -> None:
         self.shape, self.canvas_shape = moving_x.shape, canvas_shape
         if canvas_shape[0] < self.shape[0] or canvas_shape[1] < self.shape[1]:
             raise ValueError(f"The canvas {canvas_shape} must be at least the moving field's shape {self.shape}.")
         self.dft_shape = (cv2.getOptimalDFTSize(canvas_shape[0]), cv2.getOptimalDFTSize(canvas_shape[1]))
+        if moving_valid is not None:
+            valid = np.asarray(moving_valid, dtype=np.float32)
+            moving_x, moving_y = moving_x * valid, moving_y * valid
         mxx, mxy, myy = moving_x * moving_x, moving_x * moving_y, moving_y * moving_y
         self.tensor_spectra = [self.spectrum(component) for component in _tensor_components(mxx, mxy, myy)]
         self.power_spectrum = self.spectrum((mxx + myy) ** 2)
+        self.valid_spectrum = None if moving_valid is None else self.spectrum(valid)
+
+    def window_sums(self, image: np.ndarray) -> np.ndarray:
+        """Sums of ``image`` over the moving pixels that have data, at every offset inside the canvas."""
+        if self.valid_spectrum is None:
+            return _window_sums(image, self.shape)
+        return self.correlate([self.spectrum(image)], [self.valid_spectrum])
 
     def spectrum(self, image: np.ndarray) -> np.ndarray:
         """The packed real DFT of ``image`` zero-padded to the DFT size."""
@@ -125,7 +139,8 @@ def tensor_similarity_map(
     fixed_valid : same shape, float32
         1 where the fixed field is defined, else 0 (the field is 0 there too).
     template : FieldTemplate
-        The moving (H, W) field, prepared for canvases of this shape.
+        The moving (H, W) field, prepared for canvases of this shape; where it was given a mask of the
+        moving pixels that have data, only those count.
     min_weight : float
         Least number of overlapping pixels; offsets with fewer get -inf.
 
@@ -138,7 +153,8 @@ def tensor_similarity_map(
     -----
     The numerator sum_u (n_m . n_f)^2 = sum_u n_m n_m^T : n_f n_f^T and the
     moving power are correlations, computed by the convolution theorem; the
-    fixed power and the overlap are box sums, from integral images.
+    fixed power and the overlap are box sums, from integral images, or
+    correlations with the moving mask.
     """
     if fixed_x.shape != template.canvas_shape:
         raise ValueError(f"The fixed field {fixed_x.shape} must have the template's canvas shape "
@@ -147,8 +163,8 @@ def tensor_similarity_map(
     numerator = template.correlate([template.spectrum(component) for component in _tensor_components(fxx, fxy, fyy)],
                                    template.tensor_spectra)
     moving_power = template.correlate([template.spectrum(fixed_valid)], [template.power_spectrum])
-    fixed_power = _window_sums((fxx + fyy) ** 2, template.shape)
-    overlap = _window_sums(fixed_valid, template.shape)
+    fixed_power = template.window_sums((fxx + fyy) ** 2)
+    overlap = template.window_sums(fixed_valid)
     denominator = np.sqrt(np.maximum(fixed_power, 0.0) * np.maximum(moving_power, 0.0))
     values = np.where(denominator > 0.0, numerator / np.where(denominator > 0.0, denominator, 1.0), 0.0)
     return np.where(overlap >= min_weight, values, -np.inf)
@@ -177,10 +193,14 @@ class SampledFieldSimilarity:
     the cost).
     """
 
-    def __init__(self, epsilon: float, moving_x: np.ndarray, moving_y: np.ndarray) -> None:
+    def __init__(self, epsilon: float, moving_x: np.ndarray, moving_y: np.ndarray,
+                 moving_valid: np.ndarray | None = None) -> None:
         self.twice_epsilon2 = (2 * np.float32(epsilon)) ** 2
-        self.moving_size = moving_x.size
         self.moving_x, self.moving_y = moving_x[1:-1, 1:-1], moving_y[1:-1, 1:-1]
+        self._moving_valid = None if moving_valid is None else np.asarray(moving_valid, dtype=bool)[1:-1, 1:-1]
+        if self._moving_valid is not None:
+            self.moving_x, self.moving_y = self.moving_x * self._moving_valid, self.moving_y * self._moving_valid
+        self.moving_size = moving_x.size if moving_valid is None else int(np.count_nonzero(moving_valid))
         moving_m = self.moving_x * self.moving_x + self.moving_y * self.moving_y
         shape = self.moving_x.shape
         self.moving_m2 = _aligned_empty(shape)
@@ -196,10 +216,13 @@ class SampledFieldSimilarity:
         return np.greater_equal(np.minimum(first, second, out=first), 0.0, out=self._valid)
 
     def __call__(self, samples: np.ndarray) -> tuple[float, float]:
-        """S and the number of pixels where the sampled field is defined (all four neighbours inside)."""
+        """S and the number of pixels where the sampled field is defined (all four neighbours inside) and the
+        moving image has data."""
         dx, dy, magnitude2, weight = self._work
-        inside = samples.min() >= 0.0  # then every field pixel is defined, and the mask is not needed
+        inside = self._moving_valid is None and samples.min() >= 0.0  # then every field pixel counts: no mask needed
         valid = None if inside else self._defined(samples, dx, dy)
+        if self._moving_valid is not None:
+            np.logical_and(valid, self._moving_valid, out=valid)
         np.subtract(samples[1:-1, 2:], samples[1:-1, :-2], out=dx)
         np.subtract(samples[2:, 1:-1], samples[:-2, 1:-1], out=dy)
         np.multiply(dx, dx, out=magnitude2)

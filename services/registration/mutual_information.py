@@ -42,6 +42,7 @@ class MovingWindow:
     def __init__(self, level_offset: np.ndarray, bins: int) -> None:
         self.level_offset, self.bins = level_offset, bins
         self.row_width = (bins + 1) * MOVING_SUBBINS
+        self.valid_size = int(np.count_nonzero(level_offset < self.row_width + bins * MOVING_SUBBINS))  # not invalid
         size = level_offset.size
         self._row = np.empty(size, np.float32)
         self._cell_value = np.empty(size, np.float32)

@@ -104,12 +104,13 @@ def information(
 def score(
     fixed_samples: np.ndarray, moving: MovingWindow, bins: int, log_base: float, metric: str, min_overlap: float
 ) -> float:
-    """The value to maximise: MI or NMI, or -inf when fewer than ``min_overlap`` of the moving pixels overlap.
+    """The value to maximise: MI or NMI, or -inf when fewer than ``min_overlap`` of the moving pixels (those with
+    data) overlap.
 
     ``moving`` is the moving image's :func:`services.registration.mutual_information.moving_window`.
     """
     mi, nmi, count = information(fixed_samples, moving, bins, log_base)
-    if count < min_overlap * moving.level_offset.size:
+    if count < min_overlap * moving.valid_size:
         return -np.inf
     return mi if metric == "mi" else nmi
 

@@ -85,7 +85,7 @@ class Registration:
 
 def _check_inputs(
     fixed: np.ndarray, moving: np.ndarray, model: str, preprocessing: str | None, metric: str, bins: int,
-    log_base: float, min_overlap: float,
+    log_base: float, min_overlap: float, moving_mask: np.ndarray | None,
 ) -> None:
     for name, image in (("fixed", fixed), ("moving", moving)):
         if np.ndim(image) != 2:
@@ -93,6 +93,12 @@ def _check_inputs(
         if min(np.shape(image)) < 2 * _COARSEST_SIZE:
             raise ValueError(f"The {name} image is too small to register: {np.shape(image)[1]}x{np.shape(image)[0]} "
                              f"pixels, at least {2 * _COARSEST_SIZE} needed on each side.")
+    if moving_mask is not None:
+        if np.shape(moving_mask) != np.shape(moving):
+            raise ValueError(f"The moving mask must have the moving image's shape {np.shape(moving)}; "
+                             f"got {np.shape(moving_mask)}.")
+        if not np.any(moving_mask):
+            raise ValueError("The moving mask marks no pixel as having data.")
     if model not in MODELS:
         raise ValueError(f"Unknown registration model {model!r}; choose one of {', '.join(MODELS)}.")
     if preprocessing is not None and preprocessing not in PREPROCESSING:
@@ -132,6 +138,38 @@ def _pyramid(image: np.ndarray, levels: int) -> list[np.ndarray]:
     return images
 
 
+# Pixels next to a moving pixel without data are left out too: the smoothing before the gradients (sigma 1 px)
+# and the central differences reach this far.
+_MASK_MARGIN = 3
+
+
+def _mask_pyramid(moving_mask: np.ndarray | None, levels: int) -> list[np.ndarray | None]:
+    """The moving pixels of each pyramid level (finest first) whose values owe nothing to pixels without data.
+
+    A pixel of ``cv2.pyrDown`` is a 5 x 5 weighted sum around pixel 2 i of the finer level, so it keeps data
+    where that whole neighbourhood does.
+    """
+    if moving_mask is None:
+        return [None] * (levels + 1)
+    size = 2 * _MASK_MARGIN + 1
+    mask = cv2.erode(np.asarray(moving_mask, dtype=bool).astype(np.uint8), np.ones((size, size), np.uint8),
+                     borderType=cv2.BORDER_CONSTANT, borderValue=1)
+    masks = [mask]
+    for _ in range(levels):
+        masks.append(cv2.erode(masks[-1], np.ones((5, 5), np.uint8), borderType=cv2.BORDER_CONSTANT,
+                               borderValue=1)[::2, ::2])
+    return [mask.astype(bool) for mask in masks]
+
+
+def _filled(moving: np.ndarray, moving_mask: np.ndarray | None) -> np.ndarray:
+    """The moving image with its pixels without data set to the median of the others, so that they neither
+    skew its intensity stretch nor draw edges against it."""
+    if moving_mask is None:
+        return moving
+    mask = np.asarray(moving_mask, dtype=bool)
+    return np.where(mask, moving, np.median(moving[mask])).astype(moving.dtype)
+
+
 def _level_matrix(matrix: np.ndarray, level: int) -> np.ndarray:
     """Express a full-resolution matrix in level-``level`` pixel coordinates of both images."""
     down = np.diag([0.5**level, 0.5**level, 1.0])
@@ -139,22 +177,25 @@ def _level_matrix(matrix: np.ndarray, level: int) -> np.ndarray:
 
 
 def _level_objective(
-    fixed: np.ndarray, moving: np.ndarray, bins: int, log_base: float, metric: str, min_overlap: float
+    fixed: np.ndarray, moving: np.ndarray, bins: int, log_base: float, metric: str, min_overlap: float,
+    moving_valid: np.ndarray | None = None,
 ) -> Callable[[], Callable[[np.ndarray], float]]:
     """The objective of one pyramid level, as a function of the fixed image sampled on the moving grid.
 
-    ``fixed`` and ``moving`` are quantised images for MI and NMI, smoothed grey images for NGF. Returns a
-    factory: each call gives the objective with its own work arrays, so that each thread has one.
+    ``fixed`` and ``moving`` are quantised images for MI and NMI, smoothed grey images for NGF; only the moving
+    pixels ``moving_valid`` marks count (all by default). Returns a factory: each call gives the objective with
+    its own work arrays, so that each thread has one.
     """
     if metric == "ngf":
-        epsilon, field = gradient_epsilon(fixed), normalized_gradient_field(moving, gradient_epsilon(moving))
+        epsilon = gradient_epsilon(fixed)
+        field = normalized_gradient_field(moving, gradient_epsilon(moving, moving_valid))
 
         def field_objective() -> Callable[[np.ndarray], float]:
-            similarity = SampledFieldSimilarity(epsilon, *field)
+            similarity = SampledFieldSimilarity(epsilon, *field, moving_valid)
             return lambda samples: field_score(samples, similarity, min_overlap)
 
         return field_objective
-    window = moving_window(moving, bins)
+    window = moving_window(moving if moving_valid is None else np.where(moving_valid, moving, -1.0), bins)
 
     def information_objective() -> Callable[[np.ndarray], float]:
         own_window = MovingWindow(window.level_offset, bins)
@@ -270,12 +311,13 @@ def objective_value(
     log_base: float = DEFAULT_LOG_BASE,
     scale: float | None = None,
     min_overlap: float = 0.3,
+    moving_mask: np.ndarray | None = None,
 ) -> float:
     """The full-resolution objective that :func:`register` maximises, at a given matrix.
 
     Parameters
     ----------
-    fixed, moving, metric, preprocessing, bins, log_base, scale, min_overlap
+    fixed, moving, metric, preprocessing, bins, log_base, scale, min_overlap, moving_mask
         As :func:`register`.
     matrix : (3, 3) array
         Moving (infrared) pixels to fixed (visible) pixels, as :attr:`Registration.matrix`.
@@ -287,15 +329,16 @@ def objective_value(
         the minimum overlap. Comparing two matrices' values tells whether a registration stopped short of
         a better maximum of its own objective or the objective prefers it.
     """
-    _check_inputs(fixed, moving, "similarity", preprocessing, metric, bins, log_base, min_overlap)
+    _check_inputs(fixed, moving, "similarity", preprocessing, metric, bins, log_base, min_overlap, moving_mask)
     if np.shape(matrix) != (3, 3):
         raise ValueError(f"The matrix must be 3x3; got shape {np.shape(matrix)}.")
     moving_height, moving_width = np.shape(moving)
     reduction = min(1.0, 1.0 / _nominal_scale(fixed, moving, scale))
-    fixed_pre, moving_pre = _prepared(fixed, moving, reduction, metric, preprocessing)
+    fixed_pre, moving_pre = _prepared(fixed, _filled(moving, moving_mask), reduction, metric, preprocessing)
     if metric != "ngf":
         fixed_pre, moving_pre = quantize(fixed_pre, bins), quantize(moving_pre, bins)
-    objective = _level_objective(fixed_pre, moving_pre, bins, log_base, metric, min_overlap)
+    objective = _level_objective(fixed_pre, moving_pre, bins, log_base, metric, min_overlap,
+                                 _mask_pyramid(moving_mask, 0)[0])
     sampler = FixedSampler(fixed_pre, moving_width, moving_height, cubic=metric == "ngf")
     return objective()(sampler(_scaling(reduction) @ np.asarray(matrix, dtype=np.float64)))
 
@@ -315,6 +358,7 @@ def register(
     max_scale_change: float = 0.12,
     min_overlap: float = 0.3,
     threads: int | None = None,
+    moving_mask: np.ndarray | None = None,
 ) -> Registration:
     """Find the matrix mapping moving (infrared) pixels to fixed (visible) pixels that maximises MI.
 
@@ -353,11 +397,17 @@ def register(
     max_scale_change : float
         Search range of the relative scale change (similarity and above).
     min_overlap : float
-        Least fraction of moving pixels that must fall on the fixed image.
+        Least fraction of moving pixels (of those with data) that must fall
+        on the fixed image.
     threads : int, optional
         Threads that evaluate the refinement's stencil points side by side on
         the finer levels; by default the CPUs this process may use, at most 4.
         The result is the same, to the bit, for any number.
+    moving_mask : 2-D bool array, optional
+        The moving image's pixels that have data (true), of its shape: the
+        others (a lens housing, a text overlay, the border a move brought in)
+        and every pixel within 3 px of them are left out of the objective and
+        of the search. By default every pixel has data.
 
     Returns
     -------
@@ -381,7 +431,7 @@ def register(
     .. [3] E. Haber, J. Modersitzki, "Intensity gradient based registration and
        fusion of multi-modal images", MICCAI 2006.
     """
-    _check_inputs(fixed, moving, model, preprocessing, metric, bins, log_base, min_overlap)
+    _check_inputs(fixed, moving, model, preprocessing, metric, bins, log_base, min_overlap, moving_mask)
     if threads is not None and threads < 1:
         raise ValueError(f"The registration needs at least one thread; got {threads}.")
     threads = threads if threads is not None else min(_MAX_THREADS, len(os.sched_getaffinity(0)))
@@ -390,16 +440,17 @@ def register(
     moving_height, moving_width = np.shape(moving)
     nominal = _nominal_scale(fixed, moving, scale)
     reduction = min(1.0, 1.0 / nominal)
-    fixed_pre, moving_pre = _prepared(fixed, moving, reduction, metric, preprocessing)
+    fixed_pre, moving_pre = _prepared(fixed, _filled(moving, moving_mask), reduction, metric, preprocessing)
     levels = int(np.floor(np.log2(min(moving_height, moving_width) / _COARSEST_SIZE)))  # >= 1 by the size check
     fixed_levels, moving_levels = _pyramid(fixed_pre, levels), _pyramid(moving_pre, levels)
+    masks = _mask_pyramid(moving_mask, levels)
     if metric == "ngf":
         fixed_pyramid, moving_pyramid = fixed_levels, moving_levels
     else:
         fixed_pyramid = [quantize(level, bins) for level in fixed_levels]
         moving_pyramid = [quantize(level, bins) for level in moving_levels]
-    objectives = [_level_objective(f, m, bins, log_base, metric, min_overlap)
-                  for f, m in zip(fixed_pyramid, moving_pyramid)]
+    objectives = [_level_objective(f, m, bins, log_base, metric, min_overlap, mask)
+                  for f, m, mask in zip(fixed_pyramid, moving_pyramid, masks)]
 
     coarse_fixed, coarse_moving = fixed_pyramid[levels], moving_pyramid[levels]
     angles, factors = _search_grid(model, metric, coarse_moving.shape, max_angle, max_scale_change)
@@ -409,12 +460,12 @@ def register(
     coarse_shift = int(np.ceil(shift_range / (nominal * 2**levels)))
     if metric == "ngf":
         candidates = gradient_field_search(coarse_fixed, coarse_moving, reduced_scale, angles, factors, coarse_shift,
-                                           min_overlap, _CANDIDATES[metric])
+                                           min_overlap, _CANDIDATES[metric], masks[levels])
     else:
         search_bins = min(bins, _SEARCH_BINS)
         search_fixed, search_moving = quantize(fixed_levels[-1], search_bins), quantize(moving_levels[-1], search_bins)
         candidates = coarse_search(search_fixed, search_moving, reduced_scale, angles, factors, coarse_shift,
-                                   search_bins, log_base, metric, min_overlap, _CANDIDATES[metric])
+                                   search_bins, log_base, metric, min_overlap, _CANDIDATES[metric], masks[levels])
     if not candidates:
         raise ValueError("The images do not overlap enough anywhere in the search range; "
                          "check the nominal scale and the search range.")
@@ -452,6 +503,8 @@ def register(
     fixed_quantized, moving_quantized = (quantize(fixed_levels[0], bins), quantize(moving_levels[0], bins)) if (
         metric == "ngf") else (fixed_pyramid[0], moving_pyramid[0])
     samples = sample_fixed(fixed_quantized, matrix, moving_width, moving_height)
+    if moving_mask is not None:
+        moving_quantized = np.where(masks[0], moving_quantized, -1.0)
     mi, nmi, _ = information(samples, moving_quantized, bins, log_base)
     full_matrix = np.linalg.inv(_scaling(reduction)) @ matrix
     return Registration(model, full_matrix / full_matrix[2, 2], mi, nmi, bins, log_base)

@@ -47,14 +47,14 @@ def _hard_binned_scores(
     canvas: np.ndarray, moving: np.ndarray, shifts: np.ndarray, bins: int, log_base: float, use_nmi: bool,
     min_weight: float,
 ) -> np.ndarray:
-    """MI or NMI of bin-index images at each shift (dy, dx) of the canvas, one hard-binned histogram each.
+    """MI or NMI of bin-index images (-1 invalid) at each shift (dy, dx) of the canvas, one hard-binned histogram each.
 
     The scan only ranks grid points, so it bins hard (one cell per sample); the refinement then uses the
     smooth estimator. -inf below ``min_weight`` overlapping samples.
     """
     fixed = _shift_windows(canvas, moving.shape, shifts).reshape(len(shifts), -1).astype(np.int32)
     cells = fixed * bins + moving.ravel() + (np.arange(len(shifts), dtype=np.int32) * bins * bins)[:, None]
-    cells = cells[fixed >= 0]
+    cells = cells[(fixed >= 0) & (moving.ravel() >= 0)]
     joint = np.bincount(cells, minlength=len(shifts) * bins * bins).reshape(len(shifts), bins, bins)
     total = joint.sum(axis=(1, 2)).astype(np.float64)
     p = joint / np.maximum(total, 1.0)[:, None, None]
@@ -122,6 +122,7 @@ def coarse_search(
     metric: str = "nmi",
     min_overlap: float = 0.3,
     count: int = 6,
+    moving_valid: np.ndarray | None = None,
 ) -> list[Candidate]:
     """Scan similarity transforms about the image centres and return the best distinct ones.
 
@@ -146,6 +147,9 @@ def coarse_search(
         Least fraction of moving pixels that must land on the fixed image.
     count : int
         Number of candidates returned.
+    moving_valid : 2-D bool array, optional
+        The moving pixels that have data (all by default); the others are
+        left out of every score, and ``min_overlap`` is a fraction of these.
 
     Returns
     -------
@@ -169,21 +173,34 @@ def coarse_search(
     fixed_centre = np.array([(fixed.shape[1] - 1) / 2.0, (fixed.shape[0] - 1) / 2.0])
     margin = int(max_shift)
     canvas_to_moving = np.array([[1.0, 0.0, -margin], [0.0, 1.0, -margin], [0.0, 0.0, 1.0]])
-    moving_bins = _bin_indices(moving)
+    moving_bins = _bin_indices(moving if moving_valid is None else np.where(moving_valid, moving, -1.0))
     fixed_epsilon = gradient_epsilon(fixed)
-    template = FieldTemplate(*normalized_gradient_field(moving, gradient_epsilon(moving)),
-                             (height + 2 * margin, width + 2 * margin))
+    template = _moving_template(moving, moving_valid, (height + 2 * margin, width + 2 * margin))
+    min_weight = min_overlap * _moving_count(moving, moving_valid)
     candidates = []
     for angle in angles:
         for factor in scale_factors:
             base = similarity_about_centres(moving_centre, fixed_centre, scale * factor, angle, np.zeros(2))
             canvas = sample_fixed(fixed, base @ canvas_to_moving, width + 2 * margin, height + 2 * margin)
             proposals = _best_shifts(tensor_similarity_map(*_field_canvas(canvas, fixed_epsilon), template,
-                                                           min_overlap * moving.size), _PROPOSALS_PER_CANVAS)
+                                                           min_weight), _PROPOSALS_PER_CANVAS)
             values = _hard_binned_scores(_bin_indices(canvas), moving_bins, proposals, bins, log_base,
-                                         metric == "nmi", min_overlap * moving.size)
+                                         metric == "nmi", min_weight)
             candidates += _shift_candidates(base, proposals, values, margin)
     return _distinct_best(candidates, count, width, height, spacing=1.5)
+
+
+def _moving_template(
+    moving: np.ndarray, moving_valid: np.ndarray | None, canvas_shape: tuple[int, int]
+) -> FieldTemplate:
+    """The moving image's gradient field prepared for the canvases, only where it has data."""
+    return FieldTemplate(*normalized_gradient_field(moving, gradient_epsilon(moving, moving_valid)), canvas_shape,
+                         moving_valid)
+
+
+def _moving_count(moving: np.ndarray, moving_valid: np.ndarray | None) -> int:
+    """The number of moving pixels that have data."""
+    return moving.size if moving_valid is None else int(np.count_nonzero(moving_valid))
 
 
 def _field_canvas(canvas: np.ndarray, epsilon: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -202,6 +219,7 @@ def gradient_field_search(
     max_shift: int,
     min_overlap: float = 0.3,
     count: int = 6,
+    moving_valid: np.ndarray | None = None,
 ) -> list[Candidate]:
     """Scan similarity transforms about the image centres by normalised-gradient-field similarity.
 
@@ -209,7 +227,7 @@ def gradient_field_search(
     ----------
     fixed, moving : 2-D float32 arrays
         Smoothed grey images at the search resolution.
-    scale, angles, scale_factors, max_shift, min_overlap, count
+    scale, angles, scale_factors, max_shift, min_overlap, count, moving_valid
         As :func:`coarse_search`.
 
     Returns
@@ -232,14 +250,14 @@ def gradient_field_search(
     margin = int(max_shift)
     canvas_to_moving = np.array([[1.0, 0.0, -margin], [0.0, 1.0, -margin], [0.0, 0.0, 1.0]])
     fixed_epsilon = gradient_epsilon(fixed)
-    template = FieldTemplate(*normalized_gradient_field(moving, gradient_epsilon(moving)),
-                             (height + 2 * margin, width + 2 * margin))
+    template = _moving_template(moving, moving_valid, (height + 2 * margin, width + 2 * margin))
+    min_weight = min_overlap * _moving_count(moving, moving_valid)
     candidates = []
     for angle in angles:
         for factor in scale_factors:
             base = similarity_about_centres(moving_centre, fixed_centre, scale * factor, angle, np.zeros(2))
             canvas = sample_fixed(fixed, base @ canvas_to_moving, width + 2 * margin, height + 2 * margin)
-            values = tensor_similarity_map(*_field_canvas(canvas, fixed_epsilon), template, min_overlap * moving.size)
+            values = tensor_similarity_map(*_field_canvas(canvas, fixed_epsilon), template, min_weight)
             shifts = _best_shifts(values)
             candidates += _shift_candidates(base, shifts, values[shifts[:, 0], shifts[:, 1]], margin)
     return _distinct_best(candidates, count, width, height, spacing=1.5)

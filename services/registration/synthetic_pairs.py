@@ -173,6 +173,55 @@ def infrared_from_visible(
     return _to_counts(infrared, 0.0, 1.6)
 
 
+def _random_move(
+    rng: np.random.Generator, max_shift: float, max_angle: float, scale_range: tuple[float, float]
+) -> tuple[float, float, np.ndarray]:
+    """Scale, rotation (radians) and shift (pixels) of a random similarity, drawn in this order."""
+    scale = rng.uniform(*scale_range)
+    angle = np.deg2rad(rng.uniform(-max_angle, max_angle))
+    return scale, angle, rng.uniform(-max_shift, max_shift, size=2)
+
+
+def moved_image(
+    rng: np.random.Generator,
+    image: np.ndarray,
+    max_shift: float = 30.0,
+    max_angle: float = 4.0,
+    scale_range: tuple[float, float] = (0.93, 1.07),
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The image moved by a random similarity on a canvas of its own size, with the mask of what is known.
+
+    The similarity S maps original pixels to moved pixels about the image
+    centre: S(x) = c + d + s R(theta) (x - c), with each component of d
+    uniform in +-``max_shift`` pixels, theta uniform in +-``max_angle``
+    degrees and s uniform in ``scale_range`` (the draws of
+    :func:`moved_view`). What the move brings in from outside the original is
+    not invented: it is 0 and left out of the mask.
+
+    Returns
+    -------
+    moved : 2-D array
+        The moved image, of the image's shape and dtype (bilinear resampling).
+    valid : 2-D bool array
+        True where the moved pixel's bilinear support lies inside the original.
+    moved_to_original : (3, 3) array
+        S^-1: moved pixel coordinates to original pixel coordinates, so a
+        registration H of the original becomes H @ S^-1 for the moved image.
+    """
+    image = np.asarray(image)
+    height, width = image.shape[:2]
+    centre = np.array([(width - 1) / 2.0, (height - 1) / 2.0])
+    moved_to_original = np.linalg.inv(similarity_about_centres(centre, centre, *_random_move(
+        rng, max_shift, max_angle, scale_range)))
+    moved = cv2.warpAffine(image, moved_to_original[:2], (width, height), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
+                           borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+    xs, ys = np.meshgrid(np.arange(width, dtype=np.float64), np.arange(height, dtype=np.float64))
+    source_x = moved_to_original[0, 0] * xs + moved_to_original[0, 1] * ys + moved_to_original[0, 2]
+    source_y = moved_to_original[1, 0] * xs + moved_to_original[1, 1] * ys + moved_to_original[1, 2]
+    valid = (source_x >= 0.0) & (source_x <= width - 1.0) & (source_y >= 0.0) & (source_y <= height - 1.0)
+    return moved, valid, moved_to_original
+
+
 def moved_view(
     rng: np.random.Generator,
     image: np.ndarray,
@@ -183,13 +232,13 @@ def moved_view(
 ) -> tuple[np.ndarray, np.ndarray]:
     """The image moved by a random similarity and cut to a view that lies wholly inside the original.
 
-    The similarity S maps original pixels to moved pixels about the image
-    centres: S(x) = c' + d + s R(theta) (x - c), with each component of d
-    uniform in +-``max_shift`` pixels, theta uniform in +-``max_angle``
-    degrees and s uniform in ``scale_range``. The view keeps the original
-    aspect ratio at the largest fraction (at most ``largest_fraction``) of
-    its size whose every pixel comes from inside the original, so that no
-    pixel is invented.
+    The similarity S is drawn as by :func:`moved_image` and maps original
+    pixels to moved pixels about the image and view centres: S(x) = c' + d +
+    s R(theta) (x - c). The view keeps the original aspect ratio at the
+    largest fraction (at most ``largest_fraction``) of its size whose every
+    pixel comes from inside the original, so that no pixel is invented; it
+    loses at least a fifth of the image's area to the cut, more than the move
+    itself.
 
     Returns
     -------
@@ -201,9 +250,7 @@ def moved_view(
     """
     image = np.asarray(image)
     height, width = image.shape[:2]
-    scale = rng.uniform(*scale_range)
-    angle = np.deg2rad(rng.uniform(-max_angle, max_angle))
-    shift = rng.uniform(-max_shift, max_shift, size=2)
+    scale, angle, shift = _random_move(rng, max_shift, max_angle, scale_range)
     centre = np.array([(width - 1) / 2.0, (height - 1) / 2.0])
     for fraction in np.arange(largest_fraction, 0.2, -0.01):
         size = (int(fraction * width), int(fraction * height))

@@ -50,6 +50,24 @@ def test_register_reads_a_float_tiff_infrared_image(pair_files, tmp_path):
     assert document["model"] == "translation" and document["bins"] == 24
 
 
+def test_register_leaves_out_the_infrared_pixels_the_mask_marks_as_without_data(pair_files, tmp_path):
+    directory, truth = pair_files
+    infrared = cv2.imread(str(directory / "infrared.png"), cv2.IMREAD_UNCHANGED)
+    decoy = infrared.copy()  # the left half shows the scene 18 px to the right and 12 px down
+    decoy[:, :170] = np.roll(infrared, (12, 18), axis=(0, 1))[:, :170]
+    mask = np.full(infrared.shape, 255, np.uint8)
+    mask[:, :170] = 0
+    cv2.imwrite(str(tmp_path / "decoy.png"), decoy)
+    cv2.imwrite(str(tmp_path / "mask.png"), mask)
+    errors = []
+    for masking in ([], ["--moving-mask", str(tmp_path / "mask.png")]):
+        out = tmp_path / "REG.json"
+        assert main(["register", "--fixed", str(directory / "visible.png"), "--moving", str(tmp_path / "decoy.png"),
+                     "--out", str(out)] + masking) == 0
+        errors.append(corner_error(truth, np.array(json.loads(out.read_text())["matrix"]), *INFRARED_SIZE))
+    assert errors[0] > 10.0 and errors[1] < 1.0, errors
+
+
 @pytest.mark.parametrize(
     ("change", "message"),
     [
@@ -59,11 +77,16 @@ def test_register_reads_a_float_tiff_infrared_image(pair_files, tmp_path):
         ({"--out": "absent/REG.json"}, "does not exist"),
         ({"--bins": "2"}, "at least 4 histogram bins"),
         ({"--scale": "-1"}, "nominal scale must be positive"),
+        ({"--moving-mask": "small_mask.png"}, "small_mask.png: the mask is 100x80 pixels, the infrared image 320x256"),
+        ({"--moving-mask": "empty_mask.png"}, "empty_mask.png: the mask is zero everywhere"),
+        ({"--moving-mask": "missing_mask.png"}, "missing_mask.png: frame file is missing"),
     ],
 )
 def test_bad_input_exits_2_with_a_message_and_no_traceback(pair_files, tmp_path, capsys, change, message):
     directory, _ = pair_files
     np.save(tmp_path / "bad.npy", np.zeros((2, 3, 4)))
+    cv2.imwrite(str(tmp_path / "small_mask.png"), np.full((80, 100), 255, np.uint8))
+    cv2.imwrite(str(tmp_path / "empty_mask.png"), np.zeros((256, 320), np.uint8))
     options = {"--fixed": str(directory / "visible.png"), "--moving": str(directory / "infrared.png"),
                "--out": str(tmp_path / "REG.json")}
     for key, value in change.items():

@@ -44,6 +44,31 @@ def test_the_objective_value_is_what_the_registration_maximised(metric):
     assert objective_value(visible, infrared, far, metric=metric, scale=1.8) == -np.inf  # too little overlap
 
 
+@pytest.mark.parametrize("metric", ["nmi", "ngf"])
+def test_a_masked_decoy_does_not_pull_the_registration(metric):
+    visible, infrared, truth = scene_pair(22)
+    decoy = infrared.copy()  # the left half shows the scene 18 px to the right and 12 px down
+    decoy[:, :170] = np.roll(infrared, (12, 18), axis=(0, 1))[:, :170]
+    mask = np.ones(infrared.shape, bool)
+    mask[:, :170] = False
+    unmasked = register(visible, decoy, "similarity", metric=metric)
+    masked = register(visible, decoy, "similarity", metric=metric, moving_mask=mask)
+    assert corner_error(truth, unmasked.matrix, *INFRARED_SIZE) > 10.0  # the decoy wins without the mask
+    assert corner_error(truth, masked.matrix, *INFRARED_SIZE) < 2.0  # half the image, half the edges
+    assert objective_value(visible, decoy, masked.matrix, metric=metric, moving_mask=mask) > objective_value(
+        visible, decoy, unmasked.matrix, metric=metric, moving_mask=mask)
+
+
+@pytest.mark.parametrize(("mask", "message"), [
+    (np.ones((10, 10), bool), "must have the moving image's shape"),
+    (np.zeros((256, 320), bool), "marks no pixel"),
+])
+def test_a_bad_moving_mask_is_refused_with_a_sentence(mask, message):
+    visible, infrared, _ = scene_pair(21)
+    with pytest.raises(ValueError, match=message):
+        register(visible, infrared, "similarity", moving_mask=mask)
+
+
 @pytest.mark.parametrize(("arguments", "message"), [
     ({"matrix": np.eye(2)}, "must be 3x3"),
     ({"bins": 3}, "at least 4 histogram bins"),

@@ -4,6 +4,7 @@ from services.registration.models import apply_homography
 from services.registration.synthetic_pairs import (
     INFRARED_LEVELS,
     infrared_from_visible,
+    moved_image,
     moved_view,
     random_transform,
     render_scene_pair,
@@ -54,3 +55,18 @@ def test_moved_view_stays_inside_the_image_and_knows_its_move():
     forward = np.linalg.inv(view_to_original)
     scale = np.sqrt(np.linalg.det(forward[:2, :2]))
     assert 0.93 <= scale <= 1.07 and abs(np.degrees(np.arctan2(forward[1, 0], forward[0, 0]))) <= 4.0
+
+
+def test_moved_image_keeps_its_size_masks_what_the_move_brings_in_and_knows_its_move():
+    image = np.arange(300 * 400, dtype=np.float32).reshape(300, 400)  # value = 400 y + x
+    moved, valid, moved_to_original = moved_image(np.random.default_rng(4), image)
+    assert moved.shape == image.shape and moved.dtype == image.dtype and valid.shape == image.shape
+    assert 0.5 < valid.mean() < 1.0  # a move of up to 30 px, 4 degrees and 7 % brings some border in
+    ys, xs = np.mgrid[0:300, 0:400]
+    original = np.stack([xs.ravel(), ys.ravel(), np.ones(xs.size)]).T @ moved_to_original.T
+    inside = ((original[:, 0] >= 0.0) & (original[:, 0] <= 399.0) & (original[:, 1] >= 0.0)
+              & (original[:, 1] <= 299.0))
+    np.testing.assert_array_equal(valid.ravel(), inside)
+    np.testing.assert_allclose(moved.ravel()[inside], (400.0 * original[:, 1] + original[:, 0])[inside], atol=0.05)
+    _, view_to_original = moved_view(np.random.default_rng(4), image)  # the same draws: the same move
+    np.testing.assert_allclose(moved_to_original[:2, :2], view_to_original[:2, :2], rtol=1e-12)
