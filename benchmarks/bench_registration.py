@@ -52,8 +52,12 @@ def _nominal_scale(visible: np.ndarray, infrared: np.ndarray, scale: float | Non
     return min(visible.shape[1] / infrared.shape[1], visible.shape[0] / infrared.shape[0])
 
 
-def simpleitk_register(visible: np.ndarray, infrared: np.ndarray, scale: float | None, gradient: bool) -> np.ndarray:
-    """SimpleITK Mattes-MI similarity registration; returns the infrared-to-visible matrix."""
+def simpleitk_register(visible: np.ndarray, infrared: np.ndarray, scale: float | None, gradient: bool,
+                       infrared_mask: np.ndarray | None = None) -> np.ndarray:
+    """SimpleITK Mattes-MI similarity registration; returns the infrared-to-visible matrix.
+
+    ``infrared_mask`` marks the infrared pixels that have data (ITK's fixed-image mask: the infrared image is
+    the one ITK samples)."""
     nominal = _nominal_scale(visible, infrared, scale)
     if gradient:
         visible_image, infrared_image = gradient_magnitude(visible, 0.5 * nominal), gradient_magnitude(infrared, 0.5)
@@ -67,6 +71,8 @@ def simpleitk_register(visible: np.ndarray, infrared: np.ndarray, scale: float |
     method = sitk.ImageRegistrationMethod()
     method.SetMetricAsMattesMutualInformation(numberOfHistogramBins=32)
     method.SetMetricSamplingStrategy(method.NONE)
+    if infrared_mask is not None:
+        method.SetMetricFixedMask(sitk.GetImageFromArray(np.asarray(infrared_mask, dtype=np.uint8)))
     method.SetInterpolator(sitk.sitkLinear)
     method.SetOptimizerAsRegularStepGradientDescent(learningRate=2.0, minStep=1e-3, numberOfIterations=300,
                                                    relaxationFactor=0.5)

@@ -4,12 +4,15 @@ The pairs (../shared/data/tno-ir-visible) were aligned by hand to about a
 pixel, which is not ground truth at the sub-pixel level. So precision is
 measured as consistency: each infrared image is moved by a known similarity
 S (each shift component up to 30 px, rotation up to 4 degrees, scale
-0.93..1.07, seeded) and cut to a view inside the original
-(services.registration.synthetic_pairs.moved_view); the registration H1 of
-the moved view must equal the registration H0 of the unmoved image composed
-with the move, H0 S^-1 (services.registration.consistency). Consistency = mean distance of the view's four corner
-pixels under H1 and H0 S^-1 (visible pixels). The distance of H0 to the hand
-alignment (the identity) is reported too.
+0.93..1.07, seeded), on its own canvas with what the move brings in from
+outside masked (--protocol moved, the default:
+services.registration.synthetic_pairs.moved_image; every method is given
+the mask) or cut to a view inside the original (--protocol view:
+moved_view); the registration H1 of the moved image must equal the
+registration H0 of the unmoved image composed with the move, H0 S^-1
+(services.registration.consistency). Consistency = mean distance of the
+moved image's four corner pixels under H1 and H0 S^-1 (visible pixels). The
+distance of H0 to the hand alignment (the identity) is reported too.
 
 Methods, same pairs, same run: thermofield (`register`, similarity, nominal
 scale 1, shift range 45 px) with normalised gradient fields (``metric="ngf"``)
@@ -19,8 +22,9 @@ the centred start). Times: each method in-process, and the whole
 `thermofield register` process (python -m services.cli.main, start-up
 included) on the moved pair.
 
-Usage: .venv/bin/python experiments/registration_real.py [--pairs 1 2 ...] [--seed 0] [--methods NAME ...]
-       [--no-cli] [--figure N] [--rows-out rows.json] [--from-rows a.json b.json ...] [--objective-check]
+Usage: .venv/bin/python experiments/registration_real.py [--protocol moved|view] [--pairs 1 2 ...] [--seed 0]
+       [--methods NAME ...] [--no-cli] [--figure N] [--rows-out rows.json] [--from-rows a.json b.json ...]
+       [--objective-check]
 Prints Markdown tables; --figure N writes docs/figures/registration/real_pair_NN_edges.png.
 """
 
@@ -62,21 +66,23 @@ def load_pair(number: int) -> tuple[np.ndarray, np.ndarray]:
     return images[0], images[1]
 
 
-def thermofield_matrix(visible: np.ndarray, infrared: np.ndarray, metric: str = "ngf") -> np.ndarray:
-    return register(visible, infrared, "similarity", metric=metric, scale=1.0, max_shift=MAX_SHIFT).matrix
+def thermofield_matrix(visible: np.ndarray, infrared: np.ndarray, mask: np.ndarray | None = None,
+                       metric: str = "ngf") -> np.ndarray:
+    return register(visible, infrared, "similarity", metric=metric, scale=1.0, max_shift=MAX_SHIFT,
+                    moving_mask=mask).matrix
 
 
-def thermofield_nmi_matrix(visible: np.ndarray, infrared: np.ndarray) -> np.ndarray:
-    return thermofield_matrix(visible, infrared, "nmi")
+def thermofield_nmi_matrix(visible: np.ndarray, infrared: np.ndarray, mask: np.ndarray | None = None) -> np.ndarray:
+    return thermofield_matrix(visible, infrared, mask, "nmi")
 
 
-def simpleitk_matrix(visible: np.ndarray, infrared: np.ndarray) -> np.ndarray:
+def simpleitk_matrix(visible: np.ndarray, infrared: np.ndarray, mask: np.ndarray | None = None) -> np.ndarray:
     from benchmarks.bench_registration import simpleitk_register
 
-    return simpleitk_register(visible, infrared, 1.0, gradient=False)
+    return simpleitk_register(visible, infrared, 1.0, gradient=False, infrared_mask=mask)
 
 
-def cli_matrix(visible: np.ndarray, infrared: np.ndarray) -> tuple[np.ndarray, float]:
+def cli_matrix(visible: np.ndarray, infrared: np.ndarray, mask: np.ndarray | None = None) -> tuple[np.ndarray, float]:
     """The matrix from a whole `thermofield register` process, and that process's wall-clock time."""
     with tempfile.TemporaryDirectory() as folder:
         fixed, moving, out = Path(folder) / "vi.png", Path(folder) / "ir.png", Path(folder) / "reg.json"
@@ -84,6 +90,9 @@ def cli_matrix(visible: np.ndarray, infrared: np.ndarray) -> tuple[np.ndarray, f
         cv2.imwrite(str(moving), infrared)
         command = [sys.executable, "-m", "services.cli.main", "register", "--fixed", str(fixed), "--moving",
                    str(moving), "--metric", "ngf", "--scale", "1", "--max-shift", str(MAX_SHIFT), "--out", str(out)]
+        if mask is not None:
+            cv2.imwrite(str(Path(folder) / "mask.png"), mask.astype(np.uint8) * 255)
+            command += ["--moving-mask", str(Path(folder) / "mask.png")]
         start = time.perf_counter()
         subprocess.run(command, check=True, cwd=ROOT, capture_output=True,
                        env={"PYTHONPATH": str(ROOT), "PATH": "/usr/bin:/bin"})
@@ -105,24 +114,25 @@ def _timed(method, seconds: list[float]):
     return timed
 
 
-def evaluate(numbers: list[int], seed: int, names: list[str], cli: bool) -> list[dict]:
+def evaluate(numbers: list[int], seed: int, names: list[str], cli: bool, view: bool) -> list[dict]:
     rows = []
     methods = {name: METHODS[name] for name in names}
     for number in numbers:
         visible, infrared = load_pair(number)
         row = {"pair": number, "size": list(infrared.shape[::-1])}
         for name, method in methods.items():
-            seconds: list[float] = []  # the whole image's, then the moved view's
+            seconds: list[float] = []  # the whole image's, then the moved image's
             result = move_consistency(_timed(method, seconds), visible, infrared,
-                                      np.random.default_rng([seed, number]))  # the same move for every method
-            row["view"] = list(result.moved.shape[::-1])
+                                      np.random.default_rng([seed, number]), view=view)  # the same move for all
+            row["view"] = list(result.moved_image.shape[::-1])
+            row["known"] = 1.0 if result.moved_mask is None else float(result.moved_mask.mean())
             row[name] = {"consistency": result.consistency, "hand": result.from_hand, "seconds": seconds[1],
                          "unmoved": result.unmoved.tolist()}
         if cli:
-            matrix, seconds = cli_matrix(visible, result.moved)
-            reference = np.asarray(row["thermofield NGF"]["unmoved"]) @ result.view_to_infrared
-            row["cli"] = {"seconds": seconds,
-                          "agrees": corner_error(reference, matrix, result.moved.shape[1], result.moved.shape[0])}
+            matrix, seconds = cli_matrix(visible, result.moved_image, result.moved_mask)
+            reference = np.asarray(row["thermofield NGF"]["unmoved"]) @ result.moved_to_infrared
+            row["cli"] = {"seconds": seconds, "agrees": corner_error(reference, matrix, result.moved_image.shape[1],
+                                                                     result.moved_image.shape[0])}
         rows.append(row)
         print(f"pair {number}: " + ", ".join(f"{name} {row[name]['consistency']:.3f} px" for name in methods),
               file=sys.stderr, flush=True)
@@ -137,13 +147,13 @@ def _summary(values: list[float]) -> str:
 
 def print_tables(rows: list[dict]) -> None:
     methods = [name for name in METHODS if all(name in row for row in rows)]
-    print("| pair | size | view | " + " | ".join(f"{name} consistency (px) | {name} from hand (px)"
-                                                 for name in methods) + " |")
-    print("|---|---|---|" + "---|---|" * len(methods))
+    print("| pair | size | moved image | known | " + " | ".join(f"{name} consistency (px) | {name} from hand (px)"
+                                                              for name in methods) + " |")
+    print("|---|---|---|---|" + "---|---|" * len(methods))
     for row in rows:
         cells = " | ".join(f"{row[name]['consistency']:.3f} | {row[name]['hand']:.2f}" for name in methods)
         print(f"| {row['pair']:02d} | {row['size'][0]}x{row['size'][1]} | {row['view'][0]}x{row['view'][1]} | "
-              f"{cells} |")
+              f"{100.0 * row['known']:.0f} % | {cells} |")
     print("\n| method | n | consistency median (px) | 90th pct (px) | under 1 px | max (px) | "
           "from hand, median (px) | median time in-process (s) |")
     print("|---|---|---|---|---|---|---|---|")
@@ -190,26 +200,31 @@ def figure(number: int) -> None:
                 np.hstack([_edge_overlay(visible, infrared, np.eye(3)), gap, _edge_overlay(visible, infrared, matrix)]))
 
 
-def objective_check(numbers: list[int], seed: int) -> None:
+def objective_check(numbers: list[int], seed: int, view: bool) -> None:
     """Whether NGF's inconsistency is the optimiser's or the objective's: each registration's NGF value beside
-    the value of the other registration carried over by the known move, on the view and on the whole image."""
-    print("| pair | consistency (px) | S(view) at H1 | S(view) at H0 S^-1 | S(whole) at H0 | S(whole) at H1 S |")
+    the value of the other registration carried over by the known move, on the moved and on the whole image."""
+    print("| pair | consistency (px) | S(moved) at H1 | S(moved) at H0 S^-1 | S(whole) at H0 | S(whole) at H1 S |")
     print("|---|---|---|---|---|---|")
     for number in numbers:
         visible, infrared = load_pair(number)
-        result = move_consistency(thermofield_matrix, visible, infrared, np.random.default_rng([seed, number]))
-        unmoved, view, view_to_infrared = result.unmoved, result.view, result.view_to_infrared
+        result = move_consistency(thermofield_matrix, visible, infrared, np.random.default_rng([seed, number]),
+                                  view=view)
+        unmoved, moved, moved_to_infrared = result.unmoved, result.moved, result.moved_to_infrared
 
-        def value(infrared_image: np.ndarray, matrix: np.ndarray) -> float:
-            return objective_value(visible, infrared_image, matrix, metric="ngf", scale=1.0)
+        def value(infrared_image: np.ndarray, matrix: np.ndarray, mask: np.ndarray | None = None) -> float:
+            return objective_value(visible, infrared_image, matrix, metric="ngf", scale=1.0, moving_mask=mask)
 
-        print(f"| {number:02d} | {result.consistency:.3f} | {value(result.moved, view):.5f} | "
-              f"{value(result.moved, unmoved @ view_to_infrared):.5f} | {value(infrared, unmoved):.5f} | "
-              f"{value(infrared, view @ np.linalg.inv(view_to_infrared)):.5f} |")
+        print(f"| {number:02d} | {result.consistency:.3f} | "
+              f"{value(result.moved_image, moved, result.moved_mask):.5f} | "
+              f"{value(result.moved_image, unmoved @ moved_to_infrared, result.moved_mask):.5f} | "
+              f"{value(infrared, unmoved):.5f} | {value(infrared, moved @ np.linalg.inv(moved_to_infrared)):.5f} |")
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--protocol", choices=("moved", "view"), default="moved",
+                        help="move the infrared image on its own canvas, what the move brings in masked (default), "
+                             "or cut it to a view inside the original")
     parser.add_argument("--pairs", type=int, nargs="+", default=list(range(1, 26)))
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--methods", nargs="+", choices=list(METHODS), default=list(METHODS),
@@ -225,7 +240,7 @@ def main() -> None:
     if not args.no_cli and "thermofield NGF" not in args.methods:
         parser.error("the command's run (without --no-cli) is compared with 'thermofield NGF': run that method too")
     if args.objective_check:
-        objective_check(args.pairs, args.seed)
+        objective_check(args.pairs, args.seed, args.protocol == "view")
         return
     if args.from_rows:
         rows = {}
@@ -234,7 +249,7 @@ def main() -> None:
                 rows.setdefault(row["pair"], {}).update(row)
         rows = [rows[number] for number in sorted(rows)]
     else:
-        rows = evaluate(args.pairs, args.seed, args.methods, not args.no_cli)
+        rows = evaluate(args.pairs, args.seed, args.methods, not args.no_cli, args.protocol == "view")
         if args.rows_out is not None:
             args.rows_out.write_text(json.dumps(rows))
     print_tables(rows)
