@@ -20,7 +20,13 @@ benchmarks/bench_commands.py's 500x300 TNO pair against SimpleITK's registration
 alternating, ``--repeats`` times each; wall-clock medians and the processes' CPU times (the command's from
 ``getrusage`` of its child process), with the load average.
 
-Usage: .venv/bin/python benchmarks/bench_registration.py [--pairs-per-source 10] [--repeats 3] [--command]
+With ``--tno``, instead: on each of the 25 real TNO pairs, the infrared image moved as
+experiments/registration_real.py moves it (seed 0, what the move brings in masked), the whole
+``thermofield register --metric ngf --moving-mask`` process against SimpleITK's registration of the same
+moved pair in-process (given the mask), alternating, ``--repeats`` times each; per pair the median wall-clock
+times and their ratio, then the median of the ratios and the ratio of the summed medians.
+
+Usage: .venv/bin/python benchmarks/bench_registration.py [--pairs-per-source 10] [--repeats 3] [--command | --tno]
 Needs the bench extra (SimpleITK).
 """
 
@@ -131,6 +137,48 @@ def command_against_simpleitk(repeats: int) -> None:
         print(f"| {label} | {wall:.3f} | {cpu:.3f} | {wall / reference['wall']:.2f} | {cpu / reference['cpu']:.2f} |")
 
 
+def tno_commands_against_simpleitk(repeats: int) -> None:
+    """Whole `thermofield register` processes against SimpleITK in-process on the 25 moved TNO pairs."""
+    import cv2
+
+    from benchmarks.bench_commands import ROOT, _thermofield, child_environment
+    from experiments.registration_real import MAX_SHIFT, load_pair
+    from services.registration.synthetic_pairs import moved_image
+
+    env = child_environment(PYTHONPATH=str(ROOT))
+    rows = []
+    with tempfile.TemporaryDirectory() as scratch:
+        work = Path(scratch)
+        for number in range(1, 26):
+            visible, infrared = load_pair(number)
+            moved, mask, _ = moved_image(np.random.default_rng([0, number]), infrared)
+            for name, image in (("vi.png", visible), ("ir.png", moved), ("mask.png", mask.astype(np.uint8) * 255)):
+                cv2.imwrite(str(work / name), image)
+            command = _thermofield("register", "--fixed", work / "vi.png", "--moving", work / "ir.png",
+                                   "--moving-mask", work / "mask.png", "--metric", "ngf", "--scale", "1",
+                                   "--max-shift", str(MAX_SHIFT), "--out", work / "reg.json")
+            commands, references = [], []
+            for _ in range(repeats):
+                wall = time.perf_counter()
+                subprocess.run(command, cwd=ROOT, env=env, check=True, capture_output=True)
+                commands.append(time.perf_counter() - wall)
+                wall = time.perf_counter()
+                simpleitk_register(visible, moved, 1.0, gradient=False, infrared_mask=mask)
+                references.append(time.perf_counter() - wall)
+            rows.append((number, infrared.shape[::-1], float(np.median(commands)), float(np.median(references))))
+    load = os.getloadavg()
+    ratios = [command / reference for _, _, command, reference in rows]
+    print(f"{repeats} runs each per pair, alternating; load average {load[0]:.1f} / {load[1]:.1f} / {load[2]:.1f} "
+          f"on {os.cpu_count()} cores\n")
+    print("| pair | size | `thermofield register` whole process, median (s) | SimpleITK in-process, median (s) | ratio |")
+    print("|---|---|---|---|---|")
+    for (number, (width, height), command, reference), ratio in zip(rows, ratios):
+        print(f"| {number:02d} | {width}x{height} | {command:.3f} | {reference:.3f} | {ratio:.2f} |")
+    summed = sum(row[2] for row in rows) / sum(row[3] for row in rows)
+    print(f"\nmedian of the per-pair ratios {np.median(ratios):.2f}; no slower on {sum(r <= 1.0 for r in ratios)} of "
+          f"{len(ratios)} pairs; ratio of the summed times {summed:.2f}")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--pairs-per-source", type=int, default=10)
@@ -138,9 +186,14 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=1)
     parser.add_argument("--command", action="store_true",
                         help="time the whole register command against SimpleITK in-process instead")
+    parser.add_argument("--tno", action="store_true",
+                        help="time the whole register command against SimpleITK on the 25 moved TNO pairs instead")
     args = parser.parse_args()
     if args.command:
         command_against_simpleitk(args.repeats)
+        return
+    if args.tno:
+        tno_commands_against_simpleitk(args.repeats)
         return
     rng = np.random.default_rng(args.seed)
     pairs = list(scene_pairs(rng, args.pairs_per_source)) + list(photograph_pairs(rng, args.pairs_per_source))

@@ -444,6 +444,9 @@ def register(
     levels = int(np.floor(np.log2(min(moving_height, moving_width) / _COARSEST_SIZE)))  # >= 1 by the size check
     fixed_levels, moving_levels = _pyramid(fixed_pre, levels), _pyramid(moving_pre, levels)
     masks = _mask_pyramid(moving_mask, levels)
+    if masks[levels] is not None and not masks[levels].any():
+        raise ValueError("The moving mask leaves too little of the moving image with data to register: no pixel "
+                         "of the coarsest pyramid level has data.")
     if metric == "ngf":
         fixed_pyramid, moving_pyramid = fixed_levels, moving_levels
     else:

@@ -5,12 +5,13 @@ axis, rotation up to 4 degrees, scale 0.93..1.07, seeded by the pair number as
 in experiments/registration_real.py), on its own canvas with what the move
 brings in masked, or cut to a view inside it (the stricter variant); the
 registration of the moved image must equal the registration of the whole
-image composed with the move (services.registration.consistency). The full
-set of 25 pairs beside SimpleITK is the experiment's (docs/registration.md);
-to keep the suite inside its budget this test takes every fourth pair (01, 05,
-... 25) and guards their documented figures against getting worse, with room
-for the scatter of about 0.1 px that a change of the optimiser's path brings
-(another CPU's rounding is one).
+image composed with the move (services.registration.consistency). Issue 11's
+targets are checked on all 25 moved pairs (median at most 0.5 px, at least 90 %
+under 1 px); the stricter cut view, to keep the suite inside its budget, on every
+fourth pair (01, 05, ... 25). Both guard the documented figures
+(docs/registration.md, beside SimpleITK: the experiment's) against getting worse,
+with room for the scatter of about 0.1 px that a change of the optimiser's path
+brings (another CPU's rounding is one).
 """
 
 from pathlib import Path
@@ -22,10 +23,10 @@ import pytest
 from services.registration.consistency import move_consistency
 from services.registration.register import register
 
-pytestmark = pytest.mark.integration  # 28 full-resolution registrations
+pytestmark = pytest.mark.integration  # 64 full-resolution registrations
 
 TNO_DIR = Path(__file__).resolve().parents[2].parent / "shared" / "data" / "tno-ir-visible"  # shared/ beside the clone
-PAIRS = range(1, 26, 4)
+PAIRS = {"moved": range(1, 26), "view": range(1, 26, 4)}
 
 
 def _pair(number: int) -> tuple[np.ndarray, np.ndarray]:
@@ -45,15 +46,15 @@ def results(request):
     return request.param, {
         number: move_consistency(_register, *_pair(number), np.random.default_rng([0, number]),
                                  view=request.param == "view")
-        for number in PAIRS}
+        for number in PAIRS[request.param]}
 
 
 def test_real_pair_consistency_is_no_worse_than_documented(results):
     protocol, by_pair = results
     consistency = np.array([result.consistency for result in by_pair.values()])
-    if protocol == "moved":  # documented: median 0.160 px, all 7 under 1 px (at most 0.654 px)
-        assert np.median(consistency) <= 0.25, consistency
-        assert np.all(consistency < 1.0), consistency
+    if protocol == "moved":  # documented: median 0.223 px, 24 of 25 under 1 px (02, mostly smoke, not)
+        assert np.median(consistency) <= 0.32, consistency
+        assert np.sum(consistency < 1.0) >= 23, consistency  # issue 11: at least 90 %
     else:  # documented: median 0.308 px, 6 of these 7 pairs under 1 px
         assert np.median(consistency) <= 0.40, consistency
         assert np.sum(consistency < 1.0) >= 5, consistency

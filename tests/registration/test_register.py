@@ -62,6 +62,7 @@ def test_a_masked_decoy_does_not_pull_the_registration(metric):
 @pytest.mark.parametrize(("mask", "message"), [
     (np.ones((10, 10), bool), "must have the moving image's shape"),
     (np.zeros((256, 320), bool), "marks no pixel"),
+    (np.pad(np.ones((12, 12), bool), ((100, 144), (150, 158))), "too little of the moving image with data"),
 ])
 def test_a_bad_moving_mask_is_refused_with_a_sentence(mask, message):
     visible, infrared, _ = scene_pair(21)
