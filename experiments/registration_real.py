@@ -23,9 +23,10 @@ the centred start). Times: each method in-process, and the whole
 included) on the moved pair.
 
 Usage: .venv/bin/python experiments/registration_real.py [--protocol moved|view] [--pairs 1 2 ...] [--seed 0]
-       [--methods NAME ...] [--no-cli] [--figure N] [--rows-out rows.json] [--from-rows a.json b.json ...]
-       [--objective-check]
-Prints Markdown tables; --figure N writes docs/figures/registration/real_pair_NN_edges.png.
+       [--methods NAME ...] [--no-cli] [--figure N] [--moved-figure N] [--rows-out rows.json]
+       [--from-rows a.json b.json ...] [--objective-check]
+Prints Markdown tables; --figure N writes docs/figures/registration/real_pair_NN_edges.png, --moved-figure N
+real_pair_NN_moved.png.
 """
 
 from __future__ import annotations
@@ -48,6 +49,7 @@ from services.formats.registration import load_registration  # noqa: E402
 from services.registration.consistency import move_consistency  # noqa: E402
 from services.registration.models import corner_error  # noqa: E402
 from services.registration.register import objective_value, register  # noqa: E402
+from services.registration.synthetic_pairs import moved_image  # noqa: E402
 
 TNO_DIR = ROOT.parent / "shared" / "data" / "tno-ir-visible"  # shared/ beside the clone
 FIGURES = ROOT / "docs" / "figures" / "registration"
@@ -207,6 +209,17 @@ def figure(number: int) -> None:
                 np.hstack([_edge_overlay(visible, infrared, np.eye(3)), gap, _edge_overlay(visible, infrared, matrix)]))
 
 
+def moved_figure(number: int, seed: int) -> None:
+    """The moved infrared image of one pair (what the move brought in, masked, in blue) with the visible edges
+    mapped by its NGF registration (green; infrared edges red, white where both)."""
+    visible, infrared = load_pair(number)
+    moved, mask, _ = moved_image(np.random.default_rng([seed, number]), infrared)
+    picture = _edge_overlay(visible, moved, thermofield_matrix(visible, moved, mask))
+    picture[~mask] = (96, 0, 0)
+    FIGURES.mkdir(parents=True, exist_ok=True)
+    cv2.imwrite(str(FIGURES / f"real_pair_{number:02d}_moved.png"), picture)
+
+
 def objective_check(numbers: list[int], seed: int, view: bool) -> None:
     """Whether NGF's inconsistency is the optimiser's or the objective's: each registration's NGF value beside
     the value of the other registration carried over by the known move, on the moved and on the whole image."""
@@ -238,6 +251,8 @@ def main() -> None:
                         metavar="NAME", help=f"methods to run (default: all of {', '.join(METHODS)})")
     parser.add_argument("--no-cli", action="store_true")
     parser.add_argument("--figure", type=int, metavar="PAIR", help="write the before/after overlay of this pair")
+    parser.add_argument("--moved-figure", type=int, metavar="PAIR",
+                        help="write the registered overlay of this pair's moved infrared image and its mask")
     parser.add_argument("--rows-out", type=Path, help="also save the per-pair results as JSON")
     parser.add_argument("--objective-check", action="store_true",
                         help="print NGF's value at each registration and at the other one carried over by the move")
@@ -262,6 +277,8 @@ def main() -> None:
     print_tables(rows)
     if args.figure is not None:
         figure(args.figure)
+    if args.moved_figure is not None:
+        moved_figure(args.moved_figure, args.seed)
 
 
 if __name__ == "__main__":
