@@ -61,7 +61,7 @@ def move_consistency(
         Draws the move: each shift component in +-30 px, rotation in +-4 degrees, scale in 0.93..1.07.
     view : bool
         Cut the moved image to the largest view inside the original (at most 90 % of its size) instead of
-        keeping its whole canvas with what the move brought in masked: the same move, a fifth or more of
+        keeping its whole canvas with what the move brought in masked: the same move, 19 % or more of
         the scene less to register, which tests how the result depends on the part of the scene seen.
 
     Returns

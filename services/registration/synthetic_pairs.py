@@ -237,7 +237,7 @@ def moved_view(
     s R(theta) (x - c). The view keeps the original aspect ratio at the
     largest fraction (at most ``largest_fraction``) of its size whose every
     pixel comes from inside the original, so that no pixel is invented; it
-    loses at least a fifth of the image's area to the cut, more than the move
+    loses at least 19 % of the image's area to the cut, more than the move
     itself.
 
     Returns
