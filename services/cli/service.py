@@ -10,7 +10,9 @@ import subprocess
 import sys
 import time
 from pathlib import Path
+from urllib.parse import urlsplit
 
+from services.cli.ports import Port, require_free
 from services.errors import InputError
 from services.settings import Settings
 
@@ -59,6 +61,18 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     revoke.set_defaults(handler=_revoke_api_key)
 
 
+def serve_ports(settings: Settings) -> list[Port]:
+    """Every port ``thermofield serve`` binds, with the option that moves it."""
+    ports = [Port(settings.api_host, settings.api_port, "the API", "--port"),
+             Port("127.0.0.1", settings.gateway_port, "the simulated gateway", "--gateway-port"),
+             Port(settings.rerun_host, settings.rerun_port, "the Rerun proxy", "--rerun-port")]
+    if settings.opcua_endpoint:
+        endpoint = urlsplit(settings.opcua_endpoint)
+        ports.append(Port(endpoint.hostname or "0.0.0.0", endpoint.port or 4840, "the OPC UA server",
+                          "THERMOFIELD_OPCUA_ENDPOINT"))
+    return ports
+
+
 def _settings(**overrides) -> Settings:
     return Settings(**{name: value for name, value in overrides.items() if value is not None})
 
@@ -75,6 +89,7 @@ def _serve(args: argparse.Namespace) -> int:
     settings = _settings(api_host=args.host, api_port=args.port, data_dir=args.data_dir, rerun_port=args.rerun_port,
                          gateway_port=args.gateway_port, broker_url="")
     settings = settings.model_copy(update={"gateway_url": f"http://127.0.0.1:{settings.gateway_port}"})
+    require_free(serve_ports(settings))
     runtime = build_runtime(settings)
     use_runtime(runtime)
     _ensure_simulator_calibration(runtime)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import math
 import re
 from pathlib import Path
 
@@ -14,13 +15,20 @@ from services.formats.images import read_frame_stack, write_image
 from services.formats.files import write_text_atomically
 from services.formats.rig import Rig, load_rig, save_rig
 from services.formats.sequence import load_sequence, save_sequence
+from services.formats.thermal import write_thermal_frame
 from services.simulation.presets import forging_rig, forging_scene, paper_plane, paper_rig, paper_sphere
 from services.simulation.render import CameraEffects, ProjectorEffects, render_frames, render_view
 from services.simulation.scene import Scene, load_scene
+from services.simulation.thermal import ThermalEffects, forging_temperatures, render_thermal
+
+# The thermal frame ``simulate`` writes beside the capture when the rig has one thermal camera and the scene's
+# temperatures are known: float32 degrees C, as `thermofield field --thermal` and `fuse` read it.
+THERMAL_FILE = "thermal.tiff"
 
 RIG_PRESETS = {"paper": paper_rig, "forging": forging_rig}
 SIXTEEN_BIT_SUFFIXES = (".png", ".tif", ".tiff")
-_SCENE_PRESET = re.compile(r"(paper-plane|paper-sphere):(\d+(?:\.\d+)?)|forging")
+# A preset's name and its size; the size is parsed as any number, so that a bad one is named as such.
+_SCENE_PRESET = re.compile(r"(paper-plane|paper-sphere):(.*)|forging")
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -29,7 +37,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         description="Render the camera frames of a virtual rig while the projector shows the patterns of "
                     "DIR/sequence.json, and write them under the manifest's names with sequence.json, rig.json, "
                     "scene.json and the ground truth (depth.npy, points.npy, projector_pixels.npy, "
-                    "lit_mask.png). See docs/simulator.md.",
+                    "lit_mask.png); when the rig has one thermal camera and the scene's temperatures are known (the forging "
+                    "preset, or a scene file with 'temperature'), also thermal.tiff, what that camera reads in "
+                    "degrees C. See docs/simulator.md.",
     )
     parser.add_argument("--scene", required=True, metavar="SCENE",
                         help="scene JSON file, or a preset: paper-plane:DEPTH_MM, paper-sphere:RADIUS_MM, forging")
@@ -65,9 +75,13 @@ def _scene(value: str) -> Scene:
         return load_scene(value)
     if value == "forging":
         return forging_scene()
-    size = float(preset[2])
-    if size <= 0:
-        raise InputError(f"--scene: the size in {value!r} must be positive")
+    what = "depth" if preset[1] == "paper-plane" else "radius"
+    try:
+        size = float(preset[2])
+    except ValueError:
+        raise InputError(f"--scene: the {what} in {value!r} is not a number (e.g. {preset[1]}:100)") from None
+    if not math.isfinite(size) or size <= 0:
+        raise InputError(f"--scene: the {what} in {value!r} must be a positive number of millimetres")
     return paper_plane(size) if preset[1] == "paper-plane" else paper_sphere(size)
 
 
@@ -129,4 +143,20 @@ def _run(args: argparse.Namespace) -> int:
     write_image(args.out / "lit_mask.png", view.truth.lit.astype(np.uint8) * 255)
     print(f"wrote {len(frames)} frames of {camera.width}x{camera.height} and the ground truth to {args.out} "
           f"({view.truth.lit.mean():.1%} of pixels lit)")
+    thermal = _thermal_view(args, scene, rig)
+    if thermal is not None:
+        write_thermal_frame(args.out / THERMAL_FILE, thermal)
+        print(f"wrote what the rig's thermal camera sees, in degrees C, to {args.out / THERMAL_FILE}")
     return 0
+
+
+def _thermal_view(args: argparse.Namespace, scene: Scene, rig: Rig) -> np.ndarray | None:
+    """The rig's thermal camera's image of a scene whose temperatures are known (the forging preset, or a scene
+    file with ``temperature``), or None when either is missing."""
+    temperatures = scene.temperature
+    if temperatures is None and args.scene == "forging":
+        temperatures = forging_temperatures()
+    thermal = [device for device in rig.devices.values() if device.kind == "thermal"]
+    if temperatures is None or len(thermal) != 1:
+        return None
+    return render_thermal(scene, temperatures, thermal[0], ThermalEffects(), np.random.default_rng(args.seed))

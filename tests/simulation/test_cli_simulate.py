@@ -92,7 +92,9 @@ def test_simulate_bad_inputs_exit_2_naming_the_problem(capture_inputs, capsys, c
     (["--noise", "-1"], "non-negative"),
     (["--camera", "thermal"], "no device named 'thermal'"),
     (["--rig", "paper"], "projector is 160x120 but the rig's projector is 1024x768"),
-    (["--scene", "paper-plane:0"], "must be positive"),
+    (["--scene", "paper-plane:0"], "must be a positive number"),
+    (["--scene", "paper-sphere:-100"], "the radius in 'paper-sphere:-100' must be a positive number"),
+    (["--scene", "paper-sphere:big"], "the radius in 'paper-sphere:big' is not a number"),
 ])
 def test_simulate_bad_options_exit_2(capture_inputs, capsys, extra, message):
     assert _simulate(capture_inputs, *extra) == 2
