@@ -96,7 +96,7 @@ def main() -> None:
     env = os.environ | {"THERMOFIELD_DATA_DIR": str(data_dir), "THERMOFIELD_SITE": "bench",
                         "THERMOFIELD_RATE_LIMIT_PER_S": "0"}
     serve = subprocess.Popen(THERMOFIELD + ["serve", "--port", str(port), "--gateway-port", str(gateway_port),
-                                            "--rerun-port", str(_free_port())],
+                                            "--rerun-port", str(_free_port()), "--rerun-web-port", str(_free_port())],
                              env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     try:
         base = f"http://127.0.0.1:{port}"

@@ -98,7 +98,7 @@ def main() -> None:
         started = time.perf_counter()
         server = subprocess.Popen([sys.executable, "-m", "services.cli.main", "serve", "--data-dir", data,
                                    "--port", str(port), "--gateway-port", str(_free_port()),
-                                   "--rerun-port", str(_free_port())], env=env, cwd=ROOT,
+                                   "--rerun-port", str(_free_port()), "--rerun-web-port", str(_free_port())], env=env, cwd=ROOT,
                                   stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
         latencies, stages, service_cpu, gateway_cpu = [], [], [], []
         try:

@@ -13,7 +13,7 @@ from functools import lru_cache
 from pathlib import Path
 from typing import Literal
 
-from pydantic import Field
+from pydantic import Field, field_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
 
@@ -77,6 +77,9 @@ class Settings(BaseSettings):
 
     rerun_host: str = Field("127.0.0.1", description="Address the Rerun gRPC proxy binds to / is reached at.")
     rerun_port: int = Field(9876, ge=0, le=65535, description="Port of the Rerun gRPC proxy.")
+    rerun_web_port: int | None = Field(
+        9090, ge=1, le=65535, description="Port of Rerun's web viewer, served by the embedded service's proxy on "
+                                          "THERMOFIELD_RERUN_HOST (docs/streaming.md); empty: none.")
 
     mqtt_host: str | None = Field("127.0.0.1", description="MQTT broker host; empty disables events.")
     mqtt_port: int = Field(1883, ge=1, le=65535, description="MQTT broker port.")
@@ -121,6 +124,11 @@ class Settings(BaseSettings):
     compute_threads: int = Field(2, ge=1, description="Numeric threads (numba, OpenCV, BLAS) per worker process.")
     warm_up: bool = Field(True, description="Compile the kernels and build the active calibration's tables when a "
                                             "worker starts (/readyz answers 503 meanwhile), so the first scan is fast.")
+
+    @field_validator("rerun_web_port", mode="before")
+    @classmethod
+    def _empty_is_none(cls, value: object) -> object:
+        return None if value == "" else value
 
     @property
     def resolved_database_url(self) -> str:

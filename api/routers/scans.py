@@ -6,7 +6,7 @@ import re
 from typing import Annotated
 
 import numpy as np
-from fastapi import APIRouter, Depends, Path, Request
+from fastapi import APIRouter, Depends, Path, Query, Request
 from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import FileResponse, Response
 from sqlalchemy import select
@@ -17,7 +17,7 @@ from api.idempotency import IdempotencyKeyHeader, Outcome, request_digest, respo
 from api.artifacts import stored_path
 from api.problems import Problem, problem_responses
 from api.schemas import Accepted, ScanJobRequest, ScanOut, ScanRequest
-from services.db.models import CalibrationSet, Job, PartType, Scan, new_id
+from services.db.models import TERMINAL_STATUSES, CalibrationSet, Job, PartType, Scan, new_id
 from services.db.parts import selected_part_type
 from services.formats.images import encode_frame
 
@@ -146,10 +146,20 @@ def _reconstructed_cloud(session, scan: Scan, body: ScanJobRequest) -> str:
 
 
 @router.get("", name="list_scans")
-def list_scans(session: SessionDep, _: ReaderKey) -> list[ScanOut]:
-    """The station's 100 most recent scans, newest first."""
-    rows = session.execute(select(Scan, Job).join(Job, Scan.job_id == Job.id)
-                           .order_by(Scan.created_at.desc()).limit(100))
+def list_scans(session: SessionDep, runtime: RuntimeDep, _: ReaderKey,
+               limit: Annotated[int, Query(ge=1, le=1000, description="At most this many scans.")] = 100,
+               part_id: Annotated[str | None, Query(max_length=200, description="Only the scans of this part "
+                                                                                "(the MES's identifier).")] = None,
+               part_type_id: Annotated[str | None, Query(max_length=64, description="Only the scans inspected "
+                                                                                    "against this part type.")] = None,
+               ) -> list[ScanOut]:
+    """The station's most recent scans, newest first, optionally only those of one part or part type."""
+    query = select(Scan, Job).join(Job, Scan.job_id == Job.id).where(Scan.station == runtime.settings.station)
+    if part_id is not None:
+        query = query.where(Scan.part_id == part_id)
+    if part_type_id is not None:
+        query = query.where(Scan.part_type_id == part_type_id)
+    rows = session.execute(query.order_by(Scan.created_at.desc(), Scan.id.desc()).limit(limit))
     return [scan_out(scan, job) for scan, job in rows]
 
 
@@ -162,14 +172,31 @@ def get_scan(scan: ExistingScan, session: SessionDep) -> ScanOut:
 
 @router.get("/{scan_id}/{artifact}", name="download_scan_artifact",
             responses={200: {"content": {"application/octet-stream": {}}}, **problem_responses(404)})
-def download_scan_artifact(scan: ExistingScan, runtime: RuntimeDep,
+def download_scan_artifact(scan: ExistingScan, runtime: RuntimeDep, session: SessionDep,
                            artifact: Annotated[str, Path(pattern=ARTIFACT_NAME_PATTERN)]):
     """The point cloud (``cloud.ply``), the temperature field (``field.ply``), its Rerun recording
     (``field.rrd``), all raw frames as one NumPy array (``frames.npy`` uint8/uint16, ``thermal.npy``
     float32 degrees C) or, when inspected, the report (``report.json``) and the cold-equivalent cloud with
     the per-point ``deviation`` (``deviation.ply``)."""
-    return _artifact_file(runtime, scan, scan.artifacts.get(artifact), f"{scan.id}-{artifact}",
-                          ARTIFACT_MEDIA_TYPES[artifact])
+    digest = scan.artifacts.get(artifact)
+    if digest is None:
+        _never_or_not_yet(scan, session.get(Job, scan.job_id), artifact)
+    return _artifact_file(runtime, scan, digest, f"{scan.id}-{artifact}", ARTIFACT_MEDIA_TYPES[artifact])
+
+
+_INSPECTION_ARTIFACTS = frozenset({"report.json", "deviation.ply"})
+
+
+def _never_or_not_yet(scan: Scan, job: Job, artifact: str) -> None:
+    """A 404 that says whether the artifact may still come: ``not-ready`` while the scan's job runs, else
+    ``not-found`` with the reason it never will (no part type to inspect against, or the job's end)."""
+    if artifact in _INSPECTION_ARTIFACTS and scan.part_type_id is None:
+        raise Problem(404, "not-found", f"Scan {scan.id} has no {artifact} and will have none: it was not "
+                                        "inspected (no part type was named or selected when it started).")
+    if job.status in TERMINAL_STATUSES:
+        raise Problem(404, "not-found", f"Scan {scan.id} has no {artifact} and will have none: its job "
+                                        f"{job.id} has {job.status}.")
+    raise Problem(404, "not-ready", f"Scan {scan.id} has no {artifact} yet; its job {job.id} is {job.status}.")
 
 
 @router.get("/{scan_id}/{kind}/{index}.{suffix}", name="download_scan_frame",

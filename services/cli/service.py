@@ -26,6 +26,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     serve.add_argument("--data-dir", type=Path, help="database and artifacts (default ./thermofield-data)")
     serve.add_argument("--gateway-port", type=int, help="port of the simulated gateway (default 8001)")
     serve.add_argument("--rerun-port", type=int, help="port of the Rerun gRPC proxy (default 9876)")
+    serve.add_argument("--rerun-web-port", type=int, help="port of Rerun's web viewer (default 9090)")
     serve.set_defaults(handler=_serve)
 
     api = subparsers.add_parser("api")
@@ -66,6 +67,8 @@ def serve_ports(settings: Settings) -> list[Port]:
     ports = [Port(settings.api_host, settings.api_port, "the API", "--port"),
              Port("127.0.0.1", settings.gateway_port, "the simulated gateway", "--gateway-port"),
              Port(settings.rerun_host, settings.rerun_port, "the Rerun proxy", "--rerun-port")]
+    if settings.rerun_web_port:
+        ports.append(Port(settings.rerun_host, settings.rerun_web_port, "Rerun's web viewer", "--rerun-web-port"))
     if settings.opcua_endpoint:
         endpoint = urlsplit(settings.opcua_endpoint)
         ports.append(Port(endpoint.hostname or "0.0.0.0", endpoint.port or 4840, "the OPC UA server",
@@ -87,9 +90,10 @@ def _serve(args: argparse.Namespace) -> int:
     from workers.broker import setup_broker
 
     settings = _settings(api_host=args.host, api_port=args.port, data_dir=args.data_dir, rerun_port=args.rerun_port,
-                         gateway_port=args.gateway_port, broker_url="")
+                         rerun_web_port=args.rerun_web_port, gateway_port=args.gateway_port, broker_url="")
     settings = settings.model_copy(update={"gateway_url": f"http://127.0.0.1:{settings.gateway_port}"})
     require_free(serve_ports(settings))
+    signal.signal(signal.SIGTERM, _exit_on_terminate)  # while starting too: the children below are stopped
     runtime = build_runtime(settings)
     use_runtime(runtime)
     _ensure_simulator_calibration(runtime)
@@ -97,7 +101,7 @@ def _serve(args: argparse.Namespace) -> int:
     jobs = JobQueue(broker, settings.job_queue)
     worker = dramatiq.Worker(broker, worker_threads=settings.worker_threads)
     with (_GatewayProcess(settings.gateway_port) as gateway,
-          RerunProxy(settings.rerun_host, settings.rerun_port) as proxy, _maintenance_thread(runtime),
+          RerunProxy(settings.rerun_host, settings.rerun_port, web_port=settings.rerun_web_port) as proxy, _maintenance_thread(runtime),
           _opcua_server(runtime)):
         gateway.wait_until_healthy()
         worker.start()
@@ -105,6 +109,8 @@ def _serve(args: argparse.Namespace) -> int:
         print(f"thermofield: API on http://{settings.api_host}:{settings.api_port} "
               f"(docs at /docs), data in {settings.data_dir.resolve()}", flush=True)
         print(f"thermofield: Rerun: rerun --connect {proxy.url}", flush=True)
+        if proxy.viewer_url:
+            print(f"thermofield: Rerun in a browser: {proxy.viewer_url}", flush=True)
         try:
             _run_uvicorn(create_app(runtime, jobs), settings)
         finally:
@@ -176,8 +182,10 @@ class _GatewayProcess:
         self.port = port
 
     def __enter__(self) -> _GatewayProcess:
+        # In a session of its own, so that a Ctrl-C in the terminal reaches only the service, which stops it.
         self.process = subprocess.Popen([sys.executable, "-m", "services.cli.main", "gateway", "--driver", "simulated",
-                                         "--host", "127.0.0.1", "--port", str(self.port)], stdin=subprocess.DEVNULL)
+                                         "--host", "127.0.0.1", "--port", str(self.port)], stdin=subprocess.DEVNULL,
+                                        start_new_session=True)
         return self
 
     def wait_until_healthy(self) -> None:

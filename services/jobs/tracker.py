@@ -31,6 +31,13 @@ class JobBusy(Exception):
     that worker dropped, the worker did not)."""
 
 
+def utc_timestamp(moment: datetime | None) -> str | None:
+    """ISO 8601 in UTC with a ``Z``, as the API's pydantic bodies write it, so that GET, SSE and MQTT agree."""
+    if moment is None:
+        return None
+    return (moment if moment.tzinfo else moment.replace(tzinfo=UTC)).astimezone(UTC).isoformat().replace("+00:00", "Z")
+
+
 def job_state(job: Job) -> dict[str, Any]:
     """The public state of a job (the API body and the MQTT payload share it)."""
     return {
@@ -44,9 +51,9 @@ def job_state(job: Job) -> dict[str, Any]:
         "error": job.error,
         "result": job.result,
         "scan_id": job.params.get("scan_id"),
-        "created_at": job.created_at.isoformat() if job.created_at else None,
-        "started_at": job.started_at.isoformat() if job.started_at else None,
-        "finished_at": job.finished_at.isoformat() if job.finished_at else None,
+        "created_at": utc_timestamp(job.created_at),
+        "started_at": utc_timestamp(job.started_at),
+        "finished_at": utc_timestamp(job.finished_at),
     }
 
 

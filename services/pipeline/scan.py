@@ -24,7 +24,7 @@ from services.pipeline.reconstruct import reconstruct_capture
 from services.pipeline.summary import field_summary, glow_summary
 from services.pipeline.tables import TriangulationTables
 from services.storage.artifacts import ArtifactStore, ArtifactWriter
-from services.streaming.field import FieldScene, field_scene
+from services.streaming.field import FieldScene, field_scene, verdict_markdown
 from services.streaming.recording import scan_recording
 
 Progress = Callable[[str, float], None]
@@ -126,7 +126,8 @@ def scan_capture(*, scan_id: str, frames: np.ndarray, sequence: Sequence, therma
         writer.put_made(lambda: field_artifacts(outcome))
         clock.start("stream", 0.7)
         deviation = None if outcome.inspection is None else outcome.inspection.deviation
-        scene = field_scene(outcome.field, rig, thermal[0], deviation=deviation)
+        verdict = None if outcome.inspection is None else verdict_markdown(outcome.inspection.report)
+        scene = field_scene(outcome.field, rig, thermal[0], deviation=deviation, verdict=verdict)
         writer.put({"field.rrd": scan_recording(scan_id, scene, captured_at)})
         if publish is not None:
             publish(scene, captured_at)

@@ -8,6 +8,8 @@ Entity tree (world frame = the rig's world frame, OpenCV axes, millimetres):
 - ``world/deviation``: the inspected part's points (as measured, beside the field) coloured by their
   deviation from the nominal part (diverging map over the surface tolerance: blue missing material,
   red excess), with the per-point ``deviation`` (mm) alongside; cleared for a scan not inspected.
+- ``verdict``: the inspection's verdict and features as a Markdown ``TextDocument``; cleared for a scan
+  not inspected.
 - ``world/devices/<name>``: ``Transform3D`` of the device pose; our poses map world
   to device (x_dev = R x_world + t), Rerun's child-from-parent relation.
 - ``world/devices/<name>/image``: ``Pinhole`` (K, resolution; lens distortion is
@@ -29,6 +31,7 @@ from services.geometry.cloud import PointCloud
 FIELD_ENTITY = "world/field"
 DEVIATION_ENTITY = "world/deviation"
 DEVICES_ENTITY = "world/devices"
+VERDICT_ENTITY = "verdict"
 _DEVICE_COLORS = {"camera": (80, 160, 255), "projector": (255, 220, 80), "thermal": (255, 90, 60)}
 
 
@@ -59,6 +62,7 @@ def field_scene(
     thermal_image: np.ndarray | None = None,
     thermal_device: str | None = None,
     deviation: Mapping[str, np.ndarray] | None = None,
+    verdict: str | None = None,
 ) -> FieldScene:
     """The field with the rig's device frusta and, optionally, the thermal frame it was fused from.
 
@@ -77,6 +81,8 @@ def field_scene(
     deviation : mapping of 1-D arrays, optional
         The inspection's deviation cloud (``services.pipeline.inspect.InspectionOutcome.deviation``): the
         field's points with ``deviation`` (mm, NaN off the part) and its colours ``red, green, blue``.
+    verdict : str, optional
+        The inspection's verdict as Markdown (:func:`verdict_markdown`).
 
     Notes
     -----
@@ -97,7 +103,9 @@ def field_scene(
         colours = temperature_colors(temperature, low, high)
     entities = [*_rig_entities(rig),
                 (FIELD_ENTITY, (rr.Points3D(positions, colors=colours), rr.AnyValues(temperature=temperature))),
-                (DEVIATION_ENTITY, _deviation_layer(deviation))]
+                (DEVIATION_ENTITY, _deviation_layer(deviation)),
+                (VERDICT_ENTITY, (rr.Clear(recursive=False),) if verdict is None else
+                 (rr.TextDocument(verdict, media_type=rr.MediaType.MARKDOWN),))]
     if thermal_image is not None:
         name, device = rig.device(thermal_device, "thermal")
         thermal_image = np.asarray(thermal_image, dtype=np.float32)
@@ -108,6 +116,24 @@ def field_scene(
             )
         entities.append((f"{DEVICES_ENTITY}/{name}/image", (rr.Image(temperature_colors(thermal_image, low, high)),)))
     return FieldScene(tuple(entities))
+
+
+def verdict_markdown(report: Mapping) -> str:
+    """An inspection report (docs/inspection.md) as a short Markdown page: the verdict, then one table row per
+    feature and the surface."""
+    lines = [f"# {report.get('part', 'part')}: {report['verdict']}", "",
+             "| feature | cold | nominal | deviation | U (k=2) | verdict |", "|---|---|---|---|---|---|"]
+    for feature in report.get("features", []):
+        if "deviation" not in feature or feature.get("deviation") is None:
+            lines.append(f"| {feature['name']} | | | | | {feature['verdict']} |")
+            continue
+        lines.append(f"| {feature['name']} | {feature['cold']:.3f} | {feature['nominal']:.3f} | "
+                     f"{feature['deviation']:+.3f} | {feature['uncertainty']:.3f} | {feature['verdict']} |")
+    surface = report.get("surface")
+    if surface and surface.get("cell_min") is not None:
+        lines.append(f"| surface | | | {surface['cell_min']:+.3f}..{surface['cell_max']:+.3f} | "
+                     f"{surface['uncertainty']:.3f} | {surface['verdict']} |")
+    return "\n".join(lines) + "\n"
 
 
 def _deviation_layer(deviation: Mapping[str, np.ndarray] | None) -> tuple:

@@ -162,6 +162,10 @@ def test_job_events_stream_until_the_job_is_done(client, auth, runtime):
         assert response.headers["content-type"].startswith("text/event-stream")
         text = "".join(response.iter_text())
     assert "event: done" in text and '"status":"succeeded"' in text.replace(" ", "")
+    streamed = json.loads(text.split("event: done", 1)[1].split("data:", 1)[1].splitlines()[0])
+    polled = client.get(f"/v1/jobs/{job_id}", headers=auth["read"]).json()
+    for moment in ("created_at", "started_at", "finished_at"):  # one spelling of a time, over SSE and GET alike
+        assert streamed[moment] == polled[moment] and polled[moment].endswith("Z")
 
 
 def test_metrics_count_requests_and_jobs(client, auth):
@@ -316,3 +320,32 @@ def test_a_body_that_cannot_be_parsed_is_a_422_problem_naming_the_body(client, a
                           content=b"{\"part_id\": \"\xc3\x28\"}")  # not UTF-8
     assert refused.status_code == 422 and refused.headers["content-type"] == PROBLEM
     assert refused.json()["errors"][0]["field"] == "body" and "parsing the body" in refused.json()["detail"]
+
+
+def test_scans_are_found_by_part_id_and_limited(client, auth, runtime):
+    upload_rig(client, auth["admin"])
+    made = [client.post("/v1/scans", headers=auth["operate"], json={"part_id": part}).json()["scan_id"]
+            for part in ("a", "b", "a", "c")]
+    listed = client.get("/v1/scans", headers=auth["read"]).json()
+    assert [scan["scan_id"] for scan in listed] == made[::-1]
+    by_part = client.get("/v1/scans", params={"part_id": "a"}, headers=auth["read"]).json()
+    assert [scan["scan_id"] for scan in by_part] == [made[2], made[0]]
+    assert [s["scan_id"] for s in client.get("/v1/scans?limit=2", headers=auth["read"]).json()] == made[:1:-1]
+    assert client.get("/v1/scans", params={"part_id": "zzz"}, headers=auth["read"]).json() == []
+    bad = client.get("/v1/scans?limit=0", headers=auth["read"])
+    assert bad.status_code == 422 and bad.headers["content-type"] == "application/problem+json"
+
+
+def test_a_report_that_will_never_come_is_not_announced_as_not_ready(client, auth, runtime):
+    upload_rig(client, auth["admin"])
+    accepted = client.post("/v1/scans", headers=auth["operate"]).json()
+    scan_url = f"/v1/scans/{accepted['scan_id']}"
+    pending = client.get(f"{scan_url}/field.ply", headers=auth["read"]).json()
+    assert pending["type"].endswith("/not-ready") and "is queued" in pending["detail"]
+    never = client.get(f"{scan_url}/report.json", headers=auth["read"])  # no part type: no inspection, ever
+    assert never.status_code == 404 and never.json()["type"].endswith("/not-found")
+    assert "will have none" in never.json()["detail"] and "not inspected" in never.json()["detail"]
+    runtime.tracker.start(accepted["job_id"])
+    runtime.tracker.fail(accepted["job_id"], "RuntimeError: the camera was lost", will_retry=False)
+    failed = client.get(f"{scan_url}/field.ply", headers=auth["read"]).json()
+    assert failed["type"].endswith("/not-found") and "has failed" in failed["detail"]

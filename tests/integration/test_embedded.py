@@ -27,7 +27,7 @@ def test_embedded_scan_from_http_to_an_accurate_field(e2e, tmp_path):
     env = {"THERMOFIELD_DATA_DIR": str(tmp_path / "data"), "THERMOFIELD_SITE": site}
     port = e2e.free_port()
     restart_arguments = ["serve", "--port", str(port), "--gateway-port", str(e2e.free_port()),
-                         "--rerun-port", str(e2e.free_port())]
+                         "--rerun-port", str(e2e.free_port()), "--rerun-web-port", str(e2e.free_port())]
     e2e.processes.start("serve", restart_arguments, env)
     e2e.processes.wait_until_healthy(f"http://127.0.0.1:{port}/readyz", "serve")
     assert f"http://127.0.0.1:{port}" in e2e.processes.log("serve")
@@ -116,7 +116,7 @@ def test_embedded_scan_with_a_part_type_is_inspected_over_http_mqtt_and_opcua(e2
            "THERMOFIELD_OPCUA_ENDPOINT": endpoint}
     port = e2e.free_port()
     e2e.processes.start("serve", ["serve", "--port", str(port), "--gateway-port", str(e2e.free_port()),
-                                  "--rerun-port", str(e2e.free_port())], env)
+                                  "--rerun-port", str(e2e.free_port()), "--rerun-web-port", str(e2e.free_port())], env)
     e2e.processes.wait_until_healthy(f"http://127.0.0.1:{port}/readyz", "serve")
     assert f"OPC UA on {endpoint}" in e2e.processes.log("serve")
     admin = e2e.create_key(env, ["admin"])

@@ -27,7 +27,7 @@ def test_a_scan_of_a_glowing_part_reports_the_glow_and_measures_the_part(e2e, tm
            "THERMOFIELD_CAMERA_EXPOSURE_MODE": "auto"}
     port = e2e.free_port()
     e2e.processes.start("serve", ["serve", "--port", str(port), "--gateway-port", str(e2e.free_port()),
-                                  "--rerun-port", str(e2e.free_port())], env)
+                                  "--rerun-port", str(e2e.free_port()), "--rerun-web-port", str(e2e.free_port())], env)
     e2e.processes.wait_until_healthy(f"http://127.0.0.1:{port}/readyz", "serve")
     admin = e2e.create_key(env, ["admin"])
     events = e2e.mqtt(f"{site}/station1")

@@ -203,8 +203,8 @@ def test_a_real_scan_with_mosquitto_down_publishes_its_states_when_it_returns(pr
     port = free_port()
     with open(tmp_path / "serve.log", "wb") as log:
         serve = subprocess.Popen([*command, "serve", "--port", str(port), "--gateway-port", str(free_port()),
-                                  "--rerun-port", str(free_port())], env=env, stdout=log, stderr=subprocess.STDOUT,
-                                 stdin=subprocess.DEVNULL, start_new_session=True)
+                                  "--rerun-port", str(free_port()), "--rerun-web-port", str(free_port())], env=env,
+                                 stdout=log, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, start_new_session=True)
     prefix = f"{site}/station1"
     mes = _Subscriber(private_mosquitto.port, prefix, client_id=f"mes-{uuid.uuid4().hex[:8]}", persistent=True)
     try:
