@@ -10,6 +10,7 @@ from fastapi.routing import APIRoute
 
 from api.bodylimit import BodySizeLimit
 from api.deps import KeyCache
+from api.docs import install_offline_docs
 from api.metrics import ApiMetrics, MetricsMiddleware
 from api.problems import install_problem_handlers, problem_responses
 from api.ratelimit import RateLimiter
@@ -43,6 +44,7 @@ def create_app(runtime: Runtime, job_queue: JobQueue) -> FastAPI:
         # FastAPI's own OpenTelemetry hooks look the global providers up on every request; the service's
         # metrics are its Prometheus ones (api/metrics.py), so they are off
         telemetry={"tracing": False, "metrics": False, "logs": False},
+        docs_url=None, redoc_url=None,  # served by install_offline_docs, without a CDN
     )
     app.state.runtime = runtime
     app.state.jobs = outbox
@@ -56,6 +58,7 @@ def create_app(runtime: Runtime, job_queue: JobQueue) -> FastAPI:
     # each router straight under /v1 (one level of FastAPI's route matching less than a /v1 router of routers), the
     # jobs first: the polls match at once
     for module in (jobs, scans, calibrations, parts, devices, apikeys):
-        app.include_router(module.router, prefix="/v1", responses=problem_responses(401, 403, 413, 422, 429, 503))
+        app.include_router(module.router, prefix="/v1", responses=problem_responses(401, 403, 413, 415, 422, 429, 503))
     app.include_router(health.router)
+    install_offline_docs(app)
     return app

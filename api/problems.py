@@ -37,6 +37,7 @@ _PROBLEM_DESCRIPTIONS = {
     404: "No such resource, or not produced yet.",
     409: "The request conflicts with the station's state.",
     413: "The request body or an uploaded file is too large.",
+    415: "A JSON body sent without Content-Type: application/json.",
     422: "The request or an uploaded file is invalid.",
     429: "The API key is over its rate limit; see Retry-After.",
     502: "The device gateway is unreachable.",
@@ -62,6 +63,9 @@ class Problem(Exception):
         self.extensions = extensions
 
 
+_NOT_AN_OBJECT = frozenset({"model_attributes_type", "dict_type", "model_type"})
+
+
 def install_problem_handlers(app: FastAPI) -> None:
     """Turn every exception into problem+json: ours, HTTP errors, validation errors and bugs."""
 
@@ -76,6 +80,15 @@ def install_problem_handlers(app: FastAPI) -> None:
 
     @app.exception_handler(RequestValidationError)
     async def _validation(request: Request, error: RequestValidationError) -> JSONResponse:
+        content_type = request.headers.get("content-type", "")
+        if "json" not in content_type.lower() and any(
+                tuple(item["loc"]) == ("body",) and item["type"] in _NOT_AN_OBJECT for item in error.errors()):
+            # FastAPI parses a body as JSON only when its Content-Type says so; any other body reaches the
+            # model as raw bytes, whose error ("not a valid dictionary") would hide what is wrong
+            detail = (f"body: a JSON body must be sent with Content-Type: application/json "
+                      f"(got {content_type or 'no Content-Type'})")
+            return problem_response(415, "unsupported-media-type", detail, request.url.path,
+                                    errors=[{"field": "body", "message": detail.removeprefix("body: ")}])
         errors = [
             {"field": ".".join(str(part) for part in item["loc"]), "message": item["msg"]} for item in error.errors()
         ]

@@ -1,5 +1,6 @@
 import io
 import json
+import re
 
 import cv2
 import numpy as np
@@ -349,3 +350,22 @@ def test_a_report_that_will_never_come_is_not_announced_as_not_ready(client, aut
     runtime.tracker.fail(accepted["job_id"], "RuntimeError: the camera was lost", will_retry=False)
     failed = client.get(f"{scan_url}/field.ply", headers=auth["read"]).json()
     assert failed["type"].endswith("/not-found") and "has failed" in failed["detail"]
+
+
+def test_a_json_body_without_content_type_is_refused_for_what_it_lacks(client, auth):
+    upload_rig(client, auth["admin"])
+    refused = client.post("/v1/scans", headers={**auth["operate"], "Content-Type": ""}, content=b'{"part_id": "a"}')
+    assert refused.status_code == 415 and refused.headers["content-type"] == PROBLEM, refused.text
+    assert "Content-Type: application/json" in refused.json()["detail"]
+
+
+def test_the_api_docs_need_no_internet(client):
+    for page in ("/docs", "/redoc"):
+        html = client.get(page).text
+        sources = re.findall(r'(?:src|href)="([^"]+)"', html)
+        assert sources and all(source.startswith("/docs-assets/") or source == "/openapi.json" for source in sources)
+        assert "https://" not in html, page  # no CDN, no web font
+        for source in sources:
+            if source.startswith("/docs-assets/"):
+                asset = client.get(source)
+                assert asset.status_code == 200 and len(asset.content) > 1000, source

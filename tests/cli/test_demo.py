@@ -8,6 +8,7 @@ import subprocess
 import sys
 import time
 
+import cv2
 import httpx
 import numpy as np
 
@@ -26,6 +27,41 @@ def _demo(tmp_path, port, *extra, web_port=None):
          "--port", str(port), "--gateway-port", str(_free_port()), "--rerun-port", str(_free_port()),
          "--rerun-web-port", str(web_port or _free_port()), *extra],
         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True)
+
+
+CHROMIUM = "/usr/bin/chromium"  # Debian's, installed by `make test` (a browser download would need the internet)
+
+
+def _hot_pixels_in_browser(url: str, timeout_s: float = 420.0) -> int:
+    """Open ``url`` in headless Chromium with only 127.0.0.1 reachable, as on a plant network, and wait until
+    the page shows a hot part: pixels of the field's colour map (inferno) at its top, yellow to orange, below
+    the viewer's top bar. Returns how many there are (0 when none appeared within ``timeout_s``)."""
+    from playwright.sync_api import sync_playwright
+
+    with sync_playwright() as playwright:
+        browser = playwright.chromium.launch(executable_path=CHROMIUM, args=[
+            "--no-sandbox", "--disable-gpu", "--disable-background-networking", "--disable-component-update",
+            "--disable-sync", "--no-first-run"])
+        try:
+            page = browser.new_page(viewport={"width": 1280, "height": 800})
+            page.route("**/*", lambda route: route.continue_() if route.request.url.startswith("http://127.0.0.1")
+                       else route.abort())
+            page.goto(url, timeout=120_000)
+            deadline = time.monotonic() + timeout_s
+            while time.monotonic() < deadline:
+                time.sleep(10)
+                try:
+                    shot = page.screenshot(timeout=60_000)
+                except Exception:  # the viewer's WebAssembly is still compiling on a loaded machine
+                    continue
+                bgr = cv2.imdecode(np.frombuffer(shot, np.uint8), cv2.IMREAD_COLOR)[60:]
+                blue, green, red = (bgr[..., k].astype(int) for k in range(3))
+                hot = int(((red > 200) & (green > 90) & (red - blue > 90)).sum())
+                if hot > 500:
+                    return hot
+            return 0
+        finally:
+            browser.close()
 
 
 def _read_until(demo, marker, seconds=600) -> str:
@@ -51,6 +87,7 @@ def test_demo_scans_inspects_keeps_serving_and_stops_on_ctrl_c_with_130(tmp_path
         assert scans.status_code == 200 and len(scans.json()) == 1
         viewer = re.search(r"in a browser, live: +(http://\S+)", stdout)[1]
         assert "Rerun" in httpx.get(viewer, timeout=10).text  # the web viewer's page, served by the service
+        assert _hot_pixels_in_browser(viewer) > 500, "the browser shows no hot part at the printed URL"
         os.killpg(demo.pid, signal.SIGINT)  # Ctrl-C in a terminal reaches the whole process group
         rest, stderr = demo.communicate(timeout=60)
     finally:
