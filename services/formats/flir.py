@@ -94,12 +94,21 @@ def read_flir_jpeg(content: bytes, source: str) -> FlirImage:
 
     if content[:2] != b"\xff\xd8":
         raise InputError(f"{source}: not a FLIR radiometric JPEG (not a JPEG file)")
+    complete = content.rstrip(b"\x00").endswith(b"\xff\xd9")  # the JPEG end-of-image marker
     try:
         flir = extract_flir_app1(io.BytesIO(content))
-    except (ValueError, KeyError) as error:  # flyr says ValueError; a missing chunk is a KeyError
-        reason = "no FLIR radiometric data; a plain JPEG?" if "no metadata" in str(error) else \
-            f"incomplete FLIR data, {error}"
+    except KeyError as error:  # flyr joins the chunks it found; a missing one is a KeyError
+        raise InputError(f"{source}: FLIR radiometric JPEG is truncated (FLIR data chunk {error} is missing)") \
+            from None
+    except ValueError as error:
+        reason = str(error)
+        if "no metadata" in reason:
+            reason = "no FLIR radiometric data; a plain JPEG?" if complete else \
+                "no FLIR radiometric data, and the file is truncated"
         raise InputError(f"{source}: not a FLIR radiometric JPEG ({reason})") from None
+    if not complete:
+        raise InputError(f"{source}: FLIR radiometric JPEG is truncated (it does not end with the JPEG end-of-image "
+                         "marker)")
     try:
         records = parse_flir_records(flir)
     except Exception:  # flyr reads offsets without checks; any failure means corrupt records
