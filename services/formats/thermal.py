@@ -277,6 +277,21 @@ def decode_thermal_frame(
     return temperature.astype(np.float32)
 
 
+def is_radiometric_file(content: bytes, suffix: str) -> bool:
+    """Whether an image file is a radiometric thermal file (a FLIR R-JPEG, or a float TIFF of degrees C) rather
+    than an 8- or 16-bit grey image, e.g. a board image."""
+    suffix = suffix.lower()
+    if suffix in JPEG_SUFFIXES:
+        return True
+    if suffix not in (".tif", ".tiff"):
+        return False
+    try:
+        with tifffile.TiffFile(BytesIO(content)) as tiff:
+            return tiff.pages[0].dtype.kind == "f"
+    except Exception:  # not a readable TIFF: the image reader names what is wrong
+        return False
+
+
 def write_thermal_frame(path: str | Path, temperature: np.ndarray) -> None:
     """Write a temperature image (degrees C): float32 for ``.tif``/``.tiff``/``.npy``, centikelvin for ``.png``.
 
