@@ -174,8 +174,8 @@ def _camera_name(content: bytes) -> str:
 def flir_temperature(image: FlirImage, conditions: FlirConditions | None = None) -> np.ndarray:
     """Object temperature (degrees C, float64) of an R-JPEG by FLIR's model, with the file's conditions or
     ``conditions`` (see :func:`with_overrides`)."""
-    # Not flyr's own conversion: it is private to its thermogram object and rounds the stored temperatures to
-    # 0.01 K; one model (services/fusion/radiometry.py) serves R-JPEGs, sidecar counts and apparent frames alike.
+    # Not flyr's own conversion: it is private to its thermogram object (no function on arrays), and one model
+    # (services/fusion/radiometry.py) serves R-JPEGs, sidecar counts and apparent frames alike.
     c = image.conditions if conditions is None else conditions
     problem = c.problem()
     if problem:
