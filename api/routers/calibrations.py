@@ -26,10 +26,8 @@ from api.schemas import Accepted, CalibrationSetOut, StereoCaptureRequest
 from services.db.calibrations import activate_calibration
 from services.db.models import CalibrationSet
 from services.formats.board import MIN_VIEWS, parse_board
-from services.formats.flir import JPEG_SUFFIXES
 from services.formats.images import FRAME_SUFFIXES
 from services.formats.rig import Rig, parse_rig, rig_to_json
-from services.formats.thermal import decode_thermal_frame, is_radiometric_file
 
 router = APIRouter(prefix="/calibration-sets", tags=["calibration"])
 _MAX_RIG_BYTES = 1 << 20
@@ -114,6 +112,10 @@ async def start_stereo_calibration(
     _, camera = rig.device(None, "camera")
     sizes = {"reference_images": (camera.width, camera.height),
              "device_images": (rig.devices[device].width, rig.devices[device].height)}
+    # the thermal reader brings the radiometric model, science the API does not load at start
+    from services.formats.flir import JPEG_SUFFIXES
+    from services.formats.thermal import decode_thermal_frame, is_radiometric_file
+
     checked = {}  # every upload is checked before anything is stored
     for field, uploads in (("reference_images", reference_images), ("device_images", device_images)):
         checked[field] = []
