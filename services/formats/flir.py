@@ -124,7 +124,7 @@ def read_flir_jpeg(content: bytes, source: str) -> FlirImage:
         if offset + length > flir_bytes:
             raise InputError(f"{source}: FLIR radiometric JPEG is truncated (its {index.name.lower()} record ends "
                              f"at byte {offset + length} of {flir_bytes})")
-    _, _, raw_offset, raw_length = records[RecordIndex.RAW_DATA.value]
+    raw_offset = records[RecordIndex.RAW_DATA.value][2]
     flir.seek(raw_offset + 2)
     width, height = (int.from_bytes(flir.read(2), "little") for _ in range(2))
     check_declared_size(width, height, source)
@@ -132,7 +132,7 @@ def read_flir_jpeg(content: bytes, source: str) -> FlirImage:
         _, _, counts = parse_raw_data(flir, records[RecordIndex.RAW_DATA.value])
         info = parse_camera_info(flir, records[RecordIndex.CAMERA_INFO.value])
     except Exception as error:  # PIL, numpy and struct raise many types for a corrupt record
-        raise InputError(f"{source}: FLIR radiometric JPEG with a corrupt raw thermal image "
+        raise InputError(f"{source}: FLIR radiometric JPEG with a corrupt raw thermal image or camera information "
                          f"({type(error).__name__}: {error})") from None
     if counts.shape != (height, width) or counts.min() < 0 or counts.max() > 65535:
         raise InputError(f"{source}: FLIR raw thermal image is not {width}x{height} 16-bit counts (corrupt)")

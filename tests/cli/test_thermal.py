@@ -120,7 +120,8 @@ def test_fuse_takes_an_r_jpeg_as_its_converted_tiff(tmp_path):
     assert seen.mean() > 0.9
     np.testing.assert_array_equal(fields["jpeg"], fields["tiff"])
     frame = tifffile.imread(converted)
-    assert np.nanmin(frame) - 1e-3 <= fields["jpeg"][seen].min() and fields["jpeg"][seen].max() <= np.nanmax(frame) + 1e-3
+    fused = fields["jpeg"][seen]
+    assert np.nanmin(frame) - 1e-3 <= fused.min() and fused.max() <= np.nanmax(frame) + 1e-3
 
 
 def test_fuse_names_a_bad_r_jpeg(tmp_path):

@@ -68,7 +68,8 @@ class Model:
         h2o = self.RH * math.exp(1.5587 + 0.06939 * self.ATemp - 0.00027816 * self.ATemp ** 2
                                  + 0.00000068455 * self.ATemp ** 3)
         half = math.sqrt(self.OD / 2)
-        self.tau1 = x * math.exp(-half * (a1 + b1 * math.sqrt(h2o))) + (1 - x) * math.exp(-half * (a2 + b2 * math.sqrt(h2o)))
+        self.tau1 = (x * math.exp(-half * (a1 + b1 * math.sqrt(h2o)))
+                     + (1 - x) * math.exp(-half * (a2 + b2 * math.sqrt(h2o))))
         self.tau2 = self.tau1
 
     def planck(self, celsius):
