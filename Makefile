@@ -10,7 +10,7 @@ DEMO_DIR ?= demo-output
 PIP_INSTALL = python -m pip install --quiet --constraint constraints.txt
 
 .PHONY: install install-test demo test test-fast test-py312 test-containers test-reliability test-soak images podman \
-	constraints clean docker-compose system-libraries
+	constraints clean docker-compose system-libraries exiftool
 
 install: $(VENV)/.installed
 
@@ -21,7 +21,7 @@ $(VENV)/.installed: pyproject.toml constraints.txt | system-libraries
 
 install-test: $(VENV)/.installed-test
 
-$(VENV)/.installed-test: pyproject.toml constraints.txt | system-libraries
+$(VENV)/.installed-test: pyproject.toml constraints.txt | system-libraries exiftool
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
 	$(BIN)/$(PIP_INSTALL) -e '.[test,gateway,containers]'
 	touch $(VENV)/.installed $@
@@ -35,6 +35,11 @@ test: install-test docker-compose
 # Open3D (the inspection's meshes and distance queries) loads libusb, libGL and libEGL from the system.
 system-libraries:
 	ldconfig -p | grep -q 'libusb-1.0.so.0' && ldconfig -p | grep -q 'libEGL.so.1' || { apt-get update -qq && apt-get install -y -qq --no-install-recommends libusb-1.0-0 libegl1 libgl1 libx11-6; }
+
+# ExifTool: the tests check the FLIR radiometric JPEG reader against FLIR's model computed from its tags
+# (tests/formats/test_flir.py); thermofield itself reads the files with flyr.
+exiftool:
+	command -v exiftool >/dev/null || { apt-get update -qq && apt-get install -y -qq --no-install-recommends libimage-exiftool-perl; }
 
 # The load, the long Schemathesis run and the long fault tests, the scaled-out worker crash among them (docs/reliability.md); figures go to
 # reliability-output/.
@@ -55,7 +60,7 @@ PY312_TESTS ?= tests/db tests/api tests/formats tests/workers tests/device_gatew
 test-py312: .venv-py312/.installed-test
 	.venv-py312/bin/python -m pytest -q -p no:cacheprovider $(PY312_TESTS)
 
-.venv-py312/.installed-test: pyproject.toml constraints.txt | system-libraries
+.venv-py312/.installed-test: pyproject.toml constraints.txt | system-libraries exiftool
 	test -n "$(PYTHON312)" || { echo "make test-py312: no python3.12 on PATH"; exit 2; }
 	test -x .venv-py312/bin/python || $(PYTHON312) -m venv .venv-py312
 	.venv-py312/bin/$(PIP_INSTALL) -e '.[test,gateway]'

@@ -28,12 +28,12 @@ from device_gateway.client import GatewayClient, GatewayError
 from services.db.calibrations import activate_calibration
 from services.db.models import CalibrationSet, Job, PartType, Scan
 from services.formats.board import parse_board
-from services.formats.images import decode_image, png_bytes
+from services.formats.images import png_bytes
 from services.formats.ply import cloud_from_ply, cloud_to_ply
 from services.formats.registration import registration_json
 from services.formats.rig import Rig, rig_to_json
 from services.formats.sequence import Sequence, parse_sequence
-from services.pipeline.calibrate import place_device, thermal_board_image
+from services.pipeline.calibrate import place_device, thermal_board_image, uploaded_board_image
 from services.pipeline.field import fuse_field
 from services.pipeline.reconstruct import reconstruct_capture
 from services.pipeline.register import register_scan
@@ -199,7 +199,10 @@ def warm_up_runtime(runtime: Runtime) -> None:
 
 
 def _uploaded_images(store: ArtifactStore, uploads: list[list[str]], what: str) -> list[tuple[str, np.ndarray]]:
-    return [(f"{what} {index}", decode_image(store.read_bytes(digest), f"{what} {index} ({suffix})"))
+    """The board images of uploaded files: a thermal device's radiometric files (FLIR R-JPEG, float TIFF) are
+    stretched from degrees C; 8- and 16-bit images are used as they are."""
+    return [(f"{what} {index}", uploaded_board_image(store.read_bytes(digest), suffix=suffix,
+                                                     source=f"{what} {index} ({suffix})"))
             for index, (digest, suffix) in enumerate(uploads)]
 
 

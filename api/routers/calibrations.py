@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+from functools import partial
 from pathlib import PurePath
 from typing import Annotated
 
@@ -89,7 +90,10 @@ async def start_stereo_calibration(
                                                        description="Board images of the rig's camera.")],
     device_images: Annotated[list[UploadFile], File(min_length=MIN_VIEWS, description="The same board poses seen "
                                                                                       "by the device, in the same "
-                                                                                      "order.")],
+                                                                                      "order: board images, or the "
+                                                                                      "thermal camera's radiometric "
+                                                                                      "files (FLIR R-JPEG, float "
+                                                                                      "TIFF in degrees C).")],
     name: Annotated[str, Form(min_length=1, max_length=200)],
     device: Annotated[str, Form(min_length=1, max_length=100)] = "thermal",
     activate: Annotated[bool, Form()] = False,
@@ -108,16 +112,27 @@ async def start_stereo_calibration(
     _, camera = rig.device(None, "camera")
     sizes = {"reference_images": (camera.width, camera.height),
              "device_images": (rig.devices[device].width, rig.devices[device].height)}
+    # the thermal reader brings the radiometric model, science the API does not load at start
+    from services.formats.flir import JPEG_SUFFIXES
+    from services.formats.thermal import decode_thermal_frame, is_radiometric_file
+
     checked = {}  # every upload is checked before anything is stored
     for field, uploads in (("reference_images", reference_images), ("device_images", device_images)):
         checked[field] = []
+        suffixes = FRAME_SUFFIXES + (JPEG_SUFFIXES if field == "device_images" else ())
         for upload in uploads:
             suffix = PurePath(upload.filename or "").suffix.lower()
-            if suffix not in FRAME_SUFFIXES:
+            if suffix not in suffixes:
                 raise Problem(422, "invalid-input", f"{field}: {upload.filename!r} is not one of "
-                                                    f"{', '.join(FRAME_SUFFIXES)}.")
+                                                    f"{', '.join(suffixes)}.")
             content = await read_limited(upload, field, runtime.settings.max_image_bytes)
-            _check_image(content, field, upload.filename, sizes[field])
+            if field == "device_images" and is_radiometric_file(content, suffix):
+                # a thermal camera's own file (FLIR R-JPEG, float TIFF in degrees C): its temperatures, read as the
+                # worker will read them; an InputError answers 422 problem+json naming the upload
+                await run_in_threadpool(partial(decode_thermal_frame, content, suffix=suffix,
+                                                source=f"{field}: {upload.filename!r}", size=sizes[field]))
+            else:
+                _check_image(content, field, upload.filename, sizes[field])
             hasher.update(content)
             checked[field].append((content, suffix))
     images = {field: [[runtime.store.put_bytes(content), suffix] for content, suffix in uploads]

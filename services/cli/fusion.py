@@ -5,19 +5,19 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from services.cli.thermal import add_condition_arguments, condition_overrides
 from services.errors import InputError
 from services.fusion.fuse import DEFAULT_MAX_VIEW_ANGLE_DEG
 
 
 def _add_thermal_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--thermal", required=True, nargs="+", type=Path, metavar="FRAME",
-                        help="thermal frame(s): float TIFF/.npy in degrees C, 16-bit PNG/TIFF in centikelvin, "
-                             "or raw counts with a sidecar JSON (see docs/temperature-field.md)")
+                        help="thermal frame(s): FLIR radiometric JPEG, float TIFF/.npy in degrees C, 16-bit "
+                             "PNG/TIFF in centikelvin, or counts with a sidecar JSON (see docs/thermal-formats.md)")
     parser.add_argument("--thermal-device", nargs="+", metavar="NAME",
                         help="thermal device of the rig: one name for all frames or one per frame "
                              "(default: the rig's only thermal device)")
-    parser.add_argument("--emissivity", type=float,
-                        help="object emissivity in (0, 1] (default: the frames' sidecars, else 1)")
+    add_condition_arguments(parser)
     parser.add_argument("--max-view-angle", type=float, default=DEFAULT_MAX_VIEW_ANGLE_DEG, metavar="DEG",
                         help="ignore a view that sees a point more obliquely than this (default %(default)s)")
     parser.add_argument("--out", required=True, type=Path, help="output temperature field (.ply)")
@@ -49,7 +49,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     field.set_defaults(handler=_run_field)
 
 
-def _read_thermal(rig, frames: list[Path], device_names: list[str] | None, emissivity: float | None):
+def _read_thermal(rig, frames: list[Path], device_names: list[str] | None, overrides):
     """The thermal frames, each with the name of the rig's thermal device that took it."""
     from services.formats.thermal import read_thermal_frame
 
@@ -58,12 +58,10 @@ def _read_thermal(rig, frames: list[Path], device_names: list[str] | None, emiss
         raise InputError(
             f"--thermal-device takes one name or one per frame; got {len(names)} names for {len(frames)} frames"
         )
-    if emissivity is not None and not 0.0 < emissivity <= 1.0:
-        raise InputError(f"--emissivity must be in (0, 1]; got {emissivity}")
     named = []
     for path, name in zip(frames, names * len(frames) if len(names) == 1 else names):
         device_name, device = rig.device(name, "thermal")
-        named.append((device_name, read_thermal_frame(path, device.size, emissivity)))
+        named.append((device_name, read_thermal_frame(path, device.size, overrides)))
     return named
 
 
@@ -75,7 +73,7 @@ def _fuse_and_write(rig, cloud, args: argparse.Namespace, source: str) -> int:
 
     if not 0.0 < args.max_view_angle < 90.0:
         raise InputError(f"--max-view-angle must be in (0, 90) degrees; got {args.max_view_angle}")
-    thermal = _read_thermal(rig, args.thermal, args.thermal_device, args.emissivity)
+    thermal = _read_thermal(rig, args.thermal, args.thermal_device, condition_overrides(args))
     field = fuse_field(cloud=cloud, rig=rig, thermal=thermal, max_view_angle_deg=args.max_view_angle, source=source)
     write_cloud(args.out, field, comments=[f"thermofield temperature field of {source}",
                                            "temperature in degrees C (nan: unseen), view_angle in degrees"])

@@ -45,6 +45,8 @@ COMMANDS = {
     "inspect": ("services.cli.inspect",
                 "cold-equivalent dimensions, deviation from the nominal part and a verdict from a temperature field"),
     "rig": ("services.cli.rig", "rig files: import another program's calibration"),
+    "thermal": ("services.cli.thermal", "thermal files: convert a radiometric file (FLIR R-JPEG, TIFF, PNG) to "
+                                        "degrees C"),
 }
 # Exit codes: 0 done; 2 the user's to fix (usage, as argparse exits, and bad input: a missing, unreadable,
 # corrupt or unwritable file, a full disk); 1 an internal error or a failed check (`worker --check`); 130 Ctrl-C.

@@ -75,6 +75,20 @@ def thermal_board_image(frame: np.ndarray) -> np.ndarray:
     return np.round(percentile_stretch(frame, 65535.0)).astype(np.uint16)
 
 
+def uploaded_board_image(content: bytes, *, suffix: str, source: str, size: tuple[int, int] | None = None
+                         ) -> np.ndarray:
+    """A board image from an uploaded file: an 8- or 16-bit PNG, BMP or TIFF as it is; a radiometric thermal
+    file (:func:`services.formats.thermal.is_radiometric_file`) read as degrees C
+    (:func:`services.formats.thermal.decode_thermal_frame`, with the file's own radiometric parameters) and
+    stretched by :func:`thermal_board_image`."""
+    from services.formats.images import decode_image
+    from services.formats.thermal import decode_thermal_frame, is_radiometric_file
+
+    if is_radiometric_file(content, suffix):
+        return thermal_board_image(decode_thermal_frame(content, suffix=suffix, source=source, size=size))
+    return decode_image(content, source)
+
+
 def _describe(board: BoardSpec) -> str:
     cols, rows = board.pattern_size
     feature = "circle" if board.type == "circles" else "inner-corner"

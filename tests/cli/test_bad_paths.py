@@ -82,7 +82,8 @@ def inputs(tmp_path_factory) -> dict[str, Path]:
             "cloud": root / "cloud.ply", "thermal": root / "thermal.npy", "field": root / "field.ply", "part": part,
             "board": root / "board.json", "images": root / "images",
             "fixed": DATA / "tno-ir-visible" / "vi" / "01.png", "moving": DATA / "tno-ir-visible" / "ir" / "01.png",
-            "calibration": DATA / "slstudio" / "calibration" / "calibration.xml"}
+            "calibration": DATA / "slstudio" / "calibration" / "calibration.xml",
+            "rjpeg": DATA / "flir-rjpeg" / "10-ir_fussbodenheizung.jpg"}
 
 
 def _corrupt_frame(captures: Path, into: Path) -> Path:
@@ -140,6 +141,8 @@ COMMANDS = {
     "field": Command(lambda i, out: ["field", "--rig", i["rig"], "--captures", i["captures"], "--thermal",
                                      i["thermal"], "--out", out], "field.ply", "thermal",
                      _corrupt_copy(b"\x93NUMPY garbage", "thermal.npy")),
+    "thermal convert": Command(lambda i, out: ["thermal", "convert", i["rjpeg"], out], "temperature.tiff", "rjpeg",
+                               _corrupt_copy(b"\xff\xd8\xff\xe1\x00\x10FLIR\x00\x01\x00\x01", "IR_0042.jpg")),
     "inspect": Command(lambda i, out: ["inspect", "--field", i["field"], "--part", i["part"], "--out", out],
                        "report.json", "part", _corrupt_copy(b'{"version": 1, "name": ', "part.json")),
     "register": Command(lambda i, out: ["register", "--fixed", i["fixed"], "--moving", i["moving"], "--out", out],

@@ -6,7 +6,7 @@ import pytest
 import tifffile
 
 from services.errors import InputError
-from services.formats.thermal import read_thermal_frame, sidecar_path, write_thermal_frame
+from services.formats.thermal import RadiometricOverrides, read_thermal_frame, sidecar_path, write_thermal_frame
 from services.fusion.radiometry import PlanckConstants, blackbody_counts, counts_to_temperature
 
 
@@ -60,7 +60,7 @@ def test_raw_counts_with_planck_sidecar(tmp_path, temperature):
         "emissivity": emissivity, "reflected_temperature": reflected}))
     np.testing.assert_allclose(read_thermal_frame(path), temperature, atol=0.05)
     # the caller's emissivity overrides the sidecar's
-    other = read_thermal_frame(path, emissivity=0.95)
+    other = read_thermal_frame(path, overrides=RadiometricOverrides(emissivity=0.95))
     np.testing.assert_allclose(other, counts_to_temperature(signal, constants, 0.95, reflected), atol=1e-3)
 
 
@@ -82,7 +82,7 @@ def test_kelvin_unit_from_sidecar(tmp_path):
 
 def test_emissivity_corrects_apparent_temperatures_upward(tmp_path, temperature):
     write_thermal_frame(tmp_path / "f.tif", temperature)
-    corrected = read_thermal_frame(tmp_path / "f.tif", emissivity=0.7)
+    corrected = read_thermal_frame(tmp_path / "f.tif", overrides=RadiometricOverrides(emissivity=0.7))
     hot = temperature > 100
     assert np.all(corrected[hot] > temperature[hot])
 
@@ -101,6 +101,7 @@ def _bad_frames(tmp_path):
     cv2.imwrite(str(tmp_path / "nodata.png"), np.zeros((24, 32), np.uint16))
     (tmp_path / "corrupt.tif").write_bytes(b"II*\x00 this is not a TIFF")
     (tmp_path / "frame.jpg").write_bytes(b"")
+    (tmp_path / "frame.gif").write_bytes(b"GIF89a")
     np.save(tmp_path / "counts.npy", np.ones((24, 32), dtype=np.float32))
     (tmp_path / "counts.json").write_text('{"unit": "counts"}')
     np.save(tmp_path / "typo.npy", np.ones((24, 32), dtype=np.float32))
@@ -117,7 +118,8 @@ def _bad_frames(tmp_path):
     ("eight.png", "uint8 thermal frame is not radiometric"),
     ("nodata.png", "no finite value"),
     ("corrupt.tif", "cannot read the thermal frame"),
-    ("frame.jpg", "thermal frames must be .npy, .tif, .tiff, .png files"),
+    ("frame.gif", "thermal frames must be .npy, .tif, .tiff, .png, .jpg, .jpeg files"),
+    ("frame.jpg", "not a FLIR radiometric JPEG (not a JPEG file)"),
     ("counts.npy", "counts.json: invalid thermal sidecar: raw counts need the camera's 'planck' constants"),
     ("typo.npy", "typo.json: invalid thermal sidecar: emisivity: Extra inputs are not permitted"),
     ("cold.npy", "no pixel of the thermal frame gives a temperature"),
@@ -136,10 +138,9 @@ def test_wrong_size_for_the_device_is_refused(tmp_path, temperature):
         read_thermal_frame(tmp_path / "f.tif", size=(320, 256))
 
 
-def test_bad_emissivity_is_refused(tmp_path, temperature):
-    write_thermal_frame(tmp_path / "f.tif", temperature)
+def test_bad_emissivity_is_refused():
     with pytest.raises(InputError, match=r"emissivity must be in \(0, 1\]"):
-        read_thermal_frame(tmp_path / "f.tif", emissivity=0.0)
+        RadiometricOverrides(emissivity=0.0)
 
 
 def test_writing_is_atomic_and_leaves_no_temporary(tmp_path, temperature):
@@ -165,3 +166,25 @@ def test_linear_unit_needs_its_scale(tmp_path):
     (tmp_path / "hot.json").write_text(json.dumps({"unit": "linear"}))
     with pytest.raises(InputError, match="hot.json.*'scale'"):
         read_thermal_frame(tmp_path / "hot.png")
+
+
+def test_16_bit_tiff_counts_on_a_stated_scale_and_offset(tmp_path):
+    # 0.04 K per count from 200 K: count 30000 is 1400 K (1126.85 C)
+    tifffile.imwrite(tmp_path / "hot.tif", np.array([[30000, 1000]], dtype=np.uint16))
+    (tmp_path / "hot.json").write_text(json.dumps({"unit": "linear", "scale": 0.04, "offset": 200.0}))
+    np.testing.assert_allclose(read_thermal_frame(tmp_path / "hot.tif")[0], [1126.85, -33.15], atol=1e-3)
+
+
+def test_distance_and_air_overrides_correct_apparent_frames_by_the_model(tmp_path, temperature):
+    """An apparent frame's temperatures go back to counts on the typical curve and through FLIR's model."""
+    write_thermal_frame(tmp_path / "f.tif", temperature)
+    overrides = RadiometricOverrides(emissivity=0.85, reflected_c=30.0, atmosphere_c=15.0, relative_humidity=0.8,
+                                     distance_m=40.0)
+    read = read_thermal_frame(tmp_path / "f.tif", overrides=overrides)
+    constants = PlanckConstants()
+    expected = counts_to_temperature(blackbody_counts(temperature, constants), constants, 0.85, 30.0,
+                                     atmosphere_c=15.0, relative_humidity=0.8, distance_m=40.0)
+    np.testing.assert_allclose(read, expected, rtol=1e-5)
+    nearer = read_thermal_frame(tmp_path / "f.tif", overrides=RadiometricOverrides(emissivity=0.85, reflected_c=30.0))
+    hot = temperature > 100
+    assert np.all(read[hot] > nearer[hot])  # the air's loss over 40 m makes the part hotter than it looks
