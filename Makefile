@@ -10,7 +10,7 @@ DEMO_DIR ?= demo-output
 PIP_INSTALL = python -m pip install --quiet --constraint constraints.txt
 
 .PHONY: install install-test demo test test-fast test-py312 test-containers test-reliability test-soak images podman \
-	constraints clean docker-compose system-libraries exiftool
+	constraints clean docker-compose system-libraries exiftool browser
 
 install: $(VENV)/.installed
 
@@ -29,12 +29,17 @@ $(VENV)/.installed-test: pyproject.toml constraints.txt | system-libraries exift
 demo: install
 	$(BIN)/thermofield demo --data-dir $(DEMO_DIR)
 
-test: install-test docker-compose
+test: install-test docker-compose browser
 	$(BIN)/python -m pytest
 
 # Open3D (the inspection's meshes and distance queries) loads libusb, libGL and libEGL from the system.
 system-libraries:
 	ldconfig -p | grep -q 'libusb-1.0.so.0' && ldconfig -p | grep -q 'libEGL.so.1' || { apt-get update -qq && apt-get install -y -qq --no-install-recommends libusb-1.0-0 libegl1 libgl1 libx11-6; }
+
+# Debian's Chromium, which the demo's test opens the web viewer in through Playwright (Playwright's own
+# browser download needs the internet).
+browser:
+	command -v chromium >/dev/null || { apt-get update -qq && apt-get install -y -qq --no-install-recommends chromium; }
 
 # ExifTool: the tests check the FLIR radiometric JPEG reader against FLIR's model computed from its tags
 # (tests/formats/test_flir.py); thermofield itself reads the files with flyr.
