@@ -93,7 +93,7 @@ constraints:
 	  .venv-constraints/bin/python -m pip freeze --all --exclude thermofield --exclude pip; } > constraints.txt
 	rm -rf .venv-constraints
 
-# The unit tier alone: no servers, no PostgreSQL, under a minute.
+# The unit tier alone: no servers, no PostgreSQL.
 test-fast: install-test
 	$(BIN)/python -m pytest -m "unit and not postgres and not containers and not reliability"
 

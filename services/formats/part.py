@@ -205,7 +205,10 @@ class PartFile(BaseModel):
             if feature.between is not None and feature.between[0] == feature.between[1]:
                 raise ValueError(f"feature {feature.name!r} measures a distance from {feature.between[0]!r} to itself")
         if isinstance(self.material, str):
-            builtin_material(self.material)
+            try:
+                builtin_material(self.material)
+            except ValueError as error:
+                raise ValueError(f"material: {error}") from None
         return self
 
 

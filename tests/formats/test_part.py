@@ -44,7 +44,7 @@ def test_custom_material_table(billet, tmp_path):
 
 
 @pytest.mark.parametrize("changes, message", [
-    ({"material": "unobtainium"}, "unknown material 'unobtainium'"),
+    ({"material": "unobtainium"}, "material: unknown material 'unobtainium'"),
     ({"material": {"elongation": [[20, 0], [900, 0.01], [800, 0.012]]}}, "must increase strictly"),
     ({"material": {"elongation": [[100, 0], [900, 0.01]]}}, "must cover the reference temperature"),
     ({"version": 2}, "version"),
