@@ -1,8 +1,8 @@
-"""The application layer: one keyword-only use case per job, called by the CLI, the workers, the
-benchmarks and the experiments (which only translate to and from it).
+"""The application layer: one keyword-only use case per job, called by the CLI and the workers (which only
+translate to and from it).
 
 - :func:`reconstruct_capture`: a capture to a point cloud.
-- :func:`fuse_field`, :func:`capture_field`: a cloud (or a capture) plus thermal frames to a field.
+- :func:`fuse_field`: a cloud plus thermal frames to a field (``thermofield field`` reconstructs first).
 - :func:`scan_capture`, :func:`scan_result`: one scan's frames to its stored files, streamed field and job
   result; :func:`process_scan`, :func:`scan_artifacts` the same in memory (:func:`capture_artifacts` before the
   processing, :func:`cloud_artifacts` after the reconstruction, :func:`field_artifacts` after the fusion).

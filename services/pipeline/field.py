@@ -8,12 +8,9 @@ import numpy as np
 
 from services.errors import InputError
 from services.formats.rig import Rig
-from services.formats.sequence import Sequence as PatternSequence
 from services.fusion.field import temperature_field
 from services.fusion.fuse import DEFAULT_MAX_VIEW_ANGLE_DEG, ThermalView
 from services.geometry.cloud import PointCloud
-from services.pipeline.reconstruct import reconstruct_capture
-from services.pipeline.tables import TriangulationTables
 
 ThermalFrames = Sequence[tuple[str | None, np.ndarray]]
 """Thermal frames in degrees Celsius, each (h, w) or (F, h, w), with the rig's thermal device that took them
@@ -61,17 +58,3 @@ def fuse_field(*, cloud: PointCloud, rig: Rig, thermal: ThermalFrames,
         raise InputError(f"the maximum view angle must be in (0, 90) degrees; got {max_view_angle_deg}")
     views = thermal_views(rig, thermal)
     return temperature_field(cloud, views, measuring_viewpoint(rig, views), max_view_angle_deg)
-
-
-def capture_field(*, frames: np.ndarray, sequence: PatternSequence, thermal: ThermalFrames, rig: Rig,
-                  tables: TriangulationTables, camera: str | None = None, projector: str | None = None,
-                  max_view_angle_deg: float = DEFAULT_MAX_VIEW_ANGLE_DEG,
-                  source: str = "the capture") -> tuple[PointCloud, PointCloud]:
-    """Reconstruct a capture (:func:`reconstruct_capture`) and fuse thermal frames onto it (:func:`fuse_field`).
-
-    Returns the cloud and the field.
-    """
-    cloud = reconstruct_capture(frames=frames, sequence=sequence, rig=rig, tables=tables, camera=camera,
-                                projector=projector, source=source).cloud
-    field = fuse_field(cloud=cloud, rig=rig, thermal=thermal, max_view_angle_deg=max_view_angle_deg, source=source)
-    return cloud, field

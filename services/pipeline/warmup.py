@@ -18,7 +18,7 @@ import numpy as np
 
 from services.formats.rig import Rig
 from services.formats.sequence import Sequence
-from services.geometry.camera import pixel_grid, pixel_rays, project_points
+from services.geometry.camera import pixel_grid, pixel_rays
 from services.geometry.camera_model import CameraModel
 from services.pipeline.scan import process_scan, scan_artifacts
 from services.pipeline.tables import TriangulationTables
@@ -45,7 +45,7 @@ def _plane_frames(camera: CameraModel, projector: CameraModel, patterns: np.ndar
                                     camera.t)
     target, normal = _meeting_point(camera, projector), camera.R[2]
     points = origin + ((target - origin) @ normal / (directions @ normal))[:, None] * directions
-    pixels = project_points(points, projector.K, projector.dist, projector.R, projector.t).astype(np.float32)
+    pixels = projector.project(points).astype(np.float32)
     maps = pixels.reshape(camera.height, camera.width, 2)
     frames = np.empty((len(patterns), camera.height, camera.width), np.uint8)
     for frame, pattern in zip(frames, patterns):  # frame by frame in float32: a scan's frames in float64 are 0.25 GB
