@@ -120,19 +120,19 @@ def field_scene(
 
 def verdict_markdown(report: Mapping) -> str:
     """An inspection report (docs/inspection.md) as a short Markdown page: the verdict, then one table row per
-    feature and the surface."""
+    feature and the surface, the verdict first (a narrow panel still shows it)."""
     lines = [f"# {report.get('part', 'part')}: {report['verdict']}", "",
-             "| feature | cold | nominal | deviation | U (k=2) | verdict |", "|---|---|---|---|---|---|"]
+             "| feature | verdict | deviation | U (k=2) | cold | nominal |", "|---|---|---|---|---|---|"]
     for feature in report.get("features", []):
-        if "deviation" not in feature or feature.get("deviation") is None:
-            lines.append(f"| {feature['name']} | | | | | {feature['verdict']} |")
+        if feature.get("deviation") is None:
+            lines.append(f"| {feature['name']} | {feature['verdict']} | | | | |")
             continue
-        lines.append(f"| {feature['name']} | {feature['cold']:.3f} | {feature['nominal']:.3f} | "
-                     f"{feature['deviation']:+.3f} | {feature['uncertainty']:.3f} | {feature['verdict']} |")
+        lines.append(f"| {feature['name']} | {feature['verdict']} | {feature['deviation']:+.3f} | "
+                     f"{feature['uncertainty']:.3f} | {feature['cold']:.3f} | {feature['nominal']:.3f} |")
     surface = report.get("surface")
     if surface and surface.get("cell_min") is not None:
-        lines.append(f"| surface | | | {surface['cell_min']:+.3f}..{surface['cell_max']:+.3f} | "
-                     f"{surface['uncertainty']:.3f} | {surface['verdict']} |")
+        lines.append(f"| surface | {surface['verdict']} | {surface['cell_min']:+.3f}..{surface['cell_max']:+.3f} | "
+                     f"{surface['uncertainty']:.3f} | | |")
     return "\n".join(lines) + "\n"
 
 

@@ -19,7 +19,7 @@ from services.formats.rig import Rig
 from services.geometry.camera_model import CameraModel
 from services.fusion.colormap import temperature_colors
 from services.streaming.proxy import RerunProxy, rerun_executable
-from services.streaming.field import field_scene
+from services.streaming.field import field_scene, verdict_markdown
 from services.streaming.recording import StationView, scan_recording
 
 # A file a viewer is still saving has no footer yet; reading it is the point of the live tests.
@@ -161,6 +161,23 @@ def test_a_scan_not_inspected_clears_the_deviation_layer(tmp_path, rig, field):
     path.write_bytes(scan_recording("scan-1", field_scene(field, rig)))
     logged = _read_rrd(path)["/world/deviation"]
     assert "Points3D:positions" not in logged and logged  # only the clear
+
+
+def test_the_verdict_is_logged_as_markdown_and_cleared_when_not_inspected(tmp_path, rig, field):
+    report = {"part": "shaft-90", "verdict": "NotOK",
+              "features": [{"name": "body", "verdict": "NotOK", "deviation": 0.412, "uncertainty": 0.11, "cold": 90.412,
+                            "nominal": 90.0},
+                           {"name": "face", "verdict": "NotDecidable", "error": "the view does not show it"}],
+              "surface": {"verdict": "OK", "cell_min": -0.2, "cell_max": 0.3, "uncertainty": 0.05}}
+    text = verdict_markdown(report)
+    assert text.startswith("# shaft-90: NotOK") and "| body | NotOK | +0.412 | 0.110 | 90.412 | 90.000 |" in text
+    assert "| face | NotDecidable |" in text and "| surface | OK | -0.200..+0.300 |" in text
+    inspected, plain = tmp_path / "inspected.rrd", tmp_path / "plain.rrd"
+    inspected.write_bytes(scan_recording("scan-1", field_scene(field, rig, verdict=text)))
+    plain.write_bytes(scan_recording("scan-2", field_scene(field, rig)))
+    logged = _read_rrd(inspected)["/verdict"]
+    assert logged["TextDocument:text"][0] in ([text], text)  # one row: the page as logged
+    assert "TextDocument:text" not in _read_rrd(plain)["/verdict"] and _read_rrd(plain)["/verdict"]
 
 
 def test_field_without_temperature_is_refused(rig, field):
