@@ -125,17 +125,38 @@ def _writes_to_fd2(stream) -> bool:
 
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
-    args = build_parser(argv).parse_args(argv)
+    parser = build_parser(argv)
+    args = parser.parse_args(argv)
     quiet = not args.debug and args.command not in SERVICE_COMMANDS
     with _quiet_libraries() if quiet else contextlib.nullcontext():
-        return _run(args)
+        return _run(args, _options(parser))
 
 
-def _run(args: argparse.Namespace) -> int:
+def _options(parser: argparse.ArgumentParser) -> dict[str, str]:
+    """Each parameter (an argparse ``dest``) of every loaded command to the option that sets it."""
+    options = {}
+    for action in parser._actions:  # argparse keeps no public list of a parser's actions
+        if isinstance(action, argparse._SubParsersAction):
+            for subparser in action.choices.values():
+                options.update(_options(subparser))
+        elif action.option_strings:
+            options.setdefault(action.dest, max(action.option_strings, key=len))
+    return options
+
+
+def _message(error: InputError, options: dict[str, str]) -> str:
+    """The error as the user of the command line reads it: a use case's parameter named by its option."""
+    text = str(error)
+    if error.parameter and error.parameter in options and text.startswith(f"{error.parameter}:"):
+        return options[error.parameter] + text[len(error.parameter):]
+    return text
+
+
+def _run(args: argparse.Namespace, options: dict[str, str] | None = None) -> int:
     try:
         return args.handler(args) or 0
     except InputError as error:
-        print(f"thermofield: error: {error}", file=sys.stderr)
+        print(f"thermofield: error: {_message(error, options or {})}", file=sys.stderr)
         return BAD_INPUT
     except OSError as error:  # a path the command reads or writes: name it, no traceback; bad input too
         if args.debug:

@@ -247,7 +247,8 @@ def place_device(*, board: BoardSpec, rig: Rig, device: str, reference_images: S
     camera_name, camera_model = rig.device(camera, "camera")
     if intrinsics is None:
         if device not in rig.devices:
-            raise InputError(f"the rig has no device {device!r}; give its intrinsics (--intrinsics)")
+            raise InputError(f"intrinsics: the rig has no device {device!r}; give its intrinsics",
+                             parameter="intrinsics")
         intrinsics = rig.devices[device]
     if not reference_images or len(reference_images) != len(device_images):
         raise InputError(f"{source}: give the same number of {camera_name} and {device} images, at least one; "

@@ -58,12 +58,14 @@ def reconstruct_capture(*, frames: np.ndarray, sequence: Sequence, rig: Rig, tab
         raise InputError(f"{source}: frames are {shape} but the rig's camera is "
                          f"{camera_model.width}x{camera_model.height}")
     if saturation_level is not None and not 0 < saturation_level <= np.iinfo(frames.dtype).max:
-        raise InputError(f"the saturation level (--saturation-level) must be in (0, {np.iinfo(frames.dtype).max}] "
-                         f"for {frames.dtype} frames; got {saturation_level:g}")
+        raise InputError(f"saturation_level: the saturation level must be in (0, {np.iinfo(frames.dtype).max}] "
+                         f"for {frames.dtype} frames; got {saturation_level:g}", parameter="saturation_level")
     if not max_indirect > 0:
-        raise InputError(f"the maximum indirect ratio (--max-indirect) must be positive; got {max_indirect}")
+        raise InputError(f"max_indirect: the maximum indirect ratio must be positive; got {max_indirect}",
+                         parameter="max_indirect")
     if not 0 <= consistency <= 1:
-        raise InputError(f"the consistency (--consistency) must be between 0 and 1; got {consistency}")
+        raise InputError(f"consistency: the consistency must be between 0 and 1; got {consistency}",
+                         parameter="consistency")
     try:
         axis = coded_axis(sequence.coded_axes, camera_model, projector_model)
     except ValueError as error:
