@@ -15,9 +15,10 @@ thermal camera streaming at its own rate). Whatever the trigger, a grab returns 
 it started: frames queued before it are dropped.
 
 Timestamps come from the camera: each GVSP/U3V leader carries the camera's clock at exposure. They are put on
-the host's wall clock with the smallest offset (host receipt time minus camera time) seen since the camera was
-opened, so that frame intervals are the camera's and the absolute time is late by at most the fastest
-transfer. A frame that arrives incomplete (lost packets), a camera that stops answering its control channel
+the host's wall clock with the offset (host receipt time minus camera time) of the first frame of each capture
+(grabs more than a second after the last one), so that a sequence's frame intervals are the camera's exactly
+and the absolute time is late by that frame's transfer (milliseconds); taking it afresh each capture keeps the
+clocks' drift (parts per million) from adding up. A frame that arrives incomplete (lost packets), a camera that stops answering its control channel
 (unplugged, powered off, killed) and a trigger that brings no frame in time are :class:`DeviceLost` naming
 the camera; the driver closes it and the station re-opens it for the next capture.
 """
@@ -42,6 +43,7 @@ from device_gateway.devices import (  # noqa: E402
 
 ZERO_CELSIUS_K = 273.15
 _BUFFERS = 8  # stream buffers: a sequence's frames never wait for one, a hardware trigger's burst is absorbed
+_RESYNC_PAUSE_S = 1.0  # grabs further apart than this start a new capture: the clock offset is taken afresh
 
 
 @dataclass(frozen=True)
@@ -100,17 +102,21 @@ def counts_to_celsius(counts: np.ndarray, kelvin_per_count: float, offset_k: flo
 class CameraClock:
     """Maps a camera's timestamps (nanoseconds of its own clock) to the host's wall clock.
 
-    The offset is the smallest (host receipt time - camera time) seen so far: every frame's transfer makes
-    the difference larger than the clocks' true offset by its latency, so the smallest is the closest.
+    The offset between the clocks is taken from the first frame observed (host receipt time - camera time, late
+    by that frame's transfer) and held until :meth:`forget`: the frames mapped meanwhile keep the camera's own
+    intervals exactly.
     """
 
     def __init__(self) -> None:
         self.offset_ns: int | None = None
 
     def observe(self, camera_ns: int, host_ns: int) -> None:
-        difference = host_ns - camera_ns
-        if self.offset_ns is None or difference < self.offset_ns:
-            self.offset_ns = difference
+        if self.offset_ns is None:
+            self.offset_ns = host_ns - camera_ns
+
+    def forget(self) -> None:
+        """Take the offset afresh from the next frame (the clocks drift apart by parts per million)."""
+        self.offset_ns = None
 
     def wall_time(self, camera_ns: int) -> float:
         """Seconds since the epoch on the host's clock of the camera's ``camera_ns``."""
@@ -168,6 +174,8 @@ class _GenicamDevice:
         self._lost_handler: int | None = None
         self._control_lost = threading.Event()
         self._clock = CameraClock()
+        self._frames = 0  # delivered since opened: a loss says how far it got
+        self._last_grab_s = -np.inf
         self._size = (region[2], region[3]) if region is not None else (0, 0)
         self._model = self._serial = ""
 
@@ -196,7 +204,7 @@ class _GenicamDevice:
             self._control_lost.clear()
             self._lost_handler = self._camera.get_device().connect("control-lost",
                                                                    lambda _device: self._control_lost.set())
-            self._stream, self._clock = stream, CameraClock()
+            self._stream, self._clock, self._frames = stream, CameraClock(), 0
             self._camera.start_acquisition()
         except (GLib.Error, DeviceUnavailable) as error:
             failure = error if isinstance(error, DeviceUnavailable) else DeviceUnavailable(
@@ -207,9 +215,9 @@ class _GenicamDevice:
             raise failure.with_traceback(None) from None
 
     def _connect(self) -> Any:
-        if self.device_id.startswith("Fake_"):
+        if self.device_id.startswith("Fake_"):  # Aravis' in-process fake camera, opened first among interfaces
             Aravis.enable_interface("Fake")
-        if not _is_ip_address(self.device_id):
+        elif not _is_ip_address(self.device_id):
             found = _found_devices()
             if self.device_id not in found:
                 raise DeviceUnavailable(f"{self.label} is not connected (found: {', '.join(found) or 'none'})")
@@ -266,7 +274,7 @@ class _GenicamDevice:
 
     def _lose(self, problem: str) -> DeviceLost:
         self.close()
-        return DeviceLost(f"{self.label}: {problem}")
+        return DeviceLost(f"{self.label}: {problem} (after {self._frames} frames since it was opened)")
 
     def _next_buffer(self, timeout_s: float) -> tuple[Any, int]:
         """The first complete frame exposed after this call, as (buffer, host nanoseconds it was requested)."""
@@ -275,6 +283,8 @@ class _GenicamDevice:
         if self._control_lost.is_set():
             raise self._lose("its control channel was lost (unplugged or powered off?)")
         requested_ns = time.time_ns()
+        if time.monotonic() - self._last_grab_s > _RESYNC_PAUSE_S:
+            self._clock.forget()
         while (stale := self._stream.try_pop_buffer()) is not None:  # queued frames were exposed before
             self._observe(stale)
             self._stream.push_buffer(stale)
@@ -331,6 +341,8 @@ class _GenicamDevice:
                         "camera_timestamp_ns": int(camera_ns), "pixel_format": self.format.name}
             if self._exposure_us is not None:
                 metadata["exposure_us"] = round(float(self._exposure_us), 3)
+            self._frames += 1
+            self._last_grab_s = time.monotonic()
             return image, self._clock.wall_time(camera_ns), metadata
         finally:
             if self._stream is not None:  # not when the frame was refused: the stream is gone with the camera
