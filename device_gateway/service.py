@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import importlib
+
 from fastapi import FastAPI
 
 from device_gateway.app import create_app
@@ -54,21 +56,19 @@ def _missing(driver: str, error: ImportError) -> InputError:
 
 def _oak():
     try:
-        from device_gateway.drivers import oak
+        return importlib.import_module("device_gateway.drivers.oak")
     except ImportError as error:
         raise _missing("oak", error) from None
-    return oak
 
 
 def _genicam():
     try:
-        from device_gateway.drivers import genicam
+        return importlib.import_module("device_gateway.drivers.genicam")
     except ImportError as error:
         raise _missing("genicam", error) from None
     except ValueError as error:  # gi.require_version: the typelib is not installed
         raise InputError(f"the genicam driver needs Aravis 0.8 ({error}): install Debian's gir1.2-aravis-0.8 "
                          "(make system-libraries)") from None
-    return genicam
 
 
 def _display(settings: Settings):

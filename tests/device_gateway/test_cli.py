@@ -49,3 +49,20 @@ def test_unknown_driver_is_refused(capsys):
         main(["gateway", "--driver", "webcam"])
     assert exit_.value.code == 2
     assert "invalid choice: 'webcam'" in capsys.readouterr().err
+
+
+def test_driver_stands_for_every_device_and_each_device_option_overrides_it(monkeypatch):
+    import argparse
+
+    from services.cli.gateway import register, settings_of
+
+    parser = argparse.ArgumentParser()
+    register(parser.add_subparsers())
+    monkeypatch.setenv("THERMOFIELD_CAMERA_DRIVER", "genicam")
+    monkeypatch.setenv("THERMOFIELD_PROJECTOR_DRIVER", "display")
+    assert tuple(settings_of(parser.parse_args(["gateway"])).station_drivers) == ("genicam", "simulated", "display")
+    assert tuple(settings_of(parser.parse_args(["gateway", "--driver", "oak"])).station_drivers) == (
+        "oak", "oak", "display")
+    assert tuple(settings_of(parser.parse_args(["gateway", "--driver", "simulated", "--camera-driver", "genicam",
+                                                "--projector-driver", "simulated"])).station_drivers) == (
+        "genicam", "simulated", "simulated")
