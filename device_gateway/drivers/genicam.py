@@ -1,8 +1,8 @@
 """GenICam cameras (GigE Vision, USB3 Vision) through Aravis 0.8, the GenICam reference stack on Linux, from
 Python through PyGObject.
 
-A camera is opened by its Aravis device id (``<vendor>-<model>-<serial>`` as ``arv-tool-0.8`` lists it, or
-``<vendor>-<serial>`` for USB3 Vision) or by the IP address of a GigE Vision camera. An id is looked up by
+A camera is opened by its Aravis device id (as ``arv-tool-0.8`` lists it, e.g. ``Aravis-Fake-GV01``) or by
+the IP address of a GigE Vision camera. An id is looked up by
 one discovery on every network interface (a broadcast) and USB; an IP address is connected to directly, which
 is what a container network passes (as for the OAK driver) and what the tests use on loopback. Ids beginning
 with ``Fake_`` are Aravis' in-process fake cameras (its ``Fake`` interface, for tests and demonstrations).

@@ -150,6 +150,7 @@ def test_a_camera_killed_mid_sequence_fails_that_capture_naming_it_and_comes_bac
         assert "camera 'camera' (GenICam 127.0.0.1)" in detail
         delivered = int(re.search(r"after (\d+) frames since it was opened", detail).group(1))
         assert 0 < delivered < len(sequence.frames), f"killed mid-sequence: {detail}"
+        print(f"\ncamera killed mid-sequence ({len(sequence.frames)} patterns): 503 {detail}")
         with GatewayClient(url) as client:
             assert client.health()["devices"] == {"camera": False, "thermal": True, "projector": True}
             fake_gv_camera.start()  # plugged in again: the next capture re-opens it
