@@ -93,7 +93,8 @@ def _stop(process: subprocess.Popen) -> str:
 
 
 def test_the_gateway_captures_a_sequence_with_the_genicam_cameras(fake_gv_camera, free_port, aravis_fake_ramp):
-    process = _start_gateway(free_port, {})
+    # 16-bit frames, kept at their depth through the capture archive (Mono8 scans: tests/integration/test_genicam_scan.py)
+    process = _start_gateway(free_port, {"THERMOFIELD_GENICAM_PIXEL_FORMAT": "Mono16"})
     try:
         with GatewayClient(f"http://127.0.0.1:{free_port}") as client:
             assert client.health() == {"status": "ok", "devices": {"camera": True, "thermal": True,
@@ -111,12 +112,13 @@ def test_the_gateway_captures_a_sequence_with_the_genicam_cameras(fake_gv_camera
         output = _stop(process)
     assert "camera genicam, thermal genicam, projector simulated" in output
 
-    assert capture.frames.shape == (len(sequence.frames), HEIGHT, WIDTH) and capture.frames.dtype == np.uint8
+    assert capture.frames.shape == (len(sequence.frames), HEIGHT, WIDTH) and capture.frames.dtype == np.uint16
     ids = [metadata["frame_id"] for metadata in capture.frame_metadata]
     assert ids == list(range(ids[0], ids[0] + len(ids))), "one triggered frame per pattern, in order"
     for frame, metadata in zip(capture.frames, capture.frame_metadata):  # the exposure and gain set: 20 ms, 1
-        np.testing.assert_array_equal(frame, aravis_fake_ramp(WIDTH, HEIGHT, metadata["frame_id"], 20000, 1, 8))
-    assert capture.exposure["exposures_us"] == [20000] and capture.exposure["saturation_level"] == 255
+        np.testing.assert_array_equal(frame, aravis_fake_ramp(WIDTH, HEIGHT, metadata["frame_id"], 20000, 1, 16))
+    assert capture.exposure["exposures_us"] == [20000] and capture.exposure["saturation_level"] == 65535
+    assert {metadata["pixel_format"] for metadata in capture.frame_metadata} == {"Mono16"}
     stamps = capture.frame_timestamps
     assert requested <= stamps[0] and stamps[-1] <= answered and np.all(np.diff(stamps) > 0)
     camera_s = np.array([metadata["camera_timestamp_ns"] for metadata in capture.frame_metadata]) / 1e9
