@@ -161,3 +161,16 @@ def test_a_camera_killed_mid_sequence_fails_that_capture_naming_it_and_comes_bac
             assert client.health()["status"] == "ok"
     finally:
         _stop(process)
+
+
+def test_a_camera_that_vanishes_between_captures_is_seen_closed_and_its_next_grab_lost(fake_gv_camera):
+    camera = GenicamCamera(device_id=fake_gv_camera.address, region=(0, 0, 64, 48))
+    camera.open()
+    camera.grab(timeout_s=2.0)
+    fake_gv_camera.kill()
+    deadline = time.monotonic() + 30
+    while camera.is_open:  # Aravis' heartbeat notices the silent control channel (its control-lost signal)
+        assert time.monotonic() < deadline, "the vanished camera still looks open"
+        time.sleep(0.1)
+    with pytest.raises(DeviceLost, match=r"camera 'camera' \(GenICam 127.0.0.1\): its control channel was lost"):
+        camera.grab(timeout_s=2.0)
