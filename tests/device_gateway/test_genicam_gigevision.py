@@ -174,3 +174,21 @@ def test_a_camera_that_vanishes_between_captures_is_seen_closed_and_its_next_gra
         time.sleep(0.1)
     with pytest.raises(DeviceLost, match=r"camera 'camera' \(GenICam 127.0.0.1\): its control channel was lost"):
         camera.grab(timeout_s=2.0)
+
+
+def test_metered_exposure_is_set_on_the_camera_between_frames(fake_gv_camera, simulated, sequence_and_patterns,
+                                                               aravis_fake_ramp):
+    from device_gateway.station import ExposureControl, Station
+
+    camera = GenicamCamera(device_id=fake_gv_camera.address, exposure_us=20000, region=(0, 0, 160, 100))
+    station = Station(camera, simulated.thermal, simulated.projector)
+    sequence, patterns = sequence_and_patterns
+    try:
+        capture = station.capture(sequence, patterns, exposure=ExposureControl(mode="auto"))
+    finally:
+        station.close()
+    (chosen,) = capture.exposure["exposures_us"]
+    assert chosen < 20000, "the ramp saturates at 20 ms: metering shortens it"
+    for frame, metadata in zip(capture.frames, capture.frame_metadata):
+        assert metadata["exposure_us"] == int(chosen)  # the camera's exposure register counts whole microseconds
+        np.testing.assert_array_equal(frame, aravis_fake_ramp(160, 100, metadata["frame_id"], int(chosen), 0, 8))
