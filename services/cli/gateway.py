@@ -17,9 +17,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                     "the options below override them.",
     )
     parser.add_argument("--driver", choices=_CAMERAS,
-                        help="every device at once: the simulated virtual rig, OAK cameras and a display projector, "
-                             "or GenICam cameras and a display projector (default THERMOFIELD_GATEWAY_DRIVER and "
-                             "the per-device THERMOFIELD_*_DRIVER, else simulated)")
+                        help="every device whose own driver is not chosen: the simulated virtual rig, OAK cameras "
+                             "and a display projector, or GenICam cameras and a display projector (default "
+                             "THERMOFIELD_GATEWAY_DRIVER, else simulated)")
     parser.add_argument("--camera-driver", choices=_CAMERAS, help="the camera's driver (overrides --driver)")
     parser.add_argument("--thermal-driver", choices=_CAMERAS, help="the thermal camera's driver (overrides --driver)")
     parser.add_argument("--projector-driver", choices=("simulated", "display"),
@@ -30,16 +30,14 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 def settings_of(args: argparse.Namespace) -> Settings:
-    """The settings of the environment with the command line's options over them: ``--driver`` stands for every
-    device's driver (the per-device variables of the environment too), each ``--*-driver`` for its own."""
-    overrides = {"gateway_host": args.host, "gateway_port": args.port, "camera_driver": args.camera_driver,
-                 "thermal_driver": args.thermal_driver, "projector_driver": args.projector_driver}
-    settings = Settings(**{name: value for name, value in overrides.items() if value is not None})
-    if args.driver is not None:
-        settings = settings.model_copy(update={
-            "gateway_driver": args.driver, "camera_driver": args.camera_driver,
-            "thermal_driver": args.thermal_driver, "projector_driver": args.projector_driver})
-    return settings
+    """The settings of the environment with the command line's options over them. ``--driver`` stands for the
+    driver of every device whose own is not chosen (``--camera-driver`` or THERMOFIELD_CAMERA_DRIVER, and so on):
+    the embedded service starts its gateway with ``--driver simulated``, and a camera chosen in the environment
+    still joins it."""
+    overrides = {"gateway_driver": args.driver, "gateway_host": args.host, "gateway_port": args.port,
+                 "camera_driver": args.camera_driver, "thermal_driver": args.thermal_driver,
+                 "projector_driver": args.projector_driver}
+    return Settings(**{name: value for name, value in overrides.items() if value is not None})
 
 
 def _run(args: argparse.Namespace) -> int:
