@@ -44,6 +44,9 @@ from device_gateway.devices import (  # noqa: E402
 ZERO_CELSIUS_K = 273.15
 _BUFFERS = 8  # stream buffers: a sequence's frames never wait for one, a hardware trigger's burst is absorbed
 _RESYNC_PAUSE_S = 1.0  # grabs further apart than this start a new capture: the clock offset is taken afresh
+# How long a GigE Vision frame waits for its last packets before it counts as incomplete (Aravis' default, 100 ms,
+# is for video rates; a pattern's frame may wait longer for a host busy with the scan before it is a loss).
+_FRAME_RETENTION_US = 1_000_000
 
 
 @dataclass(frozen=True)
@@ -198,6 +201,9 @@ class _GenicamDevice:
         try:
             self._configure(self._camera)
             stream = self._camera.create_stream(None, None)
+            if isinstance(stream, Aravis.GvStream):  # a socket buffer of a whole frame, and time for its packets
+                stream.set_property("socket-buffer", Aravis.GvStreamSocketBuffer.AUTO)
+                stream.set_property("frame-retention", _FRAME_RETENTION_US)
             payload = self._camera.get_payload()
             for _ in range(_BUFFERS):
                 stream.push_buffer(Aravis.Buffer.new_allocate(payload))
