@@ -292,7 +292,8 @@ class _GenicamDevice:
         if time.monotonic() - self._last_grab_s > _RESYNC_PAUSE_S:
             self._clock.forget()
         while (stale := self._stream.try_pop_buffer()) is not None:  # queued frames were exposed before
-            self._observe(stale)
+            if stale.get_status() == Aravis.BufferStatus.SUCCESS:
+                self._observe(stale)
             self._stream.push_buffer(stale)
         if self.trigger == "Software":
             try:
@@ -305,6 +306,11 @@ class _GenicamDevice:
             if buffer is None:
                 break
             status = buffer.get_status()
+            if status == Aravis.BufferStatus.CLEARED:
+                # Returned unfilled: Aravis hands a buffer back for a stray packet that starts no frame (a late
+                # one, or a packet-size test packet), as seen with arv-fake-gv-camera on a busy host.
+                self._stream.push_buffer(buffer)
+                continue
             if status != Aravis.BufferStatus.SUCCESS:
                 frame_id, missing = buffer.get_frame_id(), self._missing_packets()
                 raise self._lose(f"frame {frame_id} arrived incomplete ({status.value_nick}; {missing} packets "
