@@ -2,10 +2,10 @@
 Python through PyGObject.
 
 A camera is opened by its Aravis device id (as ``arv-tool-0.8`` lists it, e.g. ``Aravis-Fake-GV01``) or by
-the IP address of a GigE Vision camera. An id is looked up by
-one discovery on every network interface (a broadcast) and USB; an IP address is connected to directly, which
-is what a container network passes (as for the OAK driver) and what the tests use on loopback. Ids beginning
-with ``Fake_`` are Aravis' in-process fake cameras (its ``Fake`` interface, for tests and demonstrations).
+the IP address of a GigE Vision camera. An id is looked up by one discovery on every network interface (a
+broadcast) and on USB; an IP address is connected to directly, which is what a container network passes (as
+for the OAK driver) and what the tests use on loopback. Ids beginning with ``Fake_`` are Aravis' in-process
+fake cameras (its ``Fake`` interface, for tests and demonstrations).
 
 Each frame of a pattern sequence is triggered: ``trigger="Software"`` fires the GenICam ``TriggerSoftware``
 command when the station grabs (the tests; a station without sync wiring), ``trigger="Line1"`` (or any
@@ -18,9 +18,11 @@ Timestamps come from the camera: each GVSP/U3V leader carries the camera's clock
 the host's wall clock with the offset (host receipt time minus camera time) of the first frame of each capture
 (grabs more than a second after the last one), so that a sequence's frame intervals are the camera's exactly
 and the absolute time is late by that frame's transfer (milliseconds); taking it afresh each capture keeps the
-clocks' drift (parts per million) from adding up. A frame that arrives incomplete (lost packets), a camera that stops answering its control channel
-(unplugged, powered off, killed) and a trigger that brings no frame in time are :class:`DeviceLost` naming
-the camera; the driver closes it and the station re-opens it for the next capture.
+clocks' drift (parts per million) from adding up.
+
+A frame that arrives incomplete (lost packets), a camera that stops answering its control channel (unplugged,
+powered off, killed) and a trigger that brings no frame in time are :class:`DeviceLost` naming the camera;
+the driver closes it and the station re-opens it for the next capture.
 """
 
 from __future__ import annotations
@@ -282,8 +284,8 @@ class _GenicamDevice:
         self.close()
         return DeviceLost(f"{self.label}: {problem} (after {self._frames} frames since it was opened)")
 
-    def _next_buffer(self, timeout_s: float) -> tuple[Any, int]:
-        """The first complete frame exposed after this call, as (buffer, host nanoseconds it was requested)."""
+    def _next_buffer(self, timeout_s: float) -> Any:
+        """The first complete frame exposed after this call (an Aravis buffer, to be pushed back once read)."""
         if self._stream is None:
             raise DeviceLost(f"{self.label} is not open")
         if self._control_lost.is_set():
@@ -317,7 +319,7 @@ class _GenicamDevice:
                                  "lost since it was opened)")
             self._observe(buffer)
             if self.trigger == "Software" or self._clock.wall_time(buffer.get_timestamp()) * 1e9 >= requested_ns:
-                return buffer, requested_ns
+                return buffer
             self._stream.push_buffer(buffer)  # exposed before the call (in flight when it started)
         if self._control_lost.is_set():
             raise self._lose("its control channel was lost (unplugged or powered off?)")
@@ -345,7 +347,7 @@ class _GenicamDevice:
         return np.frombuffer(data, dtype, count=width * height).reshape(height, width).astype(self.format.dtype)
 
     def _grab(self, timeout_s: float) -> tuple[np.ndarray, float, dict[str, Any]]:
-        buffer, _ = self._next_buffer(timeout_s)
+        buffer = self._next_buffer(timeout_s)
         try:
             image = self._image(buffer)
             camera_ns = buffer.get_timestamp()

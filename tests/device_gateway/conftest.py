@@ -153,7 +153,7 @@ class FakeGigEVisionCamera:
     def start(self) -> FakeGigEVisionCamera:
         executable = shutil.which("arv-fake-gv-camera-0.8")
         assert executable, "arv-fake-gv-camera-0.8 is missing: make system-libraries installs aravis-tools"
-        assert not _answers_discovery(self.address, 0.2), f"another GigE Vision device already answers at {self.address}"
+        assert not _answers_discovery(self.address, 0.2), f"a GigE Vision device already answers at {self.address}"
         arguments = [executable, "-i", self.address, "-s", "GV01"]
         if self.lost_per_thousand:
             arguments += ["-r", str(self.lost_per_thousand)]

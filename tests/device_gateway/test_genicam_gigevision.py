@@ -93,7 +93,7 @@ def _stop(process: subprocess.Popen) -> str:
 
 
 def test_the_gateway_captures_a_sequence_with_the_genicam_cameras(fake_gv_camera, free_port, aravis_fake_ramp):
-    # 16-bit frames, kept at their depth through the capture archive (Mono8 scans: tests/integration/test_genicam_scan.py)
+    # 16-bit frames, kept at their depth through the capture archive (Mono8: tests/integration/test_genicam_scan.py)
     process = _start_gateway(free_port, {"THERMOFIELD_GENICAM_PIXEL_FORMAT": "Mono16"})
     try:
         with GatewayClient(f"http://127.0.0.1:{free_port}") as client:
