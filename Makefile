@@ -32,9 +32,16 @@ demo: install
 test: install-test docker-compose browser
 	$(BIN)/python -m pytest
 
-# Open3D (the inspection's meshes and distance queries) loads libusb, libGL and libEGL from the system.
+# Open3D (the inspection's meshes and distance queries) loads libusb, libGL and libEGL from the system. The
+# GenICam driver (device_gateway/drivers/genicam.py) needs Aravis 0.8's introspection data, its fake GigE Vision
+# camera for the tests (aravis-tools), arv-tool-0.8 that lists cameras (aravis-tools-cli), and what PyGObject
+# builds against (gobject-introspection, cairo, pkg-config).
+GENICAM_PACKAGES := gir1.2-aravis-0.8 aravis-tools aravis-tools-cli libgirepository1.0-dev libcairo2-dev pkg-config
 system-libraries:
 	ldconfig -p | grep -q 'libusb-1.0.so.0' && ldconfig -p | grep -q 'libEGL.so.1' || { apt-get update -qq && apt-get install -y -qq --no-install-recommends libusb-1.0-0 libegl1 libgl1 libx11-6; }
+	dpkg-query -W -f='$${Status}\n' $(GENICAM_PACKAGES) 2>/dev/null | grep -c 'install ok installed' \
+		| grep -qx '$(words $(GENICAM_PACKAGES))' || { apt-get update -qq && DEBIAN_FRONTEND=noninteractive \
+		apt-get install -y -qq --no-install-recommends $(GENICAM_PACKAGES); }
 
 # Debian's Chromium, which the demo's test opens the web viewer in through Playwright (Playwright's own
 # browser download needs the internet).

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import importlib
+
 from fastapi import FastAPI
 
 from device_gateway.app import create_app
@@ -12,35 +14,102 @@ from services.structured_light.patterns import generate_sequence
 
 
 def build_station(settings: Settings) -> Station:
-    """The station of ``settings.gateway_driver``: the simulated forging rig (filming ``settings.simulated_scene``
-    when set), or OAK cameras and a display."""
-    settle_s = None if settings.projector_settle_ms is None else settings.projector_settle_ms / 1000
-    # Drivers are imported on use: depthai and SDL load native libraries a simulated station never needs.
-    if settings.gateway_driver == "simulated":
-        from device_gateway.drivers.simulated import SimulatedStation
-        from services.simulation.scene import load_scene
+    """The station of ``settings.station_drivers``, chosen device by device: the simulated forging rig's devices
+    (filming ``settings.simulated_scene`` when set), OAK or GenICam cameras, a display projector.
 
-        scene = None if settings.simulated_scene is None else load_scene(settings.simulated_scene)
-        simulated = SimulatedStation(scene=scene, temperatures=None if scene is None else scene.temperature)
-        return Station(simulated.camera, simulated.thermal, simulated.projector, settle_s=settle_s,
-                       board_holder=simulated)
+    Raises
+    ------
+    InputError
+        When a driver's package or system library is missing, a GenICam device has no id, or a simulated camera
+        is asked to film a real projector.
+    """
+    drivers = settings.station_drivers
+    if drivers.camera == "simulated" and drivers.projector != "simulated":
+        raise InputError("a simulated camera films the simulated projector only: set THERMOFIELD_PROJECTOR_DRIVER="
+                         "simulated, or choose a real camera with THERMOFIELD_CAMERA_DRIVER")
+    settle_s = None if settings.projector_settle_ms is None else settings.projector_settle_ms / 1000
+    simulated = _simulated_station(settings) if "simulated" in drivers else None
+    camera = {"simulated": lambda: simulated.camera, "oak": lambda: _oak_camera(settings),
+              "genicam": lambda: _genicam_camera(settings)}[drivers.camera]()
+    thermal = {"simulated": lambda: simulated.thermal, "oak": lambda: _oak_thermal(settings),
+               "genicam": lambda: _genicam_thermal(settings)}[drivers.thermal]()
+    projector = simulated.projector if drivers.projector == "simulated" else _display(settings)
+    # The simulated rig moves the calibration board only where its own cameras film it; elsewhere a person does.
+    holder = simulated if drivers.camera == drivers.thermal == "simulated" else None
+    return Station(camera, thermal, projector, settle_s=settle_s, board_holder=holder)
+
+
+# Drivers are imported on use: depthai, Aravis and SDL load native libraries a simulated station never needs.
+def _simulated_station(settings: Settings):
+    from device_gateway.drivers.simulated import SimulatedStation
+    from services.simulation.scene import load_scene
+
+    scene = None if settings.simulated_scene is None else load_scene(settings.simulated_scene)
+    return SimulatedStation(scene=scene, temperatures=None if scene is None else scene.temperature)
+
+
+def _missing(driver: str, error: ImportError) -> InputError:
+    # the gateway extra is left out of the API and worker installs
+    return InputError(f"the {driver} driver needs {error.name}, which is not installed: install thermofield "
+                      "with its gateway extra, pip install 'thermofield[gateway]'")
+
+
+def _oak():
+    try:
+        return importlib.import_module("device_gateway.drivers.oak")
+    except ImportError as error:
+        raise _missing("oak", error) from None
+
+
+def _genicam():
+    try:
+        return importlib.import_module("device_gateway.drivers.genicam")
+    except ImportError as error:
+        raise _missing("genicam", error) from None
+    except ValueError as error:  # gi.require_version: the typelib is not installed
+        raise InputError(f"the genicam driver needs Aravis 0.8 ({error}): install Debian's gir1.2-aravis-0.8 "
+                         "(make system-libraries)") from None
+
+
+def _display(settings: Settings):
     try:
         from device_gateway.drivers.display import DisplayProjector
-        from device_gateway.drivers.oak import OakCamera, OakThermal
-    except ImportError as error:  # the gateway extra is left out of the API and worker installs
-        raise InputError(f"the oak driver needs {error.name}, which is not installed: install thermofield "
-                         "with its gateway extra, pip install 'thermofield[gateway]'") from None
+    except ImportError as error:
+        raise _missing("display", error) from None
+    return DisplayProjector(width=settings.projector_width, height=settings.projector_height,
+                            display=settings.projector_display)
 
-    return Station(
-        OakCamera(device_id=settings.oak_camera_id, socket=settings.camera_socket, width=settings.camera_width,
-                  height=settings.camera_height, exposure_us=settings.camera_exposure_us, iso=settings.camera_iso,
-                  lens_position=settings.camera_lens_position),
-        OakThermal(device_id=settings.oak_thermal_id, socket=settings.thermal_socket,
-                   gain_mode=settings.thermal_gain_mode),
-        DisplayProjector(width=settings.projector_width, height=settings.projector_height,
-                         display=settings.projector_display),
-        settle_s=settle_s,
-    )
+
+def _oak_camera(settings: Settings):
+    return _oak().OakCamera(device_id=settings.oak_camera_id, socket=settings.camera_socket,
+                            width=settings.camera_width, height=settings.camera_height,
+                            exposure_us=settings.camera_exposure_us, iso=settings.camera_iso,
+                            lens_position=settings.camera_lens_position)
+
+
+def _oak_thermal(settings: Settings):
+    return _oak().OakThermal(device_id=settings.oak_thermal_id, socket=settings.thermal_socket,
+                             gain_mode=settings.thermal_gain_mode)
+
+
+def _genicam_camera(settings: Settings):
+    if not settings.genicam_camera:
+        raise InputError("THERMOFIELD_GENICAM_CAMERA: the genicam camera driver needs the camera's Aravis device "
+                         "id or IP address (arv-tool-0.8 lists the ids)")
+    return _genicam().GenicamCamera(
+        device_id=settings.genicam_camera, pixel_format=settings.genicam_pixel_format,
+        exposure_us=settings.camera_exposure_us, gain=settings.camera_gain, trigger=settings.genicam_trigger,
+        region=(settings.camera_offset_x, settings.camera_offset_y, settings.camera_width, settings.camera_height))
+
+
+def _genicam_thermal(settings: Settings):
+    if not settings.genicam_thermal:
+        raise InputError("THERMOFIELD_GENICAM_THERMAL: the genicam thermal driver needs the thermal camera's Aravis "
+                         "device id or IP address (arv-tool-0.8 lists the ids)")
+    return _genicam().GenicamThermal(device_id=settings.genicam_thermal,
+                                     pixel_format=settings.genicam_thermal_pixel_format,
+                                     kelvin_per_count=settings.genicam_thermal_kelvin_per_count,
+                                     offset_k=settings.genicam_thermal_offset_k)
 
 
 def create_gateway(settings: Settings, station: Station | None = None) -> FastAPI:

@@ -138,10 +138,17 @@ class Station:
         return [self.camera, self.thermal, self.projector]
 
     def open(self) -> None:
-        """Open every device that is not open yet; :class:`DeviceUnavailable` names the first that fails."""
+        """Open every device that is not open yet; :class:`DeviceUnavailable` names the first that fails (the
+        others are opened all the same, so that health tells which device is missing)."""
+        failure: DeviceUnavailable | None = None
         for device in self.devices:
             if not device.is_open:
-                device.open()
+                try:
+                    device.open()
+                except DeviceUnavailable as error:
+                    failure = failure or error
+        if failure is not None:
+            raise failure
 
     def close(self) -> None:
         for device in self.devices:

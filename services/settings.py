@@ -11,10 +11,24 @@ from __future__ import annotations
 
 from functools import lru_cache
 from pathlib import Path
-from typing import Literal
+from typing import Literal, NamedTuple
 
 from pydantic import Field, field_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
+
+
+class StationDrivers(NamedTuple):
+    """The driver of each device of the station."""
+
+    camera: Literal["simulated", "oak", "genicam"]
+    thermal: Literal["simulated", "oak", "genicam"]
+    projector: Literal["simulated", "display"]
+
+
+# What GATEWAY_DRIVER (``thermofield gateway --driver``) stands for, device by device.
+_GATEWAY_DRIVERS = {"simulated": StationDrivers("simulated", "simulated", "simulated"),
+                    "oak": StationDrivers("oak", "oak", "display"),
+                    "genicam": StationDrivers("genicam", "genicam", "display")}
 
 
 class Settings(BaseSettings):
@@ -42,9 +56,15 @@ class Settings(BaseSettings):
     gateway_url: str = Field("http://127.0.0.1:8001", description="Base URL of the device gateway.")
     gateway_host: str = Field("127.0.0.1", description="Address the device gateway binds to.")
     gateway_port: int = Field(8001, ge=0, le=65535, description="Port of the device gateway.")
-    gateway_driver: Literal["simulated", "oak"] = Field(
-        "simulated", description="Devices behind the gateway: the virtual rig, or OAK cameras and a display projector."
-    )
+    gateway_driver: Literal["simulated", "oak", "genicam"] = Field(
+        "simulated", description="Devices behind the gateway, unless chosen per device below: the virtual rig; OAK "
+                                 "cameras and a display projector; or GenICam cameras and a display projector.")
+    camera_driver: Literal["simulated", "oak", "genicam"] | None = Field(
+        None, description="Driver of the camera filming the patterns; default GATEWAY_DRIVER's.")
+    thermal_driver: Literal["simulated", "oak", "genicam"] | None = Field(
+        None, description="Driver of the thermal camera; default GATEWAY_DRIVER's.")
+    projector_driver: Literal["simulated", "display"] | None = Field(
+        None, description="Driver of the projector; default GATEWAY_DRIVER's (display unless simulated).")
     simulated_scene: Path | None = Field(
         None, description="Scene file the simulated gateway films (docs/simulator.md; with the temperature and "
                           "optics blocks of docs/hot-parts.md a glowing part); default the forging preset.")
@@ -58,10 +78,30 @@ class Settings(BaseSettings):
     thermal_gain_mode: Literal["low", "high"] = Field(
         "low", description="OAK-T gain: low measures up to 900 K, high up to 500 K with less noise."
     )
-    camera_width: int = Field(1280, gt=0, description="Width of the OAK camera frames.")
-    camera_height: int = Field(800, gt=0, description="Height of the OAK camera frames.")
-    camera_exposure_us: int = Field(8000, gt=0, description="Manual exposure time of the OAK camera, microseconds.")
+    camera_width: int = Field(1280, gt=0, description="Width of the camera frames (OAK output; GenICam region).")
+    camera_height: int = Field(800, gt=0, description="Height of the camera frames (OAK output; GenICam region).")
+    camera_exposure_us: int = Field(8000, gt=0, description="Manual exposure time of the camera, microseconds.")
     camera_iso: int = Field(100, ge=100, le=1600, description="Manual sensitivity of the OAK camera.")
+    genicam_camera: str | None = Field(
+        None, description="Aravis device id (as arv-tool-0.8 lists it) or IP address of the GenICam camera.")
+    genicam_pixel_format: Literal["Mono8", "Mono10", "Mono12", "Mono14", "Mono16"] = Field(
+        "Mono8", description="Pixel format of the GenICam camera, kept at its full depth (uint16 above 8 bits).")
+    genicam_trigger: str = Field(
+        "Software", pattern=r"^(Software|Line[0-9]+)$",
+        description="What triggers each pattern's GenICam frame: Software, or the input line the projector's sync "
+                    "out is wired to, e.g. Line1 (docs/devices.md).")
+    camera_gain: float | None = Field(None, description="GenICam camera gain (its Gain feature, dB on most "
+                                                        "cameras); default the camera's.")
+    camera_offset_x: int = Field(0, ge=0, description="Left edge of the GenICam camera's region on its sensor.")
+    camera_offset_y: int = Field(0, ge=0, description="Top edge of the GenICam camera's region on its sensor.")
+    genicam_thermal: str | None = Field(
+        None, description="Aravis device id or IP address of the GenICam thermal camera (radiometric frames).")
+    genicam_thermal_pixel_format: Literal["Mono8", "Mono10", "Mono12", "Mono14", "Mono16"] = Field(
+        "Mono16", description="Pixel format of the GenICam thermal camera's temperature-linear counts.")
+    genicam_thermal_kelvin_per_count: float = Field(
+        0.01, gt=0, description="Kelvin per count of the GenICam thermal camera's temperature-linear output, as "
+                                "its manual states (e.g. 0.01 or 0.1).")
+    genicam_thermal_offset_k: float = Field(0.0, description="Kelvin at count 0 of the GenICam thermal camera.")
     camera_exposure_mode: Literal["fixed", "auto", "hdr"] = Field(
         "fixed", description="Scan exposure: the camera's own, metered for a glowing part (glow plus pattern "
                              "below saturation), or metered and HDR-merged (docs/hot-parts.md).")
@@ -145,6 +185,14 @@ class Settings(BaseSettings):
         return RetentionPolicy(keep_scans=self.retention_keep_scans, keep_days=self.retention_keep_days,
                                raw_frames_days=self.retention_raw_frames_days,
                                idempotency_ttl_s=self.idempotency_ttl_s, blob_grace_s=self.retention_blob_grace_s)
+
+    @property
+    def station_drivers(self) -> StationDrivers:
+        """The driver of each device: chosen per device, else GATEWAY_DRIVER's."""
+        default = _GATEWAY_DRIVERS[self.gateway_driver]
+        return StationDrivers(camera=self.camera_driver or default.camera,
+                              thermal=self.thermal_driver or default.thermal,
+                              projector=self.projector_driver or default.projector)
 
     @property
     def topic_prefix(self) -> str:

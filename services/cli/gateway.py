@@ -6,6 +6,8 @@ import argparse
 
 from services.settings import Settings
 
+_CAMERAS = ("simulated", "oak", "genicam")
+
 
 def register(subparsers: argparse._SubParsersAction) -> None:
     parser = subparsers.add_parser(
@@ -14,12 +16,28 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                     "POST /v1/captures. Configured by THERMOFIELD_* environment variables (see docs/devices.md); "
                     "the options below override them.",
     )
-    parser.add_argument("--driver", choices=("simulated", "oak"),
-                        help="simulated virtual rig, or OAK cameras and a display projector "
-                             "(default THERMOFIELD_GATEWAY_DRIVER, else simulated)")
+    parser.add_argument("--driver", choices=_CAMERAS,
+                        help="every device whose own driver is not chosen: the simulated virtual rig, OAK cameras "
+                             "and a display projector, or GenICam cameras and a display projector (default "
+                             "THERMOFIELD_GATEWAY_DRIVER, else simulated)")
+    parser.add_argument("--camera-driver", choices=_CAMERAS, help="the camera's driver (overrides --driver)")
+    parser.add_argument("--thermal-driver", choices=_CAMERAS, help="the thermal camera's driver (overrides --driver)")
+    parser.add_argument("--projector-driver", choices=("simulated", "display"),
+                        help="the projector's driver (overrides --driver)")
     parser.add_argument("--host", help="address to bind (default THERMOFIELD_GATEWAY_HOST, else 127.0.0.1)")
     parser.add_argument("--port", type=int, help="port to listen on (default THERMOFIELD_GATEWAY_PORT, else 8001)")
     parser.set_defaults(handler=_run)
+
+
+def settings_of(args: argparse.Namespace) -> Settings:
+    """The settings of the environment with the command line's options over them. ``--driver`` stands for the
+    driver of every device whose own is not chosen (``--camera-driver`` or THERMOFIELD_CAMERA_DRIVER, and so on):
+    the embedded service starts its gateway with ``--driver simulated``, and a camera chosen in the environment
+    still joins it."""
+    overrides = {"gateway_driver": args.driver, "gateway_host": args.host, "gateway_port": args.port,
+                 "camera_driver": args.camera_driver, "thermal_driver": args.thermal_driver,
+                 "projector_driver": args.projector_driver}
+    return Settings(**{name: value for name, value in overrides.items() if value is not None})
 
 
 def _run(args: argparse.Namespace) -> int:
@@ -27,10 +45,10 @@ def _run(args: argparse.Namespace) -> int:
 
     from device_gateway.service import create_gateway
 
-    overrides = {"gateway_driver": args.driver, "gateway_host": args.host, "gateway_port": args.port}
-    settings = Settings(**{name: value for name, value in overrides.items() if value is not None})
+    settings = settings_of(args)
     app = create_gateway(settings)
-    print(f"thermofield gateway ({settings.gateway_driver} devices) on "
-          f"http://{settings.gateway_host}:{settings.gateway_port}", flush=True)
+    drivers = settings.station_drivers
+    print(f"thermofield gateway (camera {drivers.camera}, thermal {drivers.thermal}, projector {drivers.projector}) "
+          f"on http://{settings.gateway_host}:{settings.gateway_port}", flush=True)
     uvicorn.run(app, host=settings.gateway_host, port=settings.gateway_port, log_level="warning")
     return 0

@@ -1,8 +1,12 @@
-"""A quarter-resolution forging station (tracing its view takes a fraction of a second), and device faults."""
+"""A quarter-resolution forging station (tracing its view takes a fraction of a second), device faults, and
+Aravis' fake GenICam cameras."""
 
 from __future__ import annotations
 
+import shutil
 import socket
+import subprocess
+import time
 
 import numpy as np
 import pytest
@@ -101,3 +105,82 @@ class Unplugged(CameraDriver):
 def unplugged(simulated):
     """Wraps the simulated camera: ``unplugged(fail_at, away)`` is lost at that grab."""
     return lambda fail_at, away=0: Unplugged(simulated.camera, fail_at, away)
+
+
+def _aravis_fake_ramp(width: int, height: int, frame_id: int, exposure_us: float, gain: int, bits: int) -> np.ndarray:
+    """Aravis' fake camera image of frame ``frame_id`` (``arv_fake_camera_diagonal_ramp`` in Aravis 0.8):
+    pixel (x, y) is ``((x + y + id) % 255) * scale`` in Mono8 and ``((256 * (x + y + id)) % 65535) * scale`` in
+    Mono16, clipped to the format's range and truncated, with ``scale = 1 + GainRaw + log10(ExposureTimeAbs /
+    10000 us)``; x and y count from the region's corner."""
+    y, x = np.mgrid[:height, :width]
+    scale = 1.0 + gain + np.log10(int(exposure_us) / 10000.0)
+    if bits == 8:
+        return np.clip(((x + y + frame_id) % 255) * scale, 0, 255).astype(np.uint8)
+    return np.clip(((256 * (x + y + frame_id)) % 65535) * scale, 0, 65535).astype(np.uint16)
+
+
+@pytest.fixture
+def aravis_fake_ramp():
+    """The fake cameras' images as ground truth: ``aravis_fake_ramp(width, height, frame_id, exposure_us, gain,
+    bits)``, so a frame shows the exposure, gain and region the driver set and which frame of the camera it is."""
+    return _aravis_fake_ramp
+
+
+GV_FAKE_ADDRESS = "127.0.0.1"  # its GigE Vision control port, 3956, is fixed: one fake camera at a time
+
+
+def _answers_discovery(address: str, timeout_s: float) -> bool:
+    """Whether a GigE Vision device at ``address`` acknowledges a unicast GVCP discovery (no broadcast)."""
+    # The 8-byte GVCP header of DISCOVERY_CMD (GigE Vision 2.0, 15.1): key 0x42, flags ack-required, command 2.
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as probe:
+        probe.settimeout(timeout_s)
+        probe.sendto(bytes([0x42, 0x01, 0x00, 0x02, 0x00, 0x00, 0x00, 0x01]), (address, 3956))
+        try:
+            answer = probe.recv(1024)
+        except (TimeoutError, ConnectionRefusedError):
+            return False
+    return answer[2:4] == b"\x00\x03"  # DISCOVERY_ACK
+
+
+class FakeGigEVisionCamera:
+    """``arv-fake-gv-camera-0.8`` serving on loopback: a real GigE Vision peer (GVCP control, GVSP stream),
+    Aravis' diagonal ramp as its images. ``kill`` takes it away as an unplugged camera; ``start`` brings it back."""
+
+    def __init__(self, address: str = GV_FAKE_ADDRESS, lost_per_thousand: int = 0) -> None:
+        self.address, self.lost_per_thousand = address, lost_per_thousand
+        self.process: subprocess.Popen | None = None
+
+    def start(self) -> FakeGigEVisionCamera:
+        executable = shutil.which("arv-fake-gv-camera-0.8")
+        assert executable, "arv-fake-gv-camera-0.8 is missing: make system-libraries installs aravis-tools"
+        assert not _answers_discovery(self.address, 0.2), f"a GigE Vision device already answers at {self.address}"
+        arguments = [executable, "-i", self.address, "-s", "GV01"]
+        if self.lost_per_thousand:
+            arguments += ["-r", str(self.lost_per_thousand)]
+        self.process = subprocess.Popen(arguments, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+        deadline = time.monotonic() + 10
+        while not _answers_discovery(self.address, 0.2):
+            assert self.process.poll() is None, f"arv-fake-gv-camera-0.8 exited: {self.process.stderr.read()}"
+            assert time.monotonic() < deadline, "arv-fake-gv-camera-0.8 did not answer discovery"
+        return self
+
+    def kill(self) -> None:
+        if self.process is not None and self.process.poll() is None:
+            self.process.kill()
+            self.process.wait(timeout=10)
+
+
+@pytest.fixture
+def fake_gv_camera():
+    """A fresh ``arv-fake-gv-camera-0.8 -i 127.0.0.1`` (id ``Aravis-Fake-GV01``), stopped after the test."""
+    camera = FakeGigEVisionCamera().start()
+    yield camera
+    camera.kill()
+
+
+@pytest.fixture
+def lossy_gv_camera():
+    """The fake GigE Vision camera dropping 300 of every 1000 stream packets."""
+    camera = FakeGigEVisionCamera(lost_per_thousand=300).start()
+    yield camera
+    camera.kill()

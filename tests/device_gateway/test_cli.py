@@ -49,3 +49,20 @@ def test_unknown_driver_is_refused(capsys):
         main(["gateway", "--driver", "webcam"])
     assert exit_.value.code == 2
     assert "invalid choice: 'webcam'" in capsys.readouterr().err
+
+
+def test_driver_stands_for_every_device_whose_own_driver_is_not_chosen(monkeypatch):
+    import argparse
+
+    from services.cli.gateway import register, settings_of
+
+    parser = argparse.ArgumentParser()
+    register(parser.add_subparsers())
+    drivers = lambda *arguments: tuple(settings_of(parser.parse_args(["gateway", *arguments])).station_drivers)  # noqa: E731
+    assert drivers("--driver", "oak") == ("oak", "oak", "display")
+    monkeypatch.setenv("THERMOFIELD_CAMERA_DRIVER", "genicam")
+    assert drivers() == ("genicam", "simulated", "simulated")
+    assert drivers("--driver", "simulated") == ("genicam", "simulated", "simulated")  # as `thermofield serve` starts it
+    assert drivers("--driver", "oak", "--thermal-driver", "genicam") == ("genicam", "genicam", "display")
+    assert drivers("--driver", "oak", "--camera-driver", "simulated", "--projector-driver", "simulated") == (
+        "simulated", "oak", "simulated")

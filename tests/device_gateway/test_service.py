@@ -83,3 +83,49 @@ def test_a_bad_scene_file_is_named(tmp_path):
     path.write_text('{"surfaces": []}')
     with pytest.raises(InputError, match="scene.json"):
         build_station(Settings(gateway_driver="simulated", simulated_scene=path))
+
+
+def test_drivers_are_chosen_per_device():
+    from device_gateway.drivers.genicam import GenicamCamera, GenicamThermal
+
+    settings = Settings(camera_driver="genicam", genicam_camera="Basler-acA1920-40gm-40012345",
+                        genicam_pixel_format="Mono12", genicam_trigger="Line1", camera_gain=6.0,
+                        camera_offset_x=64, camera_offset_y=32, camera_width=1920, camera_height=1200,
+                        camera_exposure_us=3000, thermal_driver="genicam", genicam_thermal="192.168.10.20",
+                        genicam_thermal_kelvin_per_count=0.1, genicam_thermal_offset_k=-10.0)
+    assert tuple(settings.station_drivers) == ("genicam", "genicam", "simulated")
+    station = build_station(settings)
+    camera, thermal = station.camera, station.thermal
+    assert isinstance(camera, GenicamCamera) and isinstance(thermal, GenicamThermal)
+    assert (camera.device_id, camera.format.name, camera.trigger, camera.gain, camera.exposure_us) == (
+        "Basler-acA1920-40gm-40012345", "Mono12", "Line1", 6.0, 3000)
+    assert camera.region == (64, 32, 1920, 1200) and camera.saturation_level == 4095
+    assert (thermal.device_id, thermal.format.name, thermal.kelvin_per_count, thermal.offset_k, thermal.trigger) == (
+        "192.168.10.20", "Mono16", 0.1, -10.0, None)
+    assert station.projector.info.driver == "simulated" and station.board_holder is None
+
+    mixed = build_station(Settings(gateway_driver="oak", thermal_driver="simulated"))
+    assert [device.info.driver for device in mixed.devices] == ["oak", "simulated", "display"]
+
+
+def test_the_gateway_driver_stands_for_every_device():
+    assert tuple(Settings(gateway_driver="genicam").station_drivers) == ("genicam", "genicam", "display")
+    assert tuple(Settings(gateway_driver="oak").station_drivers) == ("oak", "oak", "display")
+    assert tuple(Settings().station_drivers) == ("simulated", "simulated", "simulated")
+
+
+@pytest.mark.parametrize(("settings", "message"), [
+    ({"camera_driver": "genicam"}, "THERMOFIELD_GENICAM_CAMERA: the genicam camera driver needs"),
+    ({"thermal_driver": "genicam"}, "THERMOFIELD_GENICAM_THERMAL"),
+    ({"projector_driver": "display"}, "a simulated camera films the simulated projector only"),
+])
+def test_an_incomplete_choice_of_drivers_is_refused_naming_the_setting(settings, message):
+    with pytest.raises(InputError, match=message):
+        build_station(Settings(**settings))
+
+
+def test_without_aravis_the_genicam_driver_says_what_to_install(monkeypatch):
+    monkeypatch.delitem(sys.modules, "device_gateway.drivers.genicam", raising=False)
+    monkeypatch.setitem(sys.modules, "gi", None)  # as if PyGObject were not installed
+    with pytest.raises(InputError, match=r"the genicam driver needs gi.*thermofield\[gateway\]"):
+        build_station(Settings(camera_driver="genicam", genicam_camera="x"))

@@ -4,6 +4,7 @@ tests/containers starts them for real (make test-containers)."""
 
 from __future__ import annotations
 
+import os
 import re
 import shutil
 import subprocess
@@ -18,6 +19,7 @@ from services.settings import Settings
 DOCKER = Path(__file__).resolve().parents[2] / "docker"
 COMPOSE = DOCKER / "compose.yaml"
 OAK_OVERRIDE = DOCKER / "compose.oak.yaml"
+GENICAM_OVERRIDE = DOCKER / "compose.genicam.yaml"
 LOCAL_OVERRIDE = DOCKER / "compose.local.yaml"
 THERMOFIELD_SERVICES = ("api", "worker", "gateway")
 
@@ -61,7 +63,7 @@ def test_the_local_variant_swaps_only_the_images(compose):
     assert all(set(service) == {"image"} and service["image"].startswith("localhost/") for service in local.values())
 
 
-@pytest.mark.parametrize("path", [COMPOSE, OAK_OVERRIDE])
+@pytest.mark.parametrize("path", [COMPOSE, OAK_OVERRIDE, GENICAM_OVERRIDE])
 def test_every_thermofield_variable_is_a_setting(path):
     services = yaml.safe_load(path.read_text())["services"]
     variables = {name for service in services.values() for name in service.get("environment", {})
@@ -97,11 +99,14 @@ def test_one_dockerfile_builds_each_role_non_root_from_a_base_argument(compose):
         assert f"!{copied}" in ignored
 
 
-@pytest.mark.parametrize("files", [[COMPOSE], [COMPOSE, OAK_OVERRIDE], [COMPOSE, LOCAL_OVERRIDE]],
-                         ids=["compose", "compose+oak", "compose+local"])
+@pytest.mark.parametrize("files", [[COMPOSE], [COMPOSE, OAK_OVERRIDE], [COMPOSE, GENICAM_OVERRIDE],
+                                   [COMPOSE, LOCAL_OVERRIDE]],
+                         ids=["compose", "compose+oak", "compose+genicam", "compose+local"])
 def test_docker_compose_accepts_the_files(files):
     binary = shutil.which("docker-compose")
     assert binary is not None, "docker-compose is not installed: run the suite with `make test`, which installs it"
     arguments = [item for path in files for item in ("-f", str(path))]
-    result = subprocess.run([binary, *arguments, "config", "--quiet"], capture_output=True, text=True, timeout=60)
+    environment = {**os.environ, "THERMOFIELD_GENICAM_CAMERA": "192.168.10.21"}  # compose.genicam.yaml requires it
+    result = subprocess.run([binary, *arguments, "config", "--quiet"], capture_output=True, text=True, timeout=60,
+                            env=environment)
     assert result.returncode == 0, result.stderr
