@@ -64,6 +64,21 @@ def _private_table_cache(tmp_path_factory):
         os.environ["XDG_CACHE_HOME"] = previous
 
 
+@pytest.fixture(autouse=True, scope="session")
+def _no_web_viewer_by_default():
+    """The services the suite starts serve no Rerun web viewer unless a test asks for one (``--rerun-web-port``,
+    as the demo's test does): its default port 9090 would be one more that two services started at once share."""
+    import os
+
+    previous = os.environ.get("THERMOFIELD_RERUN_WEB_PORT")
+    os.environ["THERMOFIELD_RERUN_WEB_PORT"] = ""
+    yield
+    if previous is None:
+        os.environ.pop("THERMOFIELD_RERUN_WEB_PORT")
+    else:
+        os.environ["THERMOFIELD_RERUN_WEB_PORT"] = previous
+
+
 # The integration tier: test files that start processes or servers, and those that render full-size
 # simulated scans or run whole calibrations and registrations (seconds per test).
 _INTEGRATION_FILES = (
