@@ -41,7 +41,7 @@ from services.registration.search import coarse_search, gradient_field_search
 _COARSEST_SIZE = 48  # the coarsest level keeps at least this many moving pixels across
 # Coarse-search grid step of rotation and scale, in coarse moving pixels of corner motion. MI and NMI take 3:
 # on the 200 rendered and photographed pairs as precise as 2 (median 0.142 against 0.144 px) with half the
-# canvases; NGF keeps 2, since at 3 one more real TNO pair failed (docs/registration.md, Time, round 5).
+# canvases; NGF keeps 2, since at 3 one more real TNO pair failed.
 _SEARCH_STEP = {"mi": 3.0, "nmi": 3.0, "ngf": 2.0}
 DEFAULT_SHIFT_RANGE = 0.12  # of the moving image's smaller side
 _SEARCH_BINS = 16  # fewer bins at the coarse level: a few thousand samples fill 16 x 16 cells, not 32 x 32
@@ -53,14 +53,13 @@ _COARSE_REFINEMENT = (2.0, 0.5, 0.1, 1e-5)  # coarsest level, where the search l
 # The levels below: MI's peak is not quadratic, so its stencil shrinks; NGF's levels above full resolution only
 # rank its candidates and start the next level, and a 1 px model walks past the bumps that stopped a 0.125 px one
 # short of the peak (TNO pair 06 stopped 6 % off in scale); on the choice level, instead of 1 -> 0.25 px, it took
-# a quarter off the whole registration's time. Chosen on the odd TNO pairs, validated on the even ones
-# (docs/registration.md, Time, round 6).
+# a quarter off the whole registration's time. Chosen on the odd TNO pairs, checked on the even ones.
 _FINE_REFINEMENT = {"mi": (0.5, 0.125, 0.02, 1e-5), "nmi": (0.5, 0.125, 0.02, 1e-5), "ngf": (1.0, 0.5, 0.1, 1e-5)}
 _CHOICE_REFINEMENT = _FINE_REFINEMENT["ngf"]  # the level NGF chooses its candidate on
 # Full resolution, started within a fraction of a pixel. NGF's precision on real pairs is the consistency of
 # two registrations, i.e. where each stops on a flat, rough maximum: it keeps a 1 px stencil, which sees the
 # smooth shape of the peak, and converges on the step alone (0.005 px, no gain stop); chosen on the odd TNO
-# pairs among stencils of 0.25 to 2 px, validated on the even ones (docs/registration.md).
+# pairs among stencils of 0.25 to 2 px, checked on the even ones.
 _FINEST_REFINEMENT = {"mi": (0.25, 0.125, 0.02, 1e-5), "nmi": (0.25, 0.125, 0.02, 1e-5),
                       "ngf": (1.0, 1.0, 0.005, 0.0)}
 _MAX_ITERATIONS = 40  # NGF's step convergence may take more than 20 models; MI and NMI stop well before 20
@@ -71,7 +70,8 @@ DEFAULT_PREPROCESSING = {"mi": "gradient", "nmi": "gradient", "ngf": "none"}  # 
 # The default metric, preprocessing and search range were chosen on the tuning half of the real TNO pairs (the
 # odd ones) by consistency under known moves, with no mask: NGF with no preprocessing, median 0.153 px and 13 of 13
 # under 1 px, where gradient-magnitude NMI gave 1.24 px and 6 of 13, CLAHE before NGF 0.151 px and 12 of 13; a
-# shift range of 15 % or 20 % of the smaller side gave the same consistency as 12 % (docs/registration.md).
+# shift range of 8 % to 20 % of the smaller side gave the same consistency as 12 %, the smallest that covers
+# the 30 px moves of the measure on a 256-pixel image (docs/registration.md, How the defaults were chosen).
 DEFAULT_METRIC = "ngf"
 
 

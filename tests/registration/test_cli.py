@@ -98,3 +98,13 @@ def test_bad_input_exits_2_with_a_message_and_no_traceback(pair_files, tmp_path,
     assert code == 2
     assert message in error and "Traceback" not in error
     assert not (tmp_path / "REG.json").exists()
+
+
+def test_help_names_the_defaults_and_why(capsys):
+    with pytest.raises(SystemExit) as exit_info:
+        main(["register", "--help"])
+    assert exit_info.value.code == 0
+    text = " ".join(capsys.readouterr().out.split())
+    assert "(default ngf: chosen on the tuning half of the real TNO pairs" in text
+    assert "12% of the infrared image's smaller side" in text
+    assert "constant border" in text  # what happens without --moving-mask
