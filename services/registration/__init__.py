@@ -1,4 +1,4 @@
-"""Infrared-to-visible image registration by mutual information or normalised gradient fields.
+"""Infrared-to-visible image registration by normalised gradient fields (the default) or mutual information.
 
 See docs/registration.md.
 """

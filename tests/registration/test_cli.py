@@ -29,7 +29,8 @@ def test_register_writes_the_registration_and_both_pictures(pair_files, capsys):
     document = json.loads(out.read_text())
     assert set(document) == {"model", "matrix", "mi", "nmi", "bins", "log_base"}
     assert document["model"] == "similarity" and document["bins"] == 32 and document["log_base"] == 2.0
-    assert corner_error(truth, np.array(document["matrix"]), *INFRARED_SIZE) < 0.5
+    # the default metric, NGF, is less precise on rendered scenes than NMI (docs/registration.md)
+    assert corner_error(truth, np.array(document["matrix"]), *INFRARED_SIZE) < 1.0
     for picture in ("overlay.png", "board.png"):
         image = cv2.imread(str(directory / picture), cv2.IMREAD_UNCHANGED)
         assert image.shape == (768, 1024) and image.dtype == np.uint8
@@ -51,6 +52,7 @@ def test_register_reads_a_float_tiff_infrared_image(pair_files, tmp_path):
 
 
 def test_register_leaves_out_the_infrared_pixels_the_mask_marks_as_without_data(pair_files, tmp_path):
+    # NMI, which keeps to a pixel with half the image; NGF's half-image precision is test_register.py's
     directory, truth = pair_files
     infrared = cv2.imread(str(directory / "infrared.png"), cv2.IMREAD_UNCHANGED)
     decoy = infrared.copy()  # the left half shows the scene 18 px to the right and 12 px down
@@ -63,7 +65,7 @@ def test_register_leaves_out_the_infrared_pixels_the_mask_marks_as_without_data(
     for masking in ([], ["--moving-mask", str(tmp_path / "mask.png")]):
         out = tmp_path / "REG.json"
         assert main(["register", "--fixed", str(directory / "visible.png"), "--moving", str(tmp_path / "decoy.png"),
-                     "--out", str(out)] + masking) == 0
+                     "--metric", "nmi", "--out", str(out)] + masking) == 0
         errors.append(corner_error(truth, np.array(json.loads(out.read_text())["matrix"]), *INFRARED_SIZE))
     assert errors[0] > 10.0 and errors[1] < 1.0, errors
 
@@ -96,3 +98,13 @@ def test_bad_input_exits_2_with_a_message_and_no_traceback(pair_files, tmp_path,
     assert code == 2
     assert message in error and "Traceback" not in error
     assert not (tmp_path / "REG.json").exists()
+
+
+def test_help_names_the_defaults_and_why(capsys):
+    with pytest.raises(SystemExit) as exit_info:
+        main(["register", "--help"])
+    assert exit_info.value.code == 0
+    text = " ".join(capsys.readouterr().out.split())
+    assert "(default ngf: chosen on the tuning half of the real TNO pairs" in text
+    assert "12% of the infrared image's smaller side" in text
+    assert "constant border" in text  # what happens without --moving-mask

@@ -1,17 +1,21 @@
-"""Registration of real TNO infrared/visible pairs (../shared/data/tno-ir-visible), measured as consistency.
+"""Registration of real TNO infrared/visible pairs (../shared/data/tno-ir-visible) with default options.
 
-Each infrared image is moved by a known similarity (shift up to 30 px per
-axis, rotation up to 4 degrees, scale 0.93..1.07, seeded by the pair number as
-in experiments/registration_real.py), on its own canvas with what the move
-brings in masked, or cut to a view inside it (the stricter variant); the
-registration of the moved image must equal the registration of the whole
-image composed with the move (services.registration.consistency). Issue 11's
-targets are checked on all 25 moved pairs (median at most 0.5 px, at least 90 %
-under 1 px); the stricter cut view, to keep the suite inside its budget, on every
-fourth pair (01, 05, ... 25). Both guard the documented figures
-(docs/registration.md, beside SimpleITK: the experiment's) against getting worse,
-with room for the scatter of about 0.1 px that a change of the optimiser's path
-brings (another CPU's rounding is one).
+Measured as consistency: each infrared image is moved by a known similarity
+(shift up to 30 px per axis, rotation up to 4 degrees, scale 0.93..1.07,
+seeded by the pair number as in experiments/registration_real.py) on its own
+canvas, what the move brings in set to 0 and NOT masked, or cut to a view
+inside it (the stricter variant); the registration of the moved image must
+equal the registration of the whole image composed with the move
+(services.registration.consistency). `register` runs with every default:
+no mask, no metric, no scale, no search range.
+
+Only the reporting half of the pairs (the even numbers) is used: the
+defaults were chosen on the tuning half (the odd numbers), whose figures are
+not reported. Issue 35's targets are checked on the moved images (median at
+most 0.5 px: met; at least 90 % under 1 px: not met, a strict xfail that
+fails when it starts to pass); the documented figures (docs/registration.md)
+are guarded against getting worse, with room for the scatter of about 0.1 px
+that a change of the optimiser's path brings (another CPU's rounding is one).
 """
 
 from pathlib import Path
@@ -23,10 +27,10 @@ import pytest
 from services.registration.consistency import move_consistency
 from services.registration.register import register
 
-pytestmark = pytest.mark.integration  # 64 full-resolution registrations
+pytestmark = pytest.mark.integration  # 48 full-resolution registrations of real pairs
 
 TNO_DIR = Path(__file__).resolve().parents[2].parent / "shared" / "data" / "tno-ir-visible"  # shared/ beside the clone
-PAIRS = {"moved": range(1, 26), "view": range(1, 26, 4)}
+REPORTING = range(2, 26, 2)  # the defaults were chosen on the odd pairs; these report
 
 
 def _pair(number: int) -> tuple[np.ndarray, np.ndarray]:
@@ -36,43 +40,65 @@ def _pair(number: int) -> tuple[np.ndarray, np.ndarray]:
     return images[0], images[1]
 
 
-def _register(visible: np.ndarray, infrared: np.ndarray, mask: np.ndarray | None) -> np.ndarray:
-    return register(visible, infrared, "similarity", metric="ngf", scale=1.0, max_shift=45.0,
-                    moving_mask=mask).matrix
+def _register_with_defaults(visible: np.ndarray, infrared: np.ndarray, mask: np.ndarray | None) -> np.ndarray:
+    return register(visible, infrared).matrix  # the mask of what the move brought in is not given
 
 
-@pytest.fixture(scope="module", params=["moved", "view"])
-def results(request):
-    return request.param, {
-        number: move_consistency(_register, *_pair(number), np.random.default_rng([0, number]),
-                                 view=request.param == "view")
-        for number in PAIRS[request.param]}
+def _results(view: bool) -> dict:
+    return {number: move_consistency(_register_with_defaults, *_pair(number), np.random.default_rng([0, number]),
+                                     view=view)
+            for number in REPORTING}
 
 
-def test_real_pair_consistency_is_no_worse_than_documented(results):
-    protocol, by_pair = results
-    consistency = np.array([result.consistency for result in by_pair.values()])
-    if protocol == "moved":  # documented: median 0.223 px, 24 of 25 under 1 px (02, mostly smoke, not)
-        assert np.median(consistency) <= 0.32, consistency
-        assert np.sum(consistency < 1.0) >= 23, consistency  # issue 11: at least 90 %
-    else:  # documented: median 0.308 px, 6 of these 7 pairs under 1 px
-        assert np.median(consistency) <= 0.40, consistency
-        assert np.sum(consistency < 1.0) >= 5, consistency
+@pytest.fixture(scope="module")
+def moved():
+    return _results(view=False)
 
 
-def test_moved_images_keep_most_of_the_scene_and_mask_the_rest(results):
-    protocol, by_pair = results
-    for result in by_pair.values():
-        if protocol == "moved":
-            assert result.moved_image.shape == result.moved_mask.shape
-            assert 0.7 < result.moved_mask.mean() < 1.0
-        else:
-            assert result.moved_mask is None
+@pytest.fixture(scope="module")
+def view():
+    return _results(view=True)
 
 
-def test_real_pair_registrations_stay_near_the_hand_alignment(results):
+def _consistency(by_pair: dict) -> np.ndarray:
+    return np.array([result.consistency for result in by_pair.values()])
+
+
+def test_moved_real_pairs_meet_the_median_target_with_default_options(moved):
+    consistency = _consistency(moved)
+    assert np.median(consistency) <= 0.5, consistency  # issue 35's target; documented 0.444 px
+
+
+@pytest.mark.xfail(strict=True, reason="not met: 10 of the 12 reporting pairs (83 %) are under 1 px; 02 (smoke, "
+                                       "similar trunks) and 06 (a second maximum 54 px off inside the default "
+                                       "search range) are not (docs/registration.md)")
+def test_moved_real_pairs_meet_the_share_target_with_default_options(moved):
+    assert np.mean(_consistency(moved) < 1.0) >= 0.9, _consistency(moved)  # issue 35's target
+
+
+def test_moved_real_pairs_are_no_worse_than_documented(moved):
+    consistency = _consistency(moved)
+    assert np.sum(consistency < 1.0) >= 10, consistency  # documented: 10 of 12, all but 02 and 06
+
+
+def test_cut_views_of_real_pairs_are_no_worse_than_documented(view):
+    consistency = _consistency(view)
+    assert np.median(consistency) <= 0.97, consistency  # documented 0.866 px
+    assert np.sum(consistency < 1.0) >= 6, consistency  # documented 7 of 12
+
+
+def test_moved_images_bring_in_a_border_that_the_registration_is_not_told_of(moved, view):
+    for result in moved.values():
+        assert 0.7 < result.moved_mask.mean() < 1.0  # the move brought in up to 30 % of the canvas
+    # as a constant 0, but for the interpolation's blend along its edge
+    brought_in = np.concatenate([result.moved_image[~result.moved_mask] for result in moved.values()])
+    assert np.mean(brought_in == 0) > 0.9
+    assert all(result.moved_mask is None for result in view.values())  # a view lies wholly inside the original
+
+
+@pytest.mark.parametrize("protocol", ["moved", "view"])
+def test_real_pair_registrations_stay_near_the_hand_alignment(protocol, request):
     # the hand alignment is approximate (about a pixel by the README, but 5-10 px at the corners on pairs 11-18,
     # see docs/registration.md), so only a gross disagreement on most pairs would mean a wrong registration
-    _, by_pair = results
-    from_hand = np.array([result.from_hand for result in by_pair.values()])
+    from_hand = np.array([result.from_hand for result in request.getfixturevalue(protocol).values()])
     assert np.median(from_hand) < 15.0, from_hand

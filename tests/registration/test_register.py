@@ -10,8 +10,9 @@ import numpy as np
 import pytest
 
 from services.registration.models import corner_error, similarity_about_centres
+from services.registration.borders import data_mask
 from services.registration.register import objective_value, register
-from services.registration.synthetic_pairs import render_scene_pair
+from services.registration.synthetic_pairs import moved_image, render_scene_pair
 from tests.registration.conftest import INFRARED_SIZE, chessboard_pair, scene_pair
 
 
@@ -25,10 +26,19 @@ def test_similarity_on_real_photographs_is_subpixel(seed, index):
 
 
 @pytest.mark.parametrize("seed", [21, 22])
-def test_similarity_on_rendered_scenes_of_different_resolution_is_subpixel(seed):
+def test_similarity_on_rendered_scenes_of_different_resolution_is_subpixel_with_nmi(seed):
+    visible, infrared, truth = scene_pair(seed)
+    result = register(visible, infrared, "similarity", metric="nmi")
+    assert corner_error(truth, result.matrix, *INFRARED_SIZE) < 0.5
+
+
+@pytest.mark.parametrize("seed", [21, 22])
+def test_the_default_on_rendered_scenes_is_within_its_documented_spread(seed):
+    # NGF, the default, is chosen on real pairs; on rendered scenes it is less precise than NMI
+    # (docs/registration.md: median 0.401 px, 96 % under 1 px, worst 2.22 px over 50 scenes)
     visible, infrared, truth = scene_pair(seed)
     result = register(visible, infrared, "similarity")
-    assert corner_error(truth, result.matrix, *INFRARED_SIZE) < 0.5
+    assert corner_error(truth, result.matrix, *INFRARED_SIZE) < 1.5
 
 
 @pytest.mark.parametrize("metric", ["nmi", "ngf"])
@@ -57,6 +67,18 @@ def test_a_masked_decoy_does_not_pull_the_registration(metric):
     assert corner_error(truth, masked.matrix, *INFRARED_SIZE) < 2.0  # half the image, half the edges
     assert objective_value(visible, decoy, masked.matrix, metric=metric, moving_mask=mask) > objective_value(
         visible, decoy, unmasked.matrix, metric=metric, moving_mask=mask)
+
+
+@pytest.mark.parametrize("metric", ["nmi", "ngf"])
+def test_without_a_mask_the_border_a_move_brought_in_is_found_and_left_out(metric):
+    visible, infrared, truth = scene_pair(22)
+    moved, valid, moved_to_infrared = moved_image(np.random.default_rng(5), infrared)
+    found = register(visible, moved, "similarity", metric=metric)
+    assert np.array_equal(found.matrix, register(visible, moved, "similarity", metric=metric,
+                                                 moving_mask=data_mask(moved)).matrix)
+    told = register(visible, moved, "similarity", metric=metric, moving_mask=valid)  # the true mask
+    assert corner_error(told.matrix, found.matrix, *INFRARED_SIZE) < 0.1
+    assert corner_error(truth @ moved_to_infrared, found.matrix, *INFRARED_SIZE) < 0.5
 
 
 @pytest.mark.parametrize(("mask", "message"), [
