@@ -6,7 +6,8 @@ Run by hand (not a test):
 
 Starts the station's OPC UA server (Basic256Sha256 Sign&Encrypt, an API key as the MES's password) on a fresh
 database (SQLite embedded, a fresh PostgreSQL schema scaled out) and connects an asyncua MES that subscribes to
-ResultReady (publishing interval 0: as soon as the server has it). Each scan is a queued scan job (as
+ResultReady with a publishing interval of ``--interval-ms`` (the server sends its queued events every this
+often: an event waits half of it on average). Each scan is a queued scan job (as
 StartSingleJob makes it) that a worker's job tracker runs as the scan actor's bookkeeping does: started, capture,
 reconstruct, then ``succeed``, the commit that records the job's result (the field's artifacts already stored,
 its summary and verdict) on the scan. The latency is from just before that commit to the MES's event handler
@@ -62,8 +63,8 @@ def _free_port() -> int:
 class _MesThread:
     """The MES on its own thread and event loop, subscribed to ResultReady."""
 
-    def __init__(self, endpoint: str, key: str, certificate) -> None:
-        self.endpoint, self.key, self.certificate = endpoint, key, certificate
+    def __init__(self, endpoint: str, key: str, certificate, interval_ms: float) -> None:
+        self.endpoint, self.key, self.certificate, self.interval_ms = endpoint, key, certificate, interval_ms
         self.mes: Mes | None = None
         self.ready, self.stop = threading.Event(), threading.Event()
         self.thread = threading.Thread(target=lambda: asyncio.run(self._run()), daemon=True)
@@ -73,7 +74,7 @@ class _MesThread:
 
     async def _run(self) -> None:
         async with Mes(self.endpoint, self.key, self.certificate) as mes:
-            await mes.subscribe("ResultReadyEventType", interval_ms=0)
+            await mes.subscribe("ResultReadyEventType", interval_ms=self.interval_ms)
             self.mes = mes
             self.ready.set()
             while not self.stop.is_set():
@@ -91,7 +92,7 @@ class _MesThread:
         return None
 
 
-def run(mode: str, scans: int, directory: Path) -> tuple[list[float], list[float]]:
+def run(mode: str, scans: int, interval_ms: float, directory: Path) -> tuple[list[float], list[float]]:
     """One run: each scan's latency to the MES and its commit's duration, in ms."""
     if mode == "embedded":
         engine = make_engine(f"sqlite:///{directory / 'service.db'}")
@@ -122,7 +123,7 @@ def run(mode: str, scans: int, directory: Path) -> tuple[list[float], list[float
             else:
                 worker.listeners.append(server.notify)
             certificate = asyncio.run(client_certificate(directory / "mes", options.trusted_dir))
-            mes = _MesThread(options.endpoint, key, certificate)
+            mes = _MesThread(options.endpoint, key, certificate, interval_ms)
             try:
                 recipe = station.find_recipe("billet", None)
                 for index in range(scans):
@@ -163,11 +164,13 @@ def main() -> int:
     parser.add_argument("--mode", choices=("embedded", "scaled-out"), default="embedded")
     parser.add_argument("--runs", type=int, default=5)
     parser.add_argument("--scans", type=int, default=20)
+    parser.add_argument("--interval-ms", type=float, default=20.0,
+                        help="the MES's publishing interval: the server sends what it has every this often")
     args = parser.parse_args()
     medians, every, commit_medians = [], [], []
     for number in range(args.runs):
         with tempfile.TemporaryDirectory() as directory:
-            latencies, commits = run(args.mode, args.scans, Path(directory))
+            latencies, commits = run(args.mode, args.scans, args.interval_ms, Path(directory))
         medians.append(statistics.median(latencies))
         commit_medians.append(statistics.median(commits))
         every.extend(latencies)
@@ -175,7 +178,8 @@ def main() -> int:
               f"worst {max(latencies):.1f} ms over {len(latencies)} scans", flush=True)
     every.sort()
     median = statistics.median(medians)
-    print(f"\n{args.mode}: result stored -> ResultReady at the MES, {args.runs} runs x {args.scans} scans")
+    print(f"\n{args.mode}: result stored -> ResultReady at the MES, {args.runs} runs x {args.scans} scans, "
+          f"publishing interval {args.interval_ms:g} ms")
     print(f"| median of the runs' medians | 95th percentile | worst | commit alone (median) | ratio |")
     print(f"|---|---|---|---|---|")
     print(f"| {median:.1f} ms | {every[int(0.95 * (len(every) - 1))]:.1f} ms | {every[-1]:.1f} ms "

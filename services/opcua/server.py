@@ -312,9 +312,11 @@ class VisionSystem:
             result = await asyncio.to_thread(self.station.result, state["scan_id"])
             if result is not None:
                 await self._result_ready(result)
-        if self.continuous is not None and self.continuous.get("scan_job") == job_id \
-                and state["status"] in ("succeeded", "failed"):
-            await self._continue()
+        if self.continuous is not None and self.continuous.get("scan_job") == job_id:
+            if state["status"] == "succeeded":
+                await self._continue()
+            elif state["status"] == "failed":  # the station cannot scan (devices lost...): the run ends
+                await self._end_continuous(f"scan job {job_id} failed: {state.get('error')}")
         await self._settle()
 
     async def _settle(self) -> None:
@@ -346,13 +348,17 @@ class VisionSystem:
             job = await asyncio.to_thread(self.station.start_scan, part_id=run["part_id"], recipe=run["recipe"],
                                           meas_id=run["meas_id"], job_id=run["job_id"])
         except Exception as error:  # the station cannot go on (no calibration, queue full, database down)
-            logger.warning("OPC UA: the continuous job %s stops: %s", run["job_id"], error)
-            self.continuous = None
-            await self._transition("Operational", "Ready", "ContinuousExecutionToReadyAuto")
-            await self._fire("Ready", JobId=ua_job(run["job_id"]))
+            await self._end_continuous(str(error))
             return
         run["scan_job"] = job.id
         self.acquiring[job.id] = run["job_id"]
+
+    async def _end_continuous(self, why: str) -> None:
+        run, self.continuous = self.continuous, None
+        logger.warning("OPC UA: the continuous job %s stops: %s", run["job_id"], why)
+        if self.vision_state == "Operational" and self.automatic_state == "ContinuousExecution":
+            await self._transition("Operational", "Ready", "ContinuousExecutionToReadyAuto")
+            await self._fire("Ready", JobId=ua_job(run["job_id"]))
 
     # states and events
 

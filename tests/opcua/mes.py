@@ -47,13 +47,16 @@ class Mes:
     """A connected MES client (``async with Mes(...) as mes``); ``events`` collects the VisionSystem's events."""
 
     def __init__(self, endpoint: str, api_key: str, certificate: tuple[Path, Path] | None = None,
-                 timeout_s: float = 30.0) -> None:
-        self.client = Client(endpoint, timeout=timeout_s)
+                 timeout_s: float = 30.0, watchdog_s: float = 10.0) -> None:
+        # asyncua probes the server every watchdog interval and gives up after as long (1 s by default): a server
+        # whose process is busy scanning on a loaded machine may take longer to answer
+        self.client = Client(endpoint, timeout=timeout_s, watchdog_intervall=watchdog_s)
         self.client.application_uri = CLIENT_URI
         self.client.set_user("mes")
         self.client.set_password(api_key)
         self.certificate = certificate
         self.events: list[dict[str, Any]] = []
+        self.status_changes: list[Any] = []
         self.event_times: list[float] = []
         self.mv = 0
         self.vision = None
@@ -111,7 +114,9 @@ class Mes:
                            ).read_data_value(raise_on_bad_status=False)
         return vision, automatic.Value.Value.Text if automatic.StatusCode.is_good() else None
 
-    async def subscribe(self, *event_types: str, interval_ms: float = 0) -> None:
+    async def subscribe(self, *event_types: str, interval_ms: float = 100) -> None:
+        """Subscribe to the VisionSystem's events of these types (an event reaches the client at the server's
+        next publishing cycle: up to ``interval_ms`` later)."""
         types = [await self.client.nodes.base_event_type.get_child(
             ["0:TransitionEventType", f"{self.mv}:{name}"] if name == "StateChangedEventType" else f"{self.mv}:{name}")
             for name in event_types]
@@ -121,6 +126,9 @@ class Mes:
     def event_notification(self, event) -> None:
         self.event_times.append(time.perf_counter())
         self.events.append({**event.get_event_props_as_fields_dict(), "_type": event.EventType})
+
+    def status_change_notification(self, status) -> None:
+        self.status_changes.append(status)
 
     def of_type(self, name: str) -> list[dict[str, Any]]:
         wanted = ua.NodeId({"ResultReadyEventType": 1024, "StateChangedEventType": 1018, "JobStartedEventType": 1013,
