@@ -36,7 +36,6 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from asyncua import ua  # noqa: E402
 
 from services.db.apikeys import create_api_key  # noqa: E402
 from services.db.engine import make_engine, make_sessions, migrate  # noqa: E402

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import asyncio
 import logging
+import socket
 import threading
 from dataclasses import dataclass, replace
 from datetime import UTC, datetime
@@ -146,9 +147,10 @@ class OpcUaServer:
         if self.options.security_policy == "None":
             server.set_security_policy([ua.SecurityPolicyType.NoSecurity], permission_ruleset=CallerRuleset())
         else:
+            host = urlsplit(self.endpoint).hostname
             self.certificate = await load_server_certificate(
                 server, self.options.pki_dir, self.options.certificate, self.options.private_key, self.station.name,
-                urlsplit(self.endpoint).hostname)
+                socket.gethostname() if host in ("0.0.0.0", "::") else host)
             server.set_security_policy([ua.SecurityPolicyType.Basic256Sha256_SignAndEncrypt],
                                        permission_ruleset=CallerRuleset())
             server.set_certificate_validator(trusted_clients_validator(self.options.trusted_dir))
@@ -243,6 +245,7 @@ class VisionSystem:
             self.events[event] = await server.get_event_generator(await server.nodes.base_event_type.get_child(
                 [f"{mv}:{event}EventType"] if event not in ("StateChanged",) else
                 ["0:TransitionEventType", f"{mv}:StateChangedEventType"]), vision)
+        self.events["Warning"] = await server.get_event_generator(ua.NodeId(1034, mv), vision)
 
         handlers = {"Halt": self.halt, "Reset": self.reset, "SelectModeAutomatic": self.select_mode_automatic,
                     "StartSingleJob": self.start_single_job, "StartContinuous": self.start_continuous,
@@ -257,7 +260,7 @@ class VisionSystem:
         for name, handler in handlers.items():
             owner = owners.get(name) or await vision.get_child(f"{mv}:{_MANAGER[name]}")
             method = await owner.get_child(f"{mv}:{name}")
-            server.link_method(method, (await _Method.bind(server, method, name, handler, users)).callback)
+            server.link_method(method, (await _Method.bind(method, name, handler, users, self.warn)).callback)
         return self
 
     async def start(self, in_flight: list[dict[str, Any]]) -> None:
@@ -384,12 +387,28 @@ class VisionSystem:
             await self.nodes["automatic_state"].write_value(
                 ua.DataValue(StatusCode=ua.StatusCode(ua.StatusCodes.BadStateNotActive)))
 
+    async def warn(self, message: str, status: str) -> None:
+        """The message of a failed method call (OPC 40100-1, 11.5: at least a warning without acknowledgement,
+        naming the method and its arguments), as a VisionWarningConditionType event."""
+        from asyncua import ua
+
+        try:
+            await self._fire("Warning", message=message, ConditionName="MethodCallFailed", Severity=ua.Variant(500, ua.VariantType.UInt16),
+                             Retain=False, BlockReaction=False, StopReaction=False, ErrorString=status,
+                             ConditionClassId=ua.Variant(ua.NodeId(ua.ObjectIds.BaseConditionClassType),
+                                                         ua.VariantType.NodeId))
+        except Exception:  # the call's answer must not depend on the message
+            logger.exception("OPC UA: could not raise the warning %r", message)
+
     async def _fire(self, event: str, message: str | None = None, **fields: Any) -> None:
+        from asyncua import ua
+
         generator = self.events[event]
         for name, value in fields.items():
             # the event type's properties declare no values, so the generator knows none of their types
-            setattr(generator.event, name, value)
-            generator.event.data_types[name] = _variant_type(value)
+            variant = value if isinstance(value, ua.Variant) else ua.Variant(value, _variant_type(value))
+            setattr(generator.event, name, variant.Value)
+            generator.event.data_types[name] = variant.VariantType
         await generator.trigger(time_attr=datetime.now(UTC), message=message or event)
 
     # the methods: each takes its input arguments by name and returns its outputs by name (Error is 0 unless
@@ -600,18 +619,19 @@ class _Method:
     InputArguments (count, type, length), the handler called with them by name, and its outputs typed after
     the OutputArguments. Failures answer with status codes (OPC 10000-4, Call service) and change nothing."""
 
-    def __init__(self, name: str, handler, users: ApiKeyUsers, inputs: list, outputs: list) -> None:
+    def __init__(self, name: str, handler, users: ApiKeyUsers, inputs: list, outputs: list, warn) -> None:
         self.name, self.handler, self.users, self.inputs, self.outputs = name, handler, users, inputs, outputs
+        self.warn = warn
 
     @classmethod
-    async def bind(cls, server, method, name: str, handler, users: ApiKeyUsers):
+    async def bind(cls, method, name: str, handler, users: ApiKeyUsers, warn):
         arguments = {}
         for prop in ("InputArguments", "OutputArguments"):
             try:
                 arguments[prop] = await (await method.get_child(f"0:{prop}")).read_value()
             except Exception:  # SelectModeAutomatic has no input arguments
                 arguments[prop] = []
-        return cls(name, handler, users, arguments["InputArguments"], arguments["OutputArguments"])
+        return cls(name, handler, users, arguments["InputArguments"], arguments["OutputArguments"], warn)
 
     async def callback(self, parent, *variants):
         """What asyncua calls (a coroutine function, awaited in the caller's connection task)."""
@@ -628,7 +648,9 @@ class _Method:
                                                                      else None)) for argument in self.outputs]
             result.StatusCode = ua.StatusCode(ua.StatusCodes.Good)
         except MethodError as error:
-            logger.warning("OPC UA: %s(%s) failed: %s", self.name, _describe(variants), error)
+            message = f"{self.name}({_describe(variants)}) failed: {error}"
+            logger.warning("OPC UA: %s", message)
+            await self.warn(message, ua.StatusCode(error.status).name)
             result.StatusCode = ua.StatusCode(error.status)
             result.InputArgumentResults = [ua.StatusCode(error.argument_results.get(i, ua.StatusCodes.Good))
                                            for i in range(len(variants))] if error.argument_results else []
@@ -718,6 +740,8 @@ def _variant_type(value: Any):
         return ua.VariantType.Boolean
     if isinstance(value, int):
         return ua.VariantType.Int32
+    if isinstance(value, str):
+        return ua.VariantType.String
     if isinstance(value, datetime):
         return ua.VariantType.DateTime
     if isinstance(value, ua.LocalizedText):

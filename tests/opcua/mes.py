@@ -117,9 +117,11 @@ class Mes:
     async def subscribe(self, *event_types: str, interval_ms: float = 100) -> None:
         """Subscribe to the VisionSystem's events of these types (an event reaches the client at the server's
         next publishing cycle: up to ``interval_ms`` later)."""
-        types = [await self.client.nodes.base_event_type.get_child(
-            ["0:TransitionEventType", f"{self.mv}:{name}"] if name == "StateChangedEventType" else f"{self.mv}:{name}")
-            for name in event_types]
+        paths = {"StateChangedEventType": ["0:TransitionEventType"],
+                 "VisionWarningConditionType": ["0:ConditionType", "0:AcknowledgeableConditionType",
+                                                f"{self.mv}:VisionConditionType"]}
+        types = [await self.client.nodes.base_event_type.get_child([*paths.get(name, []), f"{self.mv}:{name}"])
+                 for name in event_types]
         subscription = await self.client.create_subscription(interval_ms, self)
         await subscription.subscribe_events(self.vision, types)
 
@@ -133,7 +135,7 @@ class Mes:
     def of_type(self, name: str) -> list[dict[str, Any]]:
         wanted = ua.NodeId({"ResultReadyEventType": 1024, "StateChangedEventType": 1018, "JobStartedEventType": 1013,
                             "ReadyEventType": 1023, "AcquisitionDoneEventType": 1025,
-                            "RecipePreparedEventType": 1022}[name], self.mv)
+                            "RecipePreparedEventType": 1022, "VisionWarningConditionType": 1034}[name], self.mv)
         return [event for event in self.events if event["_type"] == wanted]
 
     async def wait_for(self, condition, timeout_s: float = 30.0) -> bool:

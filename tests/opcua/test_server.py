@@ -344,6 +344,7 @@ def test_bad_arguments_answer_the_specification_errors_and_change_nothing(plant)
         async with plant.mes() as mes:
             await _restart(mes)
             await mes.call("PrepareRecipe", _id("RecipeIdExternalDataType", "billet-90"), None)
+            await mes.subscribe("VisionWarningConditionType")
             before = plant.snapshot()
             cases = [  # method, arguments, status, per-argument status (index, code)
                 ("PrepareRecipe", (_id("RecipeIdExternalDataType", "no such part"), None), "BadInvalidArgument",
@@ -375,6 +376,12 @@ def test_bad_arguments_answer_the_specification_errors_and_change_nothing(plant)
                     assert result.InputArgumentResults[index].value == getattr(ua.StatusCodes, code), method
                 assert plant.snapshot() == before, method
             assert await mes.state() == ("Operational", "Ready")
+            # each failure is also a warning message naming the method and its arguments (OPC 40100-1, 11.5)
+            assert await mes.wait_for(lambda: len(mes.of_type("VisionWarningConditionType")) == len(cases))
+            warnings = [value(e, "Message").Text for e in mes.of_type("VisionWarningConditionType")]
+            assert [w.split("(", 1)[0] for w in warnings] == [method for method, *_ in cases]
+            assert "'no such part'" in warnings[0] and value(mes.of_type("VisionWarningConditionType")[0],
+                                                             "ErrorString") == "BadInvalidArgument"
 
     asyncio.run(mes_side())
 
