@@ -41,6 +41,7 @@ MAX_RESULTS = 1000
 MAX_WAIT_MS = 30_000
 """Longest a GetResult method waits for a result still processing (its Timeout argument, in ms)."""
 _START_TIMEOUT_S = 60.0
+_PREFETCHED = 1000
 _ACQUIRING_STAGES = ("queued", "starting", "capture", "retrying", "recovered")
 
 
@@ -187,6 +188,7 @@ class VisionSystem:
         self.acquiring: dict[str, str] = {}  # scan job id -> its OPC UA job id, while queued or capturing
         self.continuous: dict[str, Any] | None = None  # the continuous run: its job id, arguments, current scan job
         self.last_job = ""  # the OPC UA job whose acquisition ended last
+        self.results: dict[str, asyncio.Task] = {}  # scan job id -> its result's rows, read while it runs
         self.starting = 0  # start methods under way (their jobs' first states are theirs to announce)
         self.nodes: dict[str, Any] = {}
         self.state_ids: dict[str, Any] = {}
@@ -299,6 +301,12 @@ class VisionSystem:
 
     async def on_job_state(self, state: dict[str, Any]) -> None:
         job_id = state["job_id"]
+        if state["status"] not in ("succeeded", "failed") and job_id not in self.results and state.get("scan_id"):
+            # the result's rows (scan, recipe, configuration, the client's ids), read while the scan runs, so that
+            # its ResultReady waits for no database round trip
+            self.results[job_id] = asyncio.create_task(asyncio.to_thread(self.station.result, state["scan_id"]))
+            if len(self.results) > _PREFETCHED:  # jobs whose end was never heard (the broker was away)
+                self.results.pop(next(iter(self.results))).cancel()
         if _acquiring(state):
             if job_id not in self.acquiring:
                 self.acquiring[job_id] = job_id
@@ -312,7 +320,7 @@ class VisionSystem:
         if opcua_job is not None and state["status"] != "failed":
             await self._fire("AcquisitionDone", JobId=ua_job(opcua_job))
         if state["status"] in ("succeeded", "failed") and state.get("scan_id"):
-            result = await asyncio.to_thread(self.station.result, state["scan_id"])
+            result = await self._finished_result(state)
             if result is not None:
                 await self._result_ready(result)
         if self.continuous is not None and self.continuous.get("scan_job") == job_id:
@@ -321,6 +329,23 @@ class VisionSystem:
             elif state["status"] == "failed":  # the station cannot scan (devices lost...): the run ends
                 await self._end_continuous(f"scan job {job_id} failed: {state.get('error')}")
         await self._settle()
+
+    async def _finished_result(self, state: dict[str, Any]) -> Result | None:
+        """The result of a job that finished: the rows read while it ran with the job state's outcome, else read
+        now."""
+        read = self.results.pop(state["job_id"], None)
+        try:
+            result = await read if read is not None else None
+        except Exception:  # the database was away then: read it now
+            result = None
+        if result is None:
+            return await asyncio.to_thread(self.station.result, state["scan_id"])
+        outcome = state.get("result") or {}
+        return replace(result, status=state["status"], error=state.get("error"),
+                       verdict=outcome.get("verdict") if state["status"] == "succeeded" else None,
+                       features=outcome.get("features") if state["status"] == "succeeded" else None,
+                       started_at=_timestamp(state.get("started_at")), finished_at=_timestamp(state.get("finished_at")),
+                       stage_seconds=dict(outcome.get("stage_seconds") or {}))
 
     async def _settle(self) -> None:
         """The automatic transitions the station's state calls for."""
@@ -778,6 +803,10 @@ def _text(value) -> str:
 
 def _describe(variants) -> str:
     return ", ".join(repr(getattr(variant, "Value", variant))[:80] for variant in variants)
+
+
+def _timestamp(text: str | None) -> datetime | None:
+    return None if text is None else datetime.fromisoformat(text)
 
 
 def _acquiring(state: dict[str, Any]) -> bool:
