@@ -418,8 +418,9 @@ class VisionSystem:
         from asyncua import ua
 
         try:
-            await self._fire("Warning", message=message, ConditionName="MethodCallFailed", Severity=ua.Variant(500, ua.VariantType.UInt16),
-                             Retain=False, BlockReaction=False, StopReaction=False, ErrorString=status,
+            await self._fire("Warning", message=message, ConditionName="MethodCallFailed",
+                             Severity=ua.Variant(500, ua.VariantType.UInt16), Retain=False, BlockReaction=False,
+                             StopReaction=False, ErrorString=status,
                              ConditionClassId=ua.Variant(ua.NodeId(ua.ObjectIds.BaseConditionClassType),
                                                          ua.VariantType.NodeId))
         except Exception:  # the call's answer must not depend on the message
@@ -449,9 +450,8 @@ class VisionSystem:
 
     async def halt(self, Cause: int, CauseDescription: str | None) -> dict[str, Any]:
         self.continuous = None
-        transition = f"{self.vision_state}ToHalted"
         if self.vision_state != "Halted":
-            await self._transition("Halted", None, transition)
+            await self._transition("Halted", None, f"{self.vision_state}ToHalted")
         return {}
 
     async def reset(self, Cause: int, CauseDescription: str | None) -> dict[str, Any]:
@@ -885,7 +885,8 @@ async def _define_id_subtypes(server, mv: int) -> None:
     from asyncua import ua
 
     base = await server.get_node(ua.NodeId(3019, mv)).read_data_type_definition()
-    for identifier, encoding, name in ((3002, 5002, "RecipeIdExternalDataType"), (3013, 5268, "RecipeIdInternalDataType"),
+    for identifier, encoding, name in ((3002, 5002, "RecipeIdExternalDataType"),
+                                       (3013, 5268, "RecipeIdInternalDataType"),
                                        (3008, 5090, "ConfigurationIdDataType")):
         if hasattr(ua, name) and getattr(ua, name).data_type != ua.NodeId(identifier, mv):
             delattr(ua, name)  # an earlier server's alias of the base type, in the way of the subtype's own class

@@ -46,10 +46,13 @@ class Plant:
         self.tracker = JobTracker(sessions)
         with sessions.begin() as session:
             session.add_all([
-                CalibrationSet(id="c1", name="true rig", station=STATION, source="upload", active=True, rig_sha256="r" * 64),
-                CalibrationSet(id="c2", name="recalibrated", station=STATION, source="calibration", rig_sha256="s" * 64),
+                CalibrationSet(id="c1", name="true rig", station=STATION, source="upload", active=True,
+                               rig_sha256="r" * 64),
+                CalibrationSet(id="c2", name="recalibrated", station=STATION, source="calibration",
+                               rig_sha256="s" * 64),
                 CalibrationSet(id="c3", name="pending", station=STATION, source="upload"),
-                CalibrationSet(id="cx", name="other station's", station="station2", source="upload", rig_sha256="t" * 64),
+                CalibrationSet(id="cx", name="other station's", station="station2", source="upload",
+                               rig_sha256="t" * 64),
                 PartType(id="billet", name="billet-90", station=STATION, material="carbon-steel",
                          part_sha256="a" * 64, mesh_sha256="b" * 64),
                 PartType(id="shaft", name="shaft-40", station=STATION, material="stainless-steel",
@@ -154,7 +157,8 @@ def test_an_mes_prepares_a_recipe_starts_a_job_and_reads_its_result(plant):
             assert (value(ready, "ResultState"), value(ready, "IsPartial")) == (1, False)  # Completed
             assert [v.Value for v in value(ready, "ResultContent")][0] == "NotOK"
             assert (value(ready, "PartId").Id, value(ready, "MeasId").Id) == ("forging-7", "run-1")
-            assert value(ready, "InternalRecipeId").Id == "billet" and value(ready, "InternalConfigurationId").Id == "c1"
+            assert value(ready, "InternalRecipeId").Id == "billet"
+            assert value(ready, "InternalConfigurationId").Id == "c1"
             assert await mes.wait_for(lambda: mes.of_type("ReadyEventType"))
             assert await mes.state() == ("Operational", "Ready")
             assert [value(e, "JobId").Id for e in mes.of_type("JobStartedEventType")] == [job.Id]
@@ -184,7 +188,8 @@ def test_an_mes_prepares_a_recipe_starts_a_job_and_reads_its_result(plant):
 def _spec_arguments() -> dict[str, tuple[list, list]]:
     """Each mandatory method's InputArguments and OutputArguments (name, DataType) as the NodeSet's types declare
     them, read from the XML itself."""
-    ns = {"u": "http://opcfoundation.org/UA/2011/03/UANodeSet.xsd", "t": "http://opcfoundation.org/UA/2008/02/Types.xsd"}
+    ns = {"u": "http://opcfoundation.org/UA/2011/03/UANodeSet.xsd",
+          "t": "http://opcfoundation.org/UA/2008/02/Types.xsd"}
     root = ET.parse(NODESET).getroot()
     nodes = {node.get("NodeId"): node for node in root if node.get("NodeId")}
     owners = {"VisionStateMachine": "1:VisionStateMachineType", "AutomaticModeStateMachine":
