@@ -718,17 +718,23 @@ def _input(argument, variant) -> Any:
     if expected is not None:
         if kind != expected and not (kind == ua.VariantType.Null and expected == ua.VariantType.String):
             raise ValueError(f"type {kind.name}, not {expected.name}")
-        if isinstance(value, str) and len(value) > MAX_TEXT:
-            raise ValueError(f"out of range: longer than {MAX_TEXT} characters")
+        if isinstance(value, str):
+            _check_text(value)
         return value
     cls = ua.extension_objects_by_datatype.get(data_type)
     if value is None:
         return None
     if cls is None or not isinstance(value, cls):
         raise ValueError(f"type {type(value).__name__}, not {getattr(cls, '__name__', data_type)}")
-    if len(getattr(value, "Id", "") or "") > MAX_TEXT:
-        raise ValueError(f"out of range: an Id longer than {MAX_TEXT} characters")
+    _check_text(getattr(value, "Id", "") or "")
     return value
+
+
+def _check_text(text: str) -> None:
+    if len(text) > MAX_TEXT:
+        raise ValueError(f"out of range: longer than {MAX_TEXT} characters")
+    if any(ord(character) < 32 and character not in "\t\n\r" for character in text):
+        raise ValueError("out of range: a control character")
 
 
 def _output(argument, value) -> Any:

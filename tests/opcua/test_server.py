@@ -6,12 +6,15 @@ worker is played by the job tracker (``start``, ``progress``, ``succeed``), as t
 
 import asyncio
 import socket
+import threading
 import uuid
 import xml.etree.ElementTree as ET
 from pathlib import Path
 
 import pytest
 from asyncua import ua
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
 from asyncua.ua import uaerrors
 from sqlalchemy import func, select
 
@@ -475,3 +478,52 @@ def test_scaled_out_the_workers_results_reach_the_mes_over_mqtt(tmp_path):
         asyncio.run(mes_side(subscriber))
     worker.publisher.close()
     api.publisher.close()
+
+
+_ANSWERS = {getattr(ua.StatusCodes, name) for name in (
+    "Good", "BadInvalidArgument", "BadArgumentsMissing", "BadTooManyArguments", "BadInvalidState",
+    "BadResourceUnavailable")}
+_STRUCTS = ("MeasIdDataType", "PartIdDataType", "RecipeIdExternalDataType", "RecipeIdInternalDataType",
+            "ProductIdDataType", "ConfigurationIdDataType", "ResultIdDataType", "JobIdDataType")
+_TEXT = st.text(max_size=300) | st.sampled_from(["billet-90", "billet", "c1", "", "x" * 256, "a\x00b"])
+_VARIANTS = st.one_of(
+    st.none().map(ua.Variant),
+    st.integers(-2 ** 31, 2 ** 31 - 1).map(lambda i: ua.Variant(i, I32)),
+    st.integers(0, 2 ** 32 - 1).map(lambda i: ua.Variant(i, U32)),
+    st.floats(allow_nan=False).map(lambda f: ua.Variant(f, ua.VariantType.Double)),
+    st.booleans().map(lambda b: ua.Variant(b, ua.VariantType.Boolean)),
+    _TEXT.map(lambda t: ua.Variant(t, ua.VariantType.String)),
+    st.tuples(st.sampled_from(_STRUCTS), _TEXT).map(lambda s: ua.Variant(getattr(ua, s[0])(Id=s[1]))),
+    st.lists(st.integers(0, 9).map(lambda i: ua.Variant(i, I32)), max_size=3).map(
+        lambda items: ua.Variant(items, ua.VariantType.Variant)))
+
+
+def test_garbage_calls_get_a_status_never_an_internal_error_and_failures_change_nothing(plant):
+    """Any method with any arguments (types, counts, lengths, control characters): a Call status of the
+    specification, never Bad_InternalError or Bad_UnexpectedError, and a call that fails changes nothing."""
+    loop = asyncio.new_event_loop()
+    thread = threading.Thread(target=loop.run_forever, daemon=True)
+    thread.start()
+
+    def run(coroutine):
+        return asyncio.run_coroutine_threadsafe(coroutine, loop).result(60)
+
+    mes = plant.mes()
+    run(mes.__aenter__())
+    try:
+        run(_restart(mes))
+
+        @settings(max_examples=150, deadline=None, suppress_health_check=list(HealthCheck))
+        @given(method=st.sampled_from(sorted(METHOD_PLACES)), arguments=st.lists(_VARIANTS, max_size=13))
+        def call(method, arguments):
+            before = plant.snapshot()
+            result = run(mes.call_raw(method, *arguments))
+            assert result.StatusCode.value in _ANSWERS, (method, arguments, result.StatusCode)
+            if not result.StatusCode.is_good():
+                assert plant.snapshot() == before, (method, arguments)
+
+        call()
+    finally:
+        run(mes.__aexit__(None, None, None))
+        loop.call_soon_threadsafe(loop.stop)
+        thread.join(10)
