@@ -58,16 +58,15 @@ class ServerOptions:
     """Where and how the server listens (from the ``THERMOFIELD_OPCUA_*`` settings)."""
 
     endpoint: str
+    pki_dir: Path
     security_policy: str = "Basic256Sha256"
-    pki_dir: Path = Path("thermofield-data/opcua")
     certificate: Path | None = None
     private_key: Path | None = None
 
     @classmethod
     def from_settings(cls, settings) -> ServerOptions:
-        return cls(settings.opcua_endpoint, settings.opcua_security_policy,
-                   settings.opcua_pki_dir or settings.data_dir / "opcua", settings.opcua_certificate,
-                   settings.opcua_private_key)
+        return cls(settings.opcua_endpoint, settings.opcua_pki_dir or settings.data_dir / "opcua",
+                   settings.opcua_security_policy, settings.opcua_certificate, settings.opcua_private_key)
 
     @property
     def trusted_dir(self) -> Path:

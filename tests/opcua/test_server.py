@@ -44,7 +44,7 @@ def _free_port() -> int:
 class Plant:
     """A station's database, its job tracker (the worker's bookkeeping), its OPC UA server and API keys."""
 
-    def __init__(self, sessions, directory: Path) -> None:
+    def __init__(self, sessions, directory: Path, security_policy: str = "Basic256Sha256") -> None:
         self.sessions, self.directory = sessions, directory
         self.tracker = JobTracker(sessions)
         with sessions.begin() as session:
@@ -64,7 +64,8 @@ class Plant:
                          part_sha256="e" * 64, mesh_sha256="f" * 64)])
             self.keys = {scope: create_api_key(session, f"mes {scope}", [scope])[1] for scope in ("read", "operate",
                                                                                                   "admin")}
-        self.options = ServerOptions(f"opc.tcp://127.0.0.1:{_free_port()}/thermofield", pki_dir=directory / "pki")
+        self.options = ServerOptions(f"opc.tcp://127.0.0.1:{_free_port()}/thermofield", pki_dir=directory / "pki",
+                                     security_policy=security_policy)
         self.server = OpcUaServer(self.options, Station(sessions, STATION, self.tracker, None, queue_bound=5))
         self.certificate = asyncio.run(client_certificate(directory / "mes", self.options.trusted_dir))
 
@@ -427,6 +428,29 @@ def test_api_key_scopes_decide_the_methods_and_only_trusted_clients_connect_sign
             assert {t.TokenType for e in endpoints for t in e.UserIdentityTokens} == {ua.UserTokenType.UserName}
 
     asyncio.run(mes_side())
+
+
+def test_no_security_only_when_set_and_still_with_an_api_key(tmp_path):
+    engine = make_engine(f"sqlite:///{tmp_path / 'service.db'}")
+    migrate(engine)
+    plant = Plant(make_sessions(engine), tmp_path, security_policy="None")
+
+    async def mes_side():
+        async with Mes(plant.options.endpoint, plant.keys["read"]) as mes:
+            endpoints = await mes.client.uaclient.get_endpoints(
+                ua.GetEndpointsParameters(EndpointUrl=plant.options.endpoint))
+            assert {(e.SecurityPolicyUri.rsplit("#", 1)[1], e.SecurityMode) for e in endpoints} == {
+                ("None", ua.MessageSecurityMode.None_)}
+            assert (await mes.call("GetRecipeListFiltered", None, None, ua.Variant(2, I32), ua.Variant(0, U32),
+                                   ua.Variant(0, U32), ua.Variant(0, I32)))[1] == 2
+        with pytest.raises(Exception):
+            async with Mes(plant.options.endpoint, "tf_not-a-key"):
+                pass
+
+    with plant.server:
+        assert plant.server.certificate is None
+        asyncio.run(mes_side())
+    assert not (tmp_path / "pki" / "server-certificate.der").exists()  # no certificate made
 
 
 def test_a_bad_endpoint_or_a_taken_port_is_a_clear_error(engine, tmp_path):
