@@ -18,13 +18,14 @@ from hypothesis import strategies as st
 from asyncua.ua import uaerrors
 from sqlalchemy import func, select
 
-from services.db.apikeys import create_api_key
+from services.db.apikeys import create_api_key, revoke_api_key
 from services.db.engine import make_engine, make_sessions, migrate
 from services.db.models import CalibrationSet, Job, PartType, Scan
 from services.errors import InputError
 from services.events.job_states import JobStateSubscriber
 from services.events.mqtt import EventPublisher
 from services.jobs.tracker import JobTracker
+from services.opcua.security import KEY_CACHE_S
 from services.opcua.server import NODESET, OpcUaServer, ServerOptions
 from services.opcua.station import Station
 from tests.conftest import POSTGRES_URL
@@ -410,6 +411,15 @@ def test_api_key_scopes_decide_the_methods_and_only_trusted_clients_connect_sign
             with pytest.raises(uaerrors.BadUserAccessDenied):  # selecting a part type needs admin, as over HTTP
                 await operator.call("PrepareRecipe", _id("RecipeIdExternalDataType", "shaft-40"), None)
             assert await operator.call("Stop", ua.Variant(0, I32), "") == [0]
+        with plant.sessions.begin() as session:
+            revoked, secret = create_api_key(session, "revoked MES", ["operate"])
+        async with Mes(plant.options.endpoint, secret, plant.certificate) as mes:
+            assert await mes.call("Stop", ua.Variant(0, I32), "") == [0]
+            with plant.sessions.begin() as session:
+                revoke_api_key(session, revoked.id)
+            await asyncio.sleep(KEY_CACHE_S + 0.5)  # a revoked key stops working within the cache time
+            with pytest.raises(uaerrors.BadUserAccessDenied):
+                await mes.call("Stop", ua.Variant(0, I32), "")
         with pytest.raises(Exception):  # an unknown key is refused
             async with Mes(plant.options.endpoint, "tf_not-a-key", plant.certificate):
                 pass
