@@ -9,14 +9,14 @@ from __future__ import annotations
 
 from typing import Any
 
-from sqlalchemy import func, select
 from sqlalchemy.orm import Session
 
 from api.idempotency import Outcome
 from api.problems import RETRY_AFTER_S, Problem
 from api.schemas import Accepted
-from services.db.models import Job, Scan
+from services.db.models import Scan
 from services.jobs.outbox import Outbox
+from services.jobs.scans import JobRefused, check_queue_bound
 from services.runtime import Runtime
 
 
@@ -30,10 +30,10 @@ def start_job(runtime: Runtime, queue: Outbox, session: Session, kind: str, para
     Problem
         503 ``queue-full`` (with ``Retry-After``) when ``THERMOFIELD_JOB_QUEUE_BOUND`` jobs already wait.
     """
-    bound = runtime.settings.job_queue_bound
-    if bound and session.scalar(select(func.count()).select_from(Job).where(Job.status == "queued")) >= bound:
-        raise Problem(503, "queue-full", f"{bound} jobs are already waiting, the most the station queues; "
-                                         "retry later.", {"Retry-After": str(RETRY_AFTER_S)})
+    try:
+        check_queue_bound(session, runtime.settings.job_queue_bound)
+    except JobRefused as refused:
+        raise refused_problem(refused) from None
     job = runtime.tracker.create(session, kind, params)
     links = {"job": f"/v1/jobs/{job.id}", "events": f"/v1/jobs/{job.id}/events"}
     if scan is not None:
@@ -47,3 +47,12 @@ def start_job(runtime: Runtime, queue: Outbox, session: Session, kind: str, para
 
     accepted = Accepted(job_id=job.id, scan_id=params.get("scan_id"), status="queued", links=links)
     return Outcome(202, accepted.model_dump(mode="json"), links["job"], dispatch)
+
+
+_REFUSED_STATUS = {"invalid-input": 422, "no-active-calibration": 409, "queue-full": 503}
+
+
+def refused_problem(refused: JobRefused) -> Problem:
+    """The problem answering a job the station refused (503s say when to retry)."""
+    headers = {"Retry-After": str(RETRY_AFTER_S)} if refused.kind == "queue-full" else None
+    return Problem(_REFUSED_STATUS[refused.kind], refused.kind, str(refused), headers)

@@ -124,9 +124,20 @@ class Settings(BaseSettings):
     mqtt_host: str | None = Field("127.0.0.1", description="MQTT broker host; empty disables events.")
     mqtt_port: int = Field(1883, ge=1, le=65535, description="MQTT broker port.")
     opcua_endpoint: str | None = Field(
-        None, description="opc.tcp://host:port/path the embedded service's OPC UA server (OPC 40100-1 Machine Vision: "
-                          "state, recipes, ResultReady per scan) listens at; unset: no OPC UA server "
-                          "(docs/inspection.md).")
+        None, description="opc.tcp://host:port/path the OPC UA server (OPC 40100-1 Machine Vision: state machines, "
+                          "recipes, configurations, jobs, results) listens at, in `thermofield serve` or, scaled "
+                          "out, `thermofield api`; unset: no OPC UA server (docs/opcua.md).")
+    opcua_security_policy: Literal["Basic256Sha256", "None"] = Field(
+        "Basic256Sha256", description="Basic256Sha256: clients connect signed and encrypted only (Sign&Encrypt) and "
+                                      "their certificates must be trusted; None: unsigned and unencrypted, API keys "
+                                      "in the clear (a test bench only).")
+    opcua_pki_dir: Path | None = Field(
+        None, description="The OPC UA server's certificate and key made on its first start, and trusted/ (the "
+                          "client certificates it accepts); default DATA_DIR/opcua.")
+    opcua_certificate: Path | None = Field(
+        None, description="The operator's server certificate (DER or PEM) instead of the one the server makes; "
+                          "with THERMOFIELD_OPCUA_PRIVATE_KEY.")
+    opcua_private_key: Path | None = Field(None, description="The private key (PEM) of THERMOFIELD_OPCUA_CERTIFICATE.")
     site: str = Field("plant", pattern=r"^[A-Za-z0-9_-]+$", description="First level of the MQTT topic tree.")
     station: str = Field("station1", pattern=r"^[A-Za-z0-9_-]+$", description="Second level of the MQTT topic tree.")
 

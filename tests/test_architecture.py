@@ -57,6 +57,7 @@ def test_importing_the_api_app_loads_no_numba_rerun_or_science():
     ("services/geometry", SHELLS + ("services.pipeline",)),
     ("services/db", SHELLS + SCIENCE),
     ("services/jobs", SHELLS + SCIENCE),
+    ("services/opcua", ("api", "workers", "services.pipeline", "services.cli") + SCIENCE),
 ])
 def test_layers_import_only_what_they_may(package, forbidden):
     offending = {path: sorted(name for name in names - ALLOWED.get(path, set()) if _within(name, forbidden))

@@ -67,6 +67,13 @@ def test_the_wheel_carries_the_migrations(wheel):
     assert shipped == in_tree
 
 
+def test_the_wheel_carries_the_machine_vision_nodeset(wheel):
+    """The OPC Foundation's NodeSet the OPC UA server loads (docs/opcua.md), whole, with its licence notice."""
+    shipped = zipfile.ZipFile(wheel).read("services/opcua/Opc.Ua.MachineVision.NodeSet2.xml")
+    assert shipped == (ROOT / "services/opcua/Opc.Ua.MachineVision.NodeSet2.xml").read_bytes()
+    assert b"OPC Foundation MIT License" in shipped
+
+
 def test_an_installed_wheel_serves_the_api_on_an_empty_database(wheel, tmp_path):
     """A fresh venv holding the wheel alone (its dependencies come from this interpreter's site-packages, after
     it on the path), run outside the checkout: `thermofield api` migrates an empty database and serves."""

@@ -12,14 +12,14 @@ from fastapi.responses import FileResponse, Response
 from sqlalchemy import select
 
 from api.deps import JobQueueDep, OperatorKey, ReaderKey, RuntimeDep, SessionDep
-from api.dispatch import start_job
+from api.dispatch import refused_problem, start_job
 from api.idempotency import IdempotencyKeyHeader, Outcome, request_digest, respond_once
 from api.artifacts import stored_path
 from api.problems import Problem, problem_responses
 from api.schemas import Accepted, ScanJobRequest, ScanOut, ScanRequest
-from services.db.models import TERMINAL_STATUSES, CalibrationSet, Job, PartType, Scan, new_id
-from services.db.parts import selected_part_type
+from services.db.models import TERMINAL_STATUSES, CalibrationSet, Job, Scan, new_id
 from services.formats.images import encode_frame
+from services.jobs.scans import JobRefused, scan_inputs, scan_job_params
 
 router = APIRouter(prefix="/scans", tags=["scans"])
 
@@ -72,43 +72,25 @@ async def create_scan(request: Request, session: SessionDep, runtime: RuntimeDep
     station = runtime.settings.station
 
     def start() -> Outcome:
-        calibration = _calibration_for(session, station, body.calibration_set_id)
-        part_type = _part_type_for(session, station, body.part_type_id)
-        part_type_id = None if part_type is None else part_type.id
-        scan = Scan(id=new_id(), station=station, calibration_set_id=calibration.id, part_id=body.part_id,
-                    part_type_id=part_type_id)
-        return start_job(runtime, queue, session, "scan", {"scan_id": scan.id, "calibration_set_id": calibration.id,
-                                                           "part_type_id": part_type_id}, scan)
+        try:
+            inputs = scan_inputs(session, station, calibration_set_id=body.calibration_set_id,
+                                 part_type_id=body.part_type_id)
+        except JobRefused as refused:
+            raise refused_problem(refused) from None
+        scan = Scan(id=new_id(), station=station, calibration_set_id=inputs.calibration.id, part_id=body.part_id,
+                    part_type_id=None if inputs.part_type is None else inputs.part_type.id)
+        return start_job(runtime, queue, session, "scan", scan_job_params(scan.id, inputs), scan)
 
     digest = request_digest(request, await request.body())
     return await run_in_threadpool(respond_once, session, key, idempotency_key, digest, start,
                                    runtime.settings.idempotency_ttl_s)
 
 
-def _calibration_for(session, station: str, calibration_set_id: str | None) -> CalibrationSet:
-    if calibration_set_id is not None:
-        calibration = session.get(CalibrationSet, calibration_set_id)
-        if calibration is None or calibration.station != station:
-            raise Problem(422, "invalid-input", f"calibration_set_id: there is no calibration set "
-                                                f"{calibration_set_id!r} for station {station!r}.")
-        return calibration
-    calibration = session.scalar(
-        select(CalibrationSet).where(CalibrationSet.station == station, CalibrationSet.active.is_(True))
-    )
-    if calibration is None:
-        raise Problem(409, "no-active-calibration", f"Station {station!r} has no active calibration set; "
-                                                    "activate one or pass calibration_set_id.")
-    return calibration
-
-
-def _part_type_for(session, station: str, part_type_id: str | None) -> PartType | None:
-    if part_type_id is None:
-        return selected_part_type(session, station)
-    part_type = session.get(PartType, part_type_id)
-    if part_type is None or part_type.station != station:
-        raise Problem(422, "invalid-input", f"part_type_id: there is no part type {part_type_id!r} for station "
-                                            f"{station!r} (see GET /v1/part-types).")
-    return part_type
+def _calibration_for(session, station: str, calibration_set_id: str) -> CalibrationSet:
+    try:
+        return scan_inputs(session, station, calibration_set_id=calibration_set_id).calibration
+    except JobRefused as refused:
+        raise refused_problem(refused) from None
 
 
 @router.post("/{scan_id}/jobs", name="create_scan_job", status_code=202, response_model=Accepted,

@@ -101,8 +101,8 @@ def _serve(args: argparse.Namespace) -> int:
     jobs = JobQueue(broker, settings.job_queue)
     worker = dramatiq.Worker(broker, worker_threads=settings.worker_threads)
     with (_GatewayProcess(settings.gateway_port) as gateway,
-          RerunProxy(settings.rerun_host, settings.rerun_port, web_port=settings.rerun_web_port) as proxy, _maintenance_thread(runtime),
-          _opcua_server(runtime)):
+          RerunProxy(settings.rerun_host, settings.rerun_port, web_port=settings.rerun_web_port) as proxy,
+          _maintenance_thread(runtime), _opcua_server(runtime, jobs)):
         gateway.wait_until_healthy()
         worker.start()
         runtime.tracker.recover()  # into the outbox: the API's outbox thread sends them when it starts
@@ -120,9 +120,10 @@ def _serve(args: argparse.Namespace) -> int:
 
 
 @contextlib.contextmanager
-def _opcua_server(runtime):
-    """The OPC UA server when ``THERMOFIELD_OPCUA_ENDPOINT`` is set, fed by this process's job tracker when it runs
-    the jobs (``serve``), else by the workers' job states over MQTT (``api``, scaled out)."""
+def _opcua_server(runtime, jobs):
+    """The OPC UA server when ``THERMOFIELD_OPCUA_ENDPOINT`` is set (docs/opcua.md): its jobs go to ``jobs`` (the
+    ``scan`` actor, by name) through an outbox; it follows the scans through this process's job tracker when it
+    runs the jobs (``serve``), else through the workers' job states over MQTT (``api``, scaled out)."""
     settings = runtime.settings
     if not settings.opcua_endpoint:
         yield None
@@ -131,10 +132,17 @@ def _opcua_server(runtime):
         raise InputError("THERMOFIELD_OPCUA_ENDPOINT: the scaled-out API hears of the workers' results over MQTT; "
                          "set THERMOFIELD_MQTT_HOST too")
     from services.events.job_states import JobStateSubscriber
-    from services.events.opcua import OpcUaServer
+    from services.jobs.outbox import Outbox
+    from services.opcua.server import OpcUaServer, ServerOptions
+    from services.opcua.station import Station
 
-    with OpcUaServer(settings.opcua_endpoint, runtime.sessions, settings.station) as server:
-        print(f"thermofield: OPC UA on {server.endpoint}", flush=True)
+    station = Station(runtime.sessions, settings.station, runtime.tracker, Outbox(runtime.sessions, jobs),
+                      settings.job_queue_bound)
+    with OpcUaServer(ServerOptions.from_settings(settings), station) as server:
+        security = "None (unsigned, unencrypted)" if settings.opcua_security_policy == "None" else \
+            f"Basic256Sha256 Sign&Encrypt, certificate {server.certificate}, trusted clients in " \
+            f"{server.options.trusted_dir}"
+        print(f"thermofield: OPC UA on {server.endpoint} ({security})", flush=True)
         if settings.broker_url:
             with JobStateSubscriber(settings.mqtt_host, settings.mqtt_port, settings.topic_prefix, server.notify):
                 yield server
@@ -220,7 +228,7 @@ def _api(args: argparse.Namespace) -> int:
     runtime = build_runtime(settings)
     jobs = JobQueue(job_broker(settings), settings.job_queue)
     print(f"thermofield: API on http://{settings.api_host}:{settings.api_port}", flush=True)
-    with _maintenance_thread(runtime), _opcua_server(runtime):
+    with _maintenance_thread(runtime), _opcua_server(runtime, jobs):
         _run_uvicorn(create_app(runtime, jobs), settings)
     return 0
 

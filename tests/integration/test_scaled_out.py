@@ -14,13 +14,10 @@ import time
 import httpx
 import numpy as np
 import pytest
-from asyncua import Client
-
-from services.events.opcua import NAMESPACE
-
 from services.formats.ply import read_cloud
 from services.formats.rig import rig_to_json
 from services.simulation.presets import forging_rig
+from tests.opcua.mes import Mes, client_certificate, value
 
 
 @pytest.mark.reliability  # 1.5 min: in make test-reliability (also in .ci/run), not make test
@@ -29,13 +26,14 @@ def test_scaled_out_scans_with_two_workers_and_survive_a_worker_crash(e2e, deplo
     api_url = f"http://127.0.0.1:{env['THERMOFIELD_API_PORT']}"
     opcua = f"opc.tcp://127.0.0.1:{e2e.free_port()}/thermofield"
     e2e.processes.start("gateway", ["gateway"], env)
-    e2e.processes.start("api", ["api"], env | {"THERMOFIELD_OPCUA_ENDPOINT": opcua})
+    e2e.processes.start("api", ["api"], env | {"THERMOFIELD_OPCUA_ENDPOINT": opcua,
+                                               "THERMOFIELD_OPCUA_PKI_DIR": str(tmp_path / "opcua")})
     worker = e2e.processes.start("worker", ["worker"], env)
     e2e.processes.wait_until_healthy(f"{env['THERMOFIELD_GATEWAY_URL']}/healthz", "gateway")
     e2e.processes.wait_until_healthy(f"{api_url}/readyz", "api")
     admin = e2e.create_key(env, ["admin"])
     events = e2e.mqtt(f"{env['THERMOFIELD_SITE']}/station1")
-    results = _ResultReadyListener(opcua)
+    results = _ResultReadyListener(opcua, admin, tmp_path)
 
     with httpx.Client(base_url=api_url, headers={"Authorization": f"Bearer {admin}"}, timeout=30) as client:
         assert client.post("/v1/scans").status_code == 409  # nothing is active before a calibration set exists
@@ -52,7 +50,7 @@ def test_scaled_out_scans_with_two_workers_and_survive_a_worker_crash(e2e, deplo
         assert len(workers) == 2, workers  # the two scans ran at once, one in each spawned worker process
         assert results.wait_for(2), results.received
         assert sorted((r["ResultId"], r["PartId"], r["ResultState"]) for r in results.received[:2]) == sorted(
-            (job["scan_id"], f"part-{i}", 0) for i, job in enumerate(jobs))  # 0: not inspected (no part type)
+            (job["scan_id"], f"part-{i}", 1) for i, job in enumerate(jobs))  # 1: Completed
         results.close()
         scan = client.get(f"/v1/scans/{jobs[0]['scan_id']}").json()
         (tmp_path / "field.ply").write_bytes(client.get(scan["links"]["field.ply"]).content)
@@ -105,21 +103,18 @@ def _assert_in_order(states: list[dict]) -> None:
 
 
 class _ResultReadyListener:
-    """An asyncua client, on a thread of its own, collecting the OPC UA server's ResultReady events."""
+    """An MES (asyncua, signed and encrypted), on a thread of its own, collecting the ResultReady events."""
 
-    def __init__(self, endpoint: str) -> None:
-        self.endpoint, self.received = endpoint, []
+    def __init__(self, endpoint: str, api_key: str, directory) -> None:
+        self.endpoint, self.api_key, self.directory, self.received = endpoint, api_key, directory, []
         self._subscribed, self._stop = threading.Event(), threading.Event()
         self._thread = threading.Thread(target=lambda: asyncio.run(self._listen()), daemon=True)
         self._thread.start()
-        assert self._subscribed.wait(30), f"no OPC UA server at {endpoint}"
+        assert self._subscribed.wait(60), f"no OPC UA server at {endpoint}"
 
     def close(self) -> None:
         self._stop.set()
         self._thread.join(10)
-
-    def event_notification(self, event) -> None:
-        self.received.append({name: getattr(event, name) for name in ("ResultId", "PartId", "ResultState")})
 
     def wait_for(self, count: int, timeout_s: float = 30) -> bool:
         deadline = time.monotonic() + timeout_s
@@ -128,14 +123,14 @@ class _ResultReadyListener:
         return len(self.received) >= count
 
     async def _listen(self) -> None:
-        async with Client(self.endpoint) as client:
-            namespace = await client.get_namespace_index(NAMESPACE)
-            vision = await client.nodes.objects.get_child(f"{namespace}:VisionSystem")
-            event_type = await client.nodes.base_event_type.get_child(f"{namespace}:ResultReadyEventType")
-            subscription = await client.create_subscription(100, self)
-            await subscription.subscribe_events(vision, event_type)
+        certificate = await client_certificate(self.directory / "mes", self.directory / "opcua" / "trusted")
+        async with Mes(self.endpoint, self.api_key, certificate) as mes:
+            await mes.subscribe("ResultReadyEventType")
             self._subscribed.set()
             while not self._stop.is_set():
+                self.received = [{"ResultId": value(event, "ResultId").Id, "PartId": value(event, "PartId").Id,
+                                  "ResultState": value(event, "ResultState")}
+                                 for event in mes.of_type("ResultReadyEventType")]
                 await asyncio.sleep(0.1)
 
 
