@@ -8,6 +8,7 @@ from typing import Any, Literal
 from pydantic import BaseModel, ConfigDict, Field
 
 from services.formats.board import MIN_VIEWS, BoardSpec
+from services.formats.stored_scan import FieldSummary  # one declaration for the worker, MQTT and the API
 
 JobStatus = Literal["queued", "running", "succeeded", "failed"]
 
@@ -76,37 +77,6 @@ class Accepted(BaseModel):
     scan_id: str | None = None
     status: JobStatus
     links: dict[str, str]
-
-
-class TemperatureSummary(BaseModel):
-    min: float
-    max: float
-    mean: float
-    percentiles: dict[str, float] = Field(description="p5, p25, p50, p75, p95 in degrees Celsius.")
-
-
-class GlowSummary(BaseModel):
-    glowing_fraction: float = Field(description="Share of the camera's pixels where the part's glow is at least "
-                                                "2 % of full scale and at least the reflected pattern.")
-    saturated_fraction: float = Field(description="Share of the glowing pixels the glow saturates.")
-    lost_fraction: float = Field(description="Share of the glowing pixels whose pattern the glow's shot noise "
-                                             "buries, even over a window of neighbours (surfaces the projector "
-                                             "does not light are not counted).")
-    lost_to_glow: float = Field(description="saturated_fraction + lost_fraction.")
-    glow_level: float = Field(description="99th percentile of the glow, as a fraction of full scale.")
-    drift: float = Field(description="Median relative change of the glow over the sequence (negative: cooling).")
-    hint: str | None = Field(description="What to change when the glow costs more than 5 % of the part.")
-    exposure_mode: str
-    exposures_us: list[float | None] | None
-
-
-class FieldSummary(BaseModel):
-    point_count: int
-    points_with_temperature: int
-    bbox_min: list[float] = Field(description="World millimetres.")
-    bbox_max: list[float]
-    temperature: TemperatureSummary | None
-    glow: GlowSummary | None = Field(None, description="What a hot part's glow did (sequences closed by a black frame).")
 
 
 Verdict = Literal["OK", "NotOK", "NotDecidable"]

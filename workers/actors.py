@@ -33,6 +33,7 @@ from services.formats.ply import cloud_from_ply, cloud_to_ply
 from services.formats.registration import registration_json
 from services.formats.rig import Rig, rig_to_json
 from services.formats.sequence import Sequence, parse_sequence
+from services.formats.stored_scan import CLOUD, EXPOSURE, FIELD, FRAMES, SEQUENCE, THERMAL, exposure_from_bytes
 from services.pipeline.calibrate import place_device, thermal_board_image, uploaded_board_image
 from services.pipeline.field import fuse_field
 from services.pipeline.reconstruct import reconstruct_capture
@@ -91,14 +92,16 @@ def reconstruct(job_id: str) -> dict[str, Any]:
     rig = _calibration_rig(runtime, params["calibration_set_id"])
     artifacts = _scan_artifacts(runtime, params["scan_id"])
     runtime.tracker.progress(job_id, "reconstruct", 0.1)
-    exposure = json.loads(runtime.store.read_bytes(artifacts["exposure.json"])) if "exposure.json" in artifacts else {}
-    reconstruction = reconstruct_capture(frames=_load_npy(runtime.store, artifacts["frames.npy"]),
-                                         sequence=_load_sequence(runtime.store, artifacts["sequence.json"]), rig=rig,
-                                         tables=runtime.tables, saturation_level=exposure.get("saturation_level"),
+    exposure = exposure_from_bytes(runtime.store.read_bytes(artifacts[EXPOSURE.name])
+                                   if EXPOSURE.name in artifacts else None)
+    reconstruction = reconstruct_capture(frames=_load_npy(runtime.store, artifacts[FRAMES.name]),
+                                         sequence=_load_sequence(runtime.store, artifacts[SEQUENCE.name]), rig=rig,
+                                         tables=runtime.tables, saturation_level=exposure.saturation_level,
                                          source=f"scan {params['scan_id']}")
     cloud = reconstruction.cloud
-    return {"artifacts": {"cloud.ply": runtime.store.put_bytes(cloud_to_ply(cloud))}, "point_count": len(cloud),
-            "glow": glow_summary(reconstruction.glow, exposure)}
+    glow = glow_summary(reconstruction.glow, exposure)
+    return {"artifacts": {CLOUD.name: runtime.store.put_bytes(cloud_to_ply(cloud))}, "point_count": len(cloud),
+            "glow": None if glow is None else glow.model_dump(mode="json")}
 
 
 @dramatiq.actor(actor_name="fuse", **_options(max_retries=1, time_limit_s=120))
@@ -109,11 +112,12 @@ def fuse(job_id: str) -> dict[str, Any]:
     rig = _calibration_rig(runtime, params["calibration_set_id"])
     artifacts = _scan_artifacts(runtime, params["scan_id"])
     runtime.tracker.progress(job_id, "fuse", 0.1)
-    digest = params.get("cloud_sha256") or artifacts["cloud.ply"]
+    digest = params.get("cloud_sha256") or artifacts[CLOUD.name]
     cloud = cloud_from_ply(runtime.store.read_bytes(digest), f"artifact {digest}")
-    field = fuse_field(cloud=cloud, rig=rig, thermal=[(None, _load_npy(runtime.store, artifacts["thermal.npy"]))],
+    field = fuse_field(cloud=cloud, rig=rig, thermal=[(None, _load_npy(runtime.store, artifacts[THERMAL.name]))],
                        source=f"artifact {digest}")
-    return {"artifacts": {"field.ply": runtime.store.put_bytes(cloud_to_ply(field))}, "summary": field_summary(field)}
+    return {"artifacts": {FIELD.name: runtime.store.put_bytes(cloud_to_ply(field))},
+            "summary": field_summary(field).model_dump(mode="json")}
 
 
 @dramatiq.actor(actor_name="register", **_options(max_retries=1, time_limit_s=300))
@@ -123,9 +127,9 @@ def register(job_id: str) -> dict[str, Any]:
     params = _job(runtime, job_id).params
     artifacts = _scan_artifacts(runtime, params["scan_id"])
     runtime.tracker.progress(job_id, "register", 0.1)
-    registration, overlay = register_scan(frames=_load_npy(runtime.store, artifacts["frames.npy"]),
-                                          sequence=_load_sequence(runtime.store, artifacts["sequence.json"]),
-                                          thermal=_load_npy(runtime.store, artifacts["thermal.npy"]),
+    registration, overlay = register_scan(frames=_load_npy(runtime.store, artifacts[FRAMES.name]),
+                                          sequence=_load_sequence(runtime.store, artifacts[SEQUENCE.name]),
+                                          thermal=_load_npy(runtime.store, artifacts[THERMAL.name]),
                                           model=params["model"])
     return {"artifacts": {"registration.json": runtime.store.put_bytes(registration_json(registration).encode()),
                           "overlay.png": runtime.store.put_bytes(png_bytes(overlay))},

@@ -19,16 +19,14 @@ from api.problems import Problem, problem_responses
 from api.schemas import Accepted, ScanJobRequest, ScanOut, ScanRequest
 from services.db.models import TERMINAL_STATUSES, CalibrationSet, Job, Scan, new_id
 from services.formats.images import encode_frame
+from services.formats.stored_scan import CLOUD, FRAMES, SERVED, THERMAL
 from services.jobs.scans import JobRefused, scan_inputs, scan_job_params
 
 router = APIRouter(prefix="/scans", tags=["scans"])
 
-ARTIFACT_MEDIA_TYPES = {"cloud.ply": "application/octet-stream", "field.ply": "application/octet-stream",
-                        "field.rrd": "application/octet-stream", "frames.npy": "application/octet-stream",
-                        "thermal.npy": "application/octet-stream", "report.json": "application/json",
-                        "deviation.ply": "application/octet-stream"}
-ARTIFACT_NAME_PATTERN = "^(" + "|".join(re.escape(name) for name in ARTIFACT_MEDIA_TYPES) + ")$"
-FRAME_KINDS = {"frames": ("image/png", "png"), "thermal": ("image/tiff", "tiff")}
+ARTIFACT_NAME_PATTERN = "^(" + "|".join(re.escape(name) for name in SERVED) + ")$"
+# One frame of a stored stack, as the image it was: the stack's artifact, the frame's media type and suffix.
+FRAME_KINDS = {"frames": (FRAMES, "image/png", "png"), "thermal": (THERMAL, "image/tiff", "tiff")}
 
 
 def scan_links(scan: Scan) -> dict[str, str]:
@@ -36,11 +34,11 @@ def scan_links(scan: Scan) -> dict[str, str]:
              "calibration_set": f"/v1/calibration-sets/{scan.calibration_set_id}"}
     if scan.part_type_id is not None:
         links["part_type"] = f"/v1/part-types/{scan.part_type_id}"
-    for name in ARTIFACT_MEDIA_TYPES:
+    for name in SERVED:
         if name in scan.artifacts:
             links[name] = f"/v1/scans/{scan.id}/{name}"
-    for kind, (_, suffix) in FRAME_KINDS.items():
-        if f"{kind}.npy" in scan.artifacts:
+    for kind, (stack, _, suffix) in FRAME_KINDS.items():
+        if stack.name in scan.artifacts:
             links[kind] = f"/v1/scans/{scan.id}/{kind}/{{index}}.{suffix}"
     return links
 
@@ -103,7 +101,7 @@ async def create_scan_job(request: Request, key: OperatorKey, scan: ExistingScan
     digest = request_digest(request, await request.body())
 
     def start() -> Outcome:
-        if scan.artifacts.get("frames.npy") is None:
+        if scan.artifacts.get(FRAMES.name) is None:
             raise Problem(409, "not-ready", f"Scan {scan.id} has no stored capture yet; wait for its job.")
         params = {"scan_id": scan.id, "calibration_set_id": scan.calibration_set_id}
         if body.calibration_set_id is not None:
@@ -124,7 +122,7 @@ def _reconstructed_cloud(session, scan: Scan, body: ScanJobRequest) -> str:
             or job.status != "succeeded":
         raise Problem(422, "invalid-input", f"cloud_job_id: {body.cloud_job_id!r} is not a succeeded reconstruct job "
                                             f"of scan {scan.id} (and only a fuse job takes one).")
-    return job.result["artifacts"]["cloud.ply"]
+    return job.result["artifacts"][CLOUD.name]
 
 
 @router.get("", name="list_scans")
@@ -163,16 +161,13 @@ def download_scan_artifact(scan: ExistingScan, runtime: RuntimeDep, session: Ses
     digest = scan.artifacts.get(artifact)
     if digest is None:
         _never_or_not_yet(scan, session.get(Job, scan.job_id), artifact)
-    return _artifact_file(runtime, scan, digest, f"{scan.id}-{artifact}", ARTIFACT_MEDIA_TYPES[artifact])
-
-
-_INSPECTION_ARTIFACTS = frozenset({"report.json", "deviation.ply"})
+    return _artifact_file(runtime, scan, digest, f"{scan.id}-{artifact}", SERVED[artifact].media_type)
 
 
 def _never_or_not_yet(scan: Scan, job: Job, artifact: str) -> None:
     """A 404 that says whether the artifact may still come: ``not-ready`` while the scan's job runs, else
     ``not-found`` with the reason it never will (no part type to inspect against, or the job's end)."""
-    if artifact in _INSPECTION_ARTIFACTS and scan.part_type_id is None:
+    if SERVED[artifact].inspected and scan.part_type_id is None:
         raise Problem(404, "not-found", f"Scan {scan.id} has no {artifact} and will have none: it was not "
                                         "inspected (no part type was named or selected when it started).")
     if job.status in TERMINAL_STATUSES:
@@ -187,8 +182,8 @@ def download_scan_frame(scan: ExistingScan, runtime: RuntimeDep,
                         kind: Annotated[str, Path(pattern="^(frames|thermal)$")], index: int,
                         suffix: Annotated[str, Path(pattern="^(png|tiff)$")]) -> Response:
     """One raw frame of the capture: camera ``frames/<i>.png`` or thermal ``thermal/<i>.tiff`` (float32 °C)."""
-    media_type, expected_suffix = FRAME_KINDS[kind]
-    digest = scan.artifacts.get(f"{kind}.npy")
+    stack, media_type, expected_suffix = FRAME_KINDS[kind]
+    digest = scan.artifacts.get(stack.name)
     if digest is None:
         raise Problem(404, "not-ready", f"Scan {scan.id} has no {kind} (yet); see its job.")
     frames = np.load(stored_path(runtime.store, digest, f"scan {scan.id}"), mmap_mode="r", allow_pickle=False)

@@ -16,6 +16,7 @@ import numpy as np
 from services.errors import InputError
 from services.formats.part import Part
 from services.formats.ply import cloud_to_ply
+from services.formats.stored_scan import DEVIATION, REPORT
 from services.inspection.inspect import (Inspection, PreparedPart, cold_cloud, deviation_cloud, inspect_field,
                                          prepare_part, report_json)
 
@@ -73,7 +74,7 @@ def inspect_part(*, field: Mapping[str, np.ndarray], part: Part | PreparedPart,
 
 def inspection_artifacts(outcome: InspectionOutcome) -> dict[str, bytes]:
     """The files an inspected scan keeps: ``report.json`` and ``deviation.ply`` (the cold-equivalent cloud)."""
-    return {"report.json": report_json(outcome.report).encode(), "deviation.ply": cloud_to_ply(outcome.cold)}
+    return {REPORT.name: report_json(outcome.report).encode(), DEVIATION.name: cloud_to_ply(outcome.cold)}
 
 
 def report_digest(report: Mapping[str, Any]) -> dict[str, Any]:

@@ -3,8 +3,6 @@ stored artifacts and Rerun recording."""
 
 from __future__ import annotations
 
-import io
-import json
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -16,6 +14,8 @@ from services.errors import InputError
 from services.formats.ply import cloud_to_ply
 from services.formats.rig import Rig
 from services.formats.sequence import Sequence, sequence_to_json
+from services.formats.stored_scan import (CLOUD, EXPOSURE, FIELD, FRAMES, RECORDING, SEQUENCE, THERMAL, FieldSummary,
+                                          exposure_bytes, npy_bytes)
 from services.geometry.cloud import PointCloud
 from services.inspection.inspect import PreparedPart
 from services.pipeline.field import fuse_field
@@ -56,7 +56,7 @@ class StageClock:
 class ScanOutcome:
     cloud: PointCloud
     field: PointCloud
-    summary: dict
+    summary: FieldSummary
     inspection: InspectionOutcome | None = None
     inspection_error: str | None = None
     """Why a scan with a part type could not be inspected (no part hot enough in the field...): the scan
@@ -93,7 +93,7 @@ def process_scan(*, frames: np.ndarray, sequence: Sequence, thermal: np.ndarray,
         except InputError as error:
             inspection_error = str(error)
     clock.stop()
-    summary = {**field_summary(field_), "glow": glow_summary(reconstruction.glow, exposure)}
+    summary = field_summary(field_).model_copy(update={"glow": glow_summary(reconstruction.glow, exposure)})
     return ScanOutcome(reconstruction.cloud, field_, summary, inspection, inspection_error)
 
 
@@ -128,7 +128,7 @@ def scan_capture(*, scan_id: str, frames: np.ndarray, sequence: Sequence, therma
         deviation = None if outcome.inspection is None else outcome.inspection.deviation
         verdict = None if outcome.inspection is None else verdict_markdown(outcome.inspection.report)
         scene = field_scene(outcome.field, rig, thermal[0], deviation=deviation, verdict=verdict)
-        writer.put({"field.rrd": scan_recording(scan_id, scene, captured_at)})
+        writer.put({RECORDING.name: scan_recording(scan_id, scene, captured_at)})
         if publish is not None:
             publish(scene, captured_at)
         clock.start("store", 0.85)  # what storing adds after the stream: the rest of the writes
@@ -148,15 +148,9 @@ def scan_result(*, scan_id: str, stored: StoredScan, part_type_id: str | None,
     elif outcome.inspection_error is not None:
         inspected = {"part_type_id": part_type_id, "verdict": "NotDecidable", "features": [],
                      "inspection_error": outcome.inspection_error}
-    return {"scan_id": scan_id, "artifacts": stored.artifacts, "summary": outcome.summary,
-            "stage_seconds": stage_seconds, "glow": outcome.summary["glow"], **inspected}
-
-
-def npy_bytes(stack: np.ndarray) -> bytes:
-    """An array as ``.npy`` bytes (uncompressed: storing must not slow the scan; the API encodes on request)."""
-    buffer = io.BytesIO()
-    np.save(buffer, stack, allow_pickle=False)
-    return buffer.getvalue()
+    summary = outcome.summary.model_dump(mode="json")
+    return {"scan_id": scan_id, "artifacts": stored.artifacts, "summary": summary,
+            "stage_seconds": stage_seconds, "glow": summary["glow"], **inspected}
 
 
 def scan_artifacts(*, frames: np.ndarray, sequence: Sequence, thermal: np.ndarray, outcome: ScanOutcome,
@@ -172,20 +166,20 @@ def capture_artifacts(*, frames: np.ndarray, sequence: Sequence, thermal: np.nda
     """The files of the capture itself, known before any processing: ``frames.npy``, ``thermal.npy`` (float32
     degrees C), ``sequence.json`` and ``exposure.json``."""
     return {
-        "frames.npy": npy_bytes(frames),
-        "thermal.npy": npy_bytes(thermal.astype(np.float32)),
-        "sequence.json": sequence_to_json(sequence).encode(),
-        "exposure.json": json.dumps(exposure or {}).encode(),
+        FRAMES.name: npy_bytes(frames),
+        THERMAL.name: npy_bytes(thermal.astype(np.float32)),
+        SEQUENCE.name: sequence_to_json(sequence).encode(),
+        EXPOSURE.name: exposure_bytes(exposure),
     }
 
 
 def cloud_artifacts(cloud: PointCloud) -> dict[str, bytes]:
     """The file of the scan's reconstruction, known before the fusion: ``cloud.ply``."""
-    return {"cloud.ply": cloud_to_ply(cloud)}
+    return {CLOUD.name: cloud_to_ply(cloud)}
 
 
 def field_artifacts(outcome: ScanOutcome) -> dict[str, bytes]:
     """The files of the scan's results after the reconstruction: ``field.ply`` and, when inspected,
     ``report.json`` and ``deviation.ply``."""
     inspected = {} if outcome.inspection is None else inspection_artifacts(outcome.inspection)
-    return {"field.ply": cloud_to_ply(outcome.field), **inspected}
+    return {FIELD.name: cloud_to_ply(outcome.field), **inspected}

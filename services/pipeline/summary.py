@@ -8,13 +8,14 @@ from typing import Any
 
 import numpy as np
 
+from services.formats.stored_scan import Exposure, FieldSummary, GlowSummary, TemperatureSummary
 from services.geometry.cloud import PointCloud
 from services.structured_light.glow import GlowReport
 
 PERCENTILES = (5, 25, 50, 75, 95)
 
 
-def field_summary(field: PointCloud | Mapping[str, np.ndarray]) -> dict:
+def field_summary(field: PointCloud | Mapping[str, np.ndarray]) -> FieldSummary:
     """Point count, bounding box (world mm) and temperature statistics (degrees C) of a field.
 
     Statistics cover the points with a temperature (finite); ``temperature`` is None
@@ -24,24 +25,19 @@ def field_summary(field: PointCloud | Mapping[str, np.ndarray]) -> dict:
     temperature = np.asarray(field["temperature"], dtype=np.float64)
     seen = temperature[np.isfinite(temperature)]
     empty = len(coordinates[0]) == 0
-    summary = {
-        "point_count": int(len(coordinates[0])),
-        "points_with_temperature": int(len(seen)),
-        "bbox_min": [0.0, 0.0, 0.0] if empty else [float(np.round(np.float64(axis.min()), 3)) for axis in coordinates],
-        "bbox_max": [0.0, 0.0, 0.0] if empty else [float(np.round(np.float64(axis.max()), 3)) for axis in coordinates],
-        "temperature": None,
-    }
+    temperature = None
     if len(seen):
-        summary["temperature"] = {
-            "min": round(float(seen.min()), 3),
-            "max": round(float(seen.max()), 3),
-            "mean": round(float(seen.mean()), 3),
-            "percentiles": {f"p{p}": round(float(v), 3) for p, v in zip(PERCENTILES, np.percentile(seen, PERCENTILES))},
-        }
-    return summary
+        temperature = TemperatureSummary(
+            min=round(float(seen.min()), 3), max=round(float(seen.max()), 3), mean=round(float(seen.mean()), 3),
+            percentiles={f"p{p}": round(float(v), 3) for p, v in zip(PERCENTILES, np.percentile(seen, PERCENTILES))})
+    return FieldSummary(
+        point_count=int(len(coordinates[0])), points_with_temperature=int(len(seen)),
+        bbox_min=[0.0, 0.0, 0.0] if empty else [float(np.round(np.float64(axis.min()), 3)) for axis in coordinates],
+        bbox_max=[0.0, 0.0, 0.0] if empty else [float(np.round(np.float64(axis.max()), 3)) for axis in coordinates],
+        temperature=temperature)
 
 
-def glow_summary(report: GlowReport | None, exposure: dict[str, Any]) -> dict | None:
+def glow_summary(report: GlowReport | None, exposure: Exposure | Mapping[str, Any]) -> GlowSummary | None:
     """What the glow did to a scan: shares of the glowing part saturated or lost in its shot noise, the glow
     level and drift, the exposures used, and a hint when the glow cost more than 5 % of the part.
 
@@ -49,5 +45,7 @@ def glow_summary(report: GlowReport | None, exposure: dict[str, Any]) -> dict | 
     """
     if report is None:
         return None
-    return {**report.as_dict(), "lost_to_glow": round(report.saturated_fraction + report.lost_fraction, 5),
-            "exposure_mode": exposure.get("mode", "fixed"), "exposures_us": exposure.get("exposures_us")}
+    exposure = exposure if isinstance(exposure, Exposure) else Exposure.model_validate(dict(exposure))
+    return GlowSummary.model_validate({
+        **report.as_dict(), "lost_to_glow": round(report.saturated_fraction + report.lost_fraction, 5),
+        "exposure_mode": exposure.mode, "exposures_us": exposure.exposures_us})

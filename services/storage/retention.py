@@ -27,10 +27,11 @@ from sqlalchemy import delete, select
 from sqlalchemy.orm import Session, sessionmaker
 
 from services.db.models import CalibrationSet, IdempotencyRecord, Job, PartType, Scan
+from services.formats.stored_scan import RAW
 from services.storage.artifacts import ArtifactStore
 
 logger = logging.getLogger(__name__)
-RAW_FRAME_ARTIFACTS = ("frames.npy", "thermal.npy", "sequence.json")
+RAW_FRAME_ARTIFACTS = RAW  # the capture's own files (services/formats/stored_scan.py)
 _DIGEST = re.compile(r"^[0-9a-f]{64}$")
 
 

@@ -123,7 +123,7 @@ def _seed(runtime, tmp_path) -> dict:
     from services.simulation.hot_part import write_billet_part
     from services.simulation.presets import forging_rig
 
-    from api.routers.scans import ARTIFACT_MEDIA_TYPES
+    from services.formats.stored_scan import SERVED
 
     store = runtime.store
     part_file = write_billet_part(tmp_path / "billet", segments=24)
@@ -131,7 +131,7 @@ def _seed(runtime, tmp_path) -> dict:
     thermal = np.full((FRAMES, 32, 40), 900.0, np.float32)
     raw = {"frames.npy": camera, "thermal.npy": thermal}
     artifacts = {}
-    for name in ARTIFACT_MEDIA_TYPES:
+    for name in SERVED:
         if name in raw:
             buffer = io.BytesIO()
             np.save(buffer, raw[name], allow_pickle=False)
