@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import threading
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
 
@@ -9,6 +10,7 @@ from fastapi import FastAPI
 from fastapi.routing import APIRoute
 
 from api.bodylimit import BodySizeLimit
+from api.decoding import DecoderPool
 from api.deps import KeyCache
 from api.metrics import ApiMetrics, MetricsMiddleware
 from api.problems import install_problem_handlers, problem_responses
@@ -28,9 +30,12 @@ def create_app(runtime: Runtime, job_queue: JobQueue) -> FastAPI:
     """The API serving ``runtime``'s database and artifact store; jobs go to ``job_queue`` (by actor name)
     through the outbox, whose thread runs while the app does (its lifespan)."""
     outbox = Outbox(runtime.sessions, job_queue)
+    settings = runtime.settings
+    decoders = DecoderPool(settings.decode_processes, settings.decode_memory_bytes, settings.decode_timeout_s)
 
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
+        threading.Thread(target=decoders.start, name="thermofield-forkserver", daemon=True).start()
         with outbox:
             yield
 
@@ -46,6 +51,7 @@ def create_app(runtime: Runtime, job_queue: JobQueue) -> FastAPI:
     )
     app.state.runtime = runtime
     app.state.jobs = outbox
+    app.state.decoders = decoders
     app.state.key_cache = KeyCache()
     app.state.rate_limiter = RateLimiter(runtime.settings.rate_limit_per_s, runtime.settings.rate_limit_burst)
     app.state.metrics = ApiMetrics(runtime, outbox.pending)

@@ -14,6 +14,7 @@ from sqlalchemy.exc import DBAPIError, OperationalError
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from services.errors import InputError
+from services.formats.limits import DeclaredSizeError
 from services.problems import PROBLEM_MEDIA_TYPE, problem_response
 
 RETRY_AFTER_S = 5  # seconds a client waits after a 503 (database or storage down, queue full)
@@ -73,6 +74,15 @@ def install_problem_handlers(app: FastAPI) -> None:
     @app.exception_handler(InputError)
     async def _input_error(request: Request, error: InputError) -> JSONResponse:
         return problem_response(422, "invalid-input", str(error), request.url.path)
+
+    @app.exception_handler(DeclaredSizeError)
+    async def _declared_too_large(request: Request, error: DeclaredSizeError) -> JSONResponse:
+        return problem_response(413, "payload-too-large", str(error), request.url.path)
+
+    @app.exception_handler(MemoryError)
+    async def _out_of_memory(request: Request, error: MemoryError) -> JSONResponse:
+        return problem_response(413, "payload-too-large", "The request needs more memory than the service can "
+                                                          "give it.", request.url.path)
 
     @app.exception_handler(RequestValidationError)
     async def _validation(request: Request, error: RequestValidationError) -> JSONResponse:

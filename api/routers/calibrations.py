@@ -7,9 +7,6 @@ import json
 from pathlib import PurePath
 from typing import Annotated
 
-import cv2
-import numpy as np
-
 from fastapi import APIRouter, Depends, File, Form, Request, UploadFile
 from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import Response
@@ -25,7 +22,7 @@ from api.schemas import Accepted, CalibrationSetOut, StereoCaptureRequest
 from services.db.calibrations import activate_calibration
 from services.db.models import CalibrationSet
 from services.formats.board import MIN_VIEWS, parse_board
-from services.formats.images import FRAME_SUFFIXES
+from services.formats.images import FRAME_SUFFIXES, decode_image
 from services.formats.rig import Rig, parse_rig, rig_to_json
 
 router = APIRouter(prefix="/calibration-sets", tags=["calibration"])
@@ -117,10 +114,14 @@ async def start_stereo_calibration(
                 raise Problem(422, "invalid-input", f"{field}: {upload.filename!r} is not one of "
                                                     f"{', '.join(FRAME_SUFFIXES)}.")
             content = await read_limited(upload, field, runtime.settings.max_image_bytes)
-            _check_image(content, field, upload.filename, sizes[field])
             hasher.update(content)
-            checked[field].append((content, suffix))
-    images = {field: [[runtime.store.put_bytes(content), suffix] for content, suffix in uploads]
+            checked[field].append((content, suffix, f"{field}: {upload.filename!r}", sizes[field]))
+    settings = runtime.settings
+    await request.app.state.decoders.run(
+        check_board_images, [(content, source, size) for uploads in checked.values()
+                             for content, _, source, size in uploads],
+        settings.max_image_pixels, settings.decode_memory_bytes, source="the board images")
+    images = {field: [[runtime.store.put_bytes(content), suffix] for content, suffix, _, _ in uploads]
               for field, uploads in checked.items()}
     params = {"calibration_set_id": calibration.id, "station": calibration.station, "device": device,
               "name": name, "activate": activate, "board": runtime.store.put_bytes(board_text), **images}
@@ -161,17 +162,13 @@ def _rig_of(runtime, calibration: CalibrationSet) -> Rig:
     return parse_rig(stored_bytes(runtime.store, calibration.rig_sha256, owner).decode(), owner)
 
 
-def _check_image(content: bytes, field: str, filename: str | None, size: tuple[int, int]) -> None:
-    """An upload that decodes to an 8- or 16-bit image of the device's size, or a 422 naming it."""
-    image = cv2.imdecode(np.frombuffer(content, np.uint8), cv2.IMREAD_UNCHANGED) if content else None
-    if image is None:
-        raise Problem(422, "invalid-input", f"{field}: {filename!r} is not a readable PNG, BMP or TIFF image.")
-    if image.dtype not in (np.uint8, np.uint16):
-        raise Problem(422, "invalid-input", f"{field}: {filename!r} is {image.dtype}; board images are 8- or "
-                                            "16-bit.")
-    if (image.shape[1], image.shape[0]) != size:
-        raise Problem(422, "invalid-input", f"{field}: {filename!r} is {image.shape[1]}x{image.shape[0]} but the "
-                                            f"device filming it is {size[0]}x{size[1]}.")
+def check_board_images(images: list[tuple[bytes, str, tuple[int, int]]], max_pixels: int, max_bytes: int) -> None:
+    """Each ``(content, source, (width, height))`` decodes to an 8- or 16-bit image of its device's size, or
+    an ``InputError`` names it; the header is checked before the pixels are decoded
+    (:func:`services.formats.images.decode_image`). Run in a decoding process (api/decoding.py)."""
+    for content, source, size in images:
+        # decoded, then converted to grey when in colour: two copies at most
+        decode_image(content, source, max_pixels=max_pixels, size=size, max_bytes=max_bytes // 2)
 
 
 def _require_thermal_device(rig: Rig, calibration: CalibrationSet, device: str) -> None:

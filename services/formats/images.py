@@ -52,7 +52,7 @@ def decode_image(content: bytes, source: str, *, max_pixels: int = DEFAULT_MAX_P
 
 def _grey_frame(image: np.ndarray | None, source: str) -> np.ndarray:
     if image is None:
-        raise InputError(f"{source}: cannot read the frame (not a PNG, BMP or TIFF image, or corrupt)")
+        raise InputError(f"{source}: cannot read the frame (not a readable PNG, BMP, TIFF or JPEG image, or corrupt)")
     if image.ndim == 3:
         code = cv2.COLOR_BGRA2GRAY if image.shape[2] == 4 else cv2.COLOR_BGR2GRAY
         image = cv2.cvtColor(image, code)

@@ -84,7 +84,8 @@ def image_header(content: bytes, source: str) -> ImageHeader:
         return _tiff_header(content, source)
     if content.startswith(b"\xff\xd8"):
         return _jpeg_header(content, source)
-    raise InputError(f"{source}: not a PNG, BMP, TIFF or JPEG image (its first bytes are {content[:8]!r})")
+    raise InputError(f"{source}: cannot read the frame (not a readable PNG, BMP, TIFF or JPEG image; it begins "
+                     f"{content[:8]!r})")
 
 
 def check_image(content: bytes, source: str, *, max_pixels: int = DEFAULT_MAX_PIXELS,
