@@ -54,6 +54,7 @@ def create_app(runtime: Runtime, job_queue: JobQueue) -> FastAPI:
     app.state.decoders = decoders
     app.state.key_cache = KeyCache()
     app.state.rate_limiter = RateLimiter(runtime.settings.rate_limit_per_s, runtime.settings.rate_limit_burst)
+    app.state.auth_failures = RateLimiter(settings.auth_failure_rate_per_s, settings.auth_failure_burst)
     app.state.metrics = ApiMetrics(runtime, outbox.pending)
     install_problem_handlers(app)
     app.add_middleware(BodySizeLimit, limits=lambda: (runtime.settings.max_upload_bytes,
@@ -62,6 +63,6 @@ def create_app(runtime: Runtime, job_queue: JobQueue) -> FastAPI:
     # each router straight under /v1 (one level of FastAPI's route matching less than a /v1 router of routers), the
     # jobs first: the polls match at once
     for module in (jobs, scans, calibrations, parts, devices, apikeys):
-        app.include_router(module.router, prefix="/v1", responses=problem_responses(401, 403, 413, 422, 429, 503))
+        app.include_router(module.router, prefix="/v1", responses=problem_responses(400, 401, 403, 413, 422, 429, 503))
     app.include_router(health.router)
     return app

@@ -33,13 +33,15 @@ class ProblemDetails(BaseModel):
 
 
 _PROBLEM_DESCRIPTIONS = {
+    400: "The request is ambiguous: two Authorization headers.",
     401: "No API key, or an unknown or revoked one.",
     403: "The API key lacks the scope.",
     404: "No such resource, or not produced yet.",
     409: "The request conflicts with the station's state.",
     413: "The request body or an uploaded file is too large.",
     422: "The request or an uploaded file is invalid.",
-    429: "The API key is over its rate limit; see Retry-After.",
+    429: "The API key is over its rate limit, or the client's address sent too many unknown keys; see "
+         "Retry-After.",
     502: "The device gateway is unreachable.",
     503: "The database or the artifact store is unavailable, or the job queue is full; see Retry-After.",
 }
