@@ -23,8 +23,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 def _run(args: argparse.Namespace) -> int:
-    import uvicorn
-
+    from api.server import HttpLimits, serve
     from device_gateway.service import create_gateway
 
     overrides = {"gateway_driver": args.driver, "gateway_host": args.host, "gateway_port": args.port}
@@ -32,5 +31,5 @@ def _run(args: argparse.Namespace) -> int:
     app = create_gateway(settings)
     print(f"thermofield gateway ({settings.gateway_driver} devices) on "
           f"http://{settings.gateway_host}:{settings.gateway_port}", flush=True)
-    uvicorn.run(app, host=settings.gateway_host, port=settings.gateway_port, log_level="warning")
+    serve(app, settings.gateway_host, settings.gateway_port, HttpLimits.of(settings), log_level="warning")
     return 0
