@@ -15,6 +15,7 @@ TIFF's directories without reading its pixels, and is used for TIFF.
 from __future__ import annotations
 
 import io
+import logging
 import math
 import re
 import struct
@@ -170,6 +171,9 @@ def _bmp_header(content: bytes, source: str) -> ImageHeader:
 def _tiff_header(content: bytes, source: str) -> ImageHeader:
     import tifffile
 
+    logger = logging.getLogger("tifffile")
+    level = logger.level
+    logger.setLevel(logging.CRITICAL)  # it logs what it finds wrong; the error below says it once
     try:
         with tifffile.TiffFile(io.BytesIO(content)) as tiff:  # reads the first directory, not the pixels
             page = tiff.pages.first
@@ -177,6 +181,8 @@ def _tiff_header(content: bytes, source: str) -> ImageHeader:
             compression, byte_counts = int(page.compression), page.databytecounts
     except Exception as error:  # tifffile raises several types for a malformed directory
         raise InputError(f"{source}: not a readable TIFF ({type(error).__name__}: {error})") from None
+    finally:
+        logger.setLevel(level)
     if dtype is None or len(shape) < 2:
         raise InputError(f"{source}: a TIFF whose first page has no image data (shape {shape})")
     samples = int(np.prod(shape[2:])) if len(shape) > 2 else 1
