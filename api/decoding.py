@@ -27,9 +27,10 @@ from fastapi.concurrency import run_in_threadpool
 from services.errors import InputError
 from services.formats.limits import DeclaredSizeError
 
-# loaded once in the forkserver, so that a child starts with them (open3d takes a second to import)
-_PRELOAD = ["numpy", "cv2", "tifffile", "plyfile", "open3d", "services.inspection.inspect", "api.routers.parts",
-            "api.routers.calibrations"]
+# loaded once in the forkserver, so that a child starts with them (open3d and numba take a second each to
+# import); the service's main module too, which a child imports again as multiprocessing's "__mp_main__"
+_PRELOAD = ["numpy", "cv2", "tifffile", "plyfile", "numba", "open3d", "services.inspection.inspect",
+            "api.routers.parts", "api.routers.calibrations", "services.cli.main"]
 
 
 class DecoderPool:

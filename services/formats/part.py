@@ -245,8 +245,6 @@ def read_mesh(path: Path, field: str, shown: str | None = None, *, max_triangles
     memory when given, before Open3D reads it (:func:`services.formats.limits.check_mesh`); an error Open3D
     raises is an ``InputError`` naming the file.
     """
-    o3d = open3d()
-
     shown = shown or str(path)
     if not path.is_file():
         raise InputError(f"{field}: mesh file {shown} is missing")
@@ -256,6 +254,7 @@ def read_mesh(path: Path, field: str, shown: str | None = None, *, max_triangles
         raise InputError(f"{field}: cannot read {shown} ({error.strerror or error})") from None
     check_mesh(content, path.suffix, f"{field}: {shown}", max_triangles=max_triangles, max_bytes=max_bytes)
     del content
+    o3d = open3d()  # loaded (with numba, a second) only for a mesh whose header holds
     try:
         mesh = o3d.io.read_triangle_mesh(str(path))
         vertices = np.asarray(mesh.vertices, dtype=np.float64)
