@@ -36,15 +36,15 @@ test: install-test docker-compose
 system-libraries:
 	ldconfig -p | grep -q 'libusb-1.0.so.0' && ldconfig -p | grep -q 'libEGL.so.1' || { apt-get update -qq && apt-get install -y -qq --no-install-recommends libusb-1.0-0 libegl1 libgl1 libx11-6; }
 
-# The load, the long Schemathesis run and the long fault tests, the scaled-out worker crash among them (docs/reliability.md); figures go to
-# reliability-output/.
+# The load, the long Schemathesis run and the long fault tests, the scaled-out worker crash among them, and the hostile
+# input (docs/reliability.md); figures go to reliability-output/ (the hostile-input table: hostile.md).
 # The 10-minute soak is `make test-soak` (about 12 min with its start and warm-up); `.ci/run` runs it last.
 RELIABILITY_OUT ?= reliability-output
 test-reliability: install-test
 	THERMOFIELD_RELIABILITY_OUT=$(abspath $(RELIABILITY_OUT)) THERMOFIELD_SCHEMATHESIS_EXAMPLES=100 \
 		$(BIN)/python -m pytest -m 'reliability or schemathesis' -k 'not soak' -p no:cacheprovider -s \
 		tests/api/test_schemathesis.py tests/integration/test_load.py tests/integration/test_station_faults.py \
-		tests/reliability/test_faults.py tests/integration/test_scaled_out.py
+		tests/reliability/test_faults.py tests/reliability/test_hostile.py tests/integration/test_scaled_out.py
 
 test-soak: install-test
 	THERMOFIELD_RELIABILITY_OUT=$(abspath $(RELIABILITY_OUT)) THERMOFIELD_SOAK_SECONDS=600 \

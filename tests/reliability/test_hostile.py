@@ -226,13 +226,14 @@ class Poller:
         import multiprocessing
 
         context = multiprocessing.get_context("spawn")
-        self._stop, self._samples = context.Event(), context.Queue()
+        self._stop, self._started, self._samples = context.Event(), context.Event(), context.Queue()
         self._process = context.Process(target=_poll, args=(url, path, headers, interval_s, self._stop,
-                                                            self._samples), daemon=True)
+                                                            self._started, self._samples), daemon=True)
         self.samples: list[tuple[float, float, int]] = []
 
     def __enter__(self) -> Poller:
         self._process.start()
+        assert self._started.wait(120), "the poller did not start"
         return self
 
     def __exit__(self, *exc_info) -> None:
@@ -249,7 +250,7 @@ class Poller:
                 "p99": round(float(np.percentile(latencies, 99)), 1), "max": round(float(latencies.max()), 1)}
 
 
-def _poll(url: str, path: str, headers: dict[str, str], interval_s: float, stop, samples) -> None:
+def _poll(url: str, path: str, headers: dict[str, str], interval_s: float, stop, started, samples) -> None:
     """The polling process: ``time.monotonic`` is the system's, so its times compare with the test's."""
     result = []
     with httpx.Client(base_url=url, headers=headers, timeout=30) as client:
@@ -257,6 +258,7 @@ def _poll(url: str, path: str, headers: dict[str, str], interval_s: float, stop,
             start = time.monotonic()
             status = client.get(path).status_code
             result.append((start, time.monotonic() - start, status))
+            started.set()
             time.sleep(max(0.0, interval_s - (time.monotonic() - start)))
     samples.put(result)
 
