@@ -6,6 +6,7 @@ raise ``InputError``, never a library's exception."""
 from __future__ import annotations
 
 import io
+import math
 import struct
 import tempfile
 import zipfile
@@ -238,7 +239,7 @@ def _npy(shape, dtype) -> bytes:
        dtype=st.sampled_from(["uint8", "uint16", "float32", "float64", "complex128"]), body=st.binary(max_size=300))
 def test_npy_declaring_any_shape(shape, dtype, body):
     content = _npy(shape, dtype) + body
-    needed = int(np.prod(shape)) * np.dtype(dtype).itemsize
+    needed = math.prod(shape) * np.dtype(dtype).itemsize
     try:
         check_npy(io.BytesIO(content), len(content), "frames.npy", max_bytes=1 << 20)
     except DeclaredSizeError as error:
