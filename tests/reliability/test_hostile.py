@@ -79,6 +79,21 @@ def _ply_declaring(vertices: int, faces: int, length: int = 1200) -> bytes:
     return header + bytes(length - len(header))
 
 
+def _sphere_stl(rings: int = 224, segments: int = 448, radius_mm: float = 50.0) -> bytes:
+    """A valid closed mesh: a UV sphere as binary STL, 2 x segments x (rings - 1) triangles (200k: 10 MB)."""
+    theta, phi = np.linspace(0, np.pi, rings + 1), np.linspace(0, 2 * np.pi, segments, endpoint=False)
+    t, p = np.meshgrid(theta, phi, indexing="ij")
+    points = radius_mm * np.stack([np.sin(t) * np.cos(p), np.sin(t) * np.sin(p), np.cos(t)], -1)
+    i, j = np.meshgrid(np.arange(rings), np.arange(segments), indexing="ij")
+    a, b = points[i, j], points[i, (j + 1) % segments]
+    c, d = points[i + 1, j], points[i + 1, (j + 1) % segments]
+    triangles = np.concatenate([np.stack([a, c, b], -2)[1:].reshape(-1, 3, 3),  # no slivers at the poles
+                                np.stack([b, c, d], -2)[:-1].reshape(-1, 3, 3)])
+    records = np.zeros(len(triangles), dtype=[("normal", "<f4", 3), ("vertices", "<f4", (3, 3)), ("attribute", "<u2")])
+    records["vertices"] = triangles
+    return bytes(80) + struct.pack("<I", len(triangles)) + records.tobytes()
+
+
 def _bmp_declaring(width: int, height: int) -> bytes:
     import cv2
 
@@ -413,8 +428,10 @@ def test_hostile_input_against_the_embedded_service(tmp_path):
             Upload("ASCII PLY declaring 10^8 vertices", "mesh", "lying-ascii.ply",
                    _ply_declaring(10**8, 1).replace(b"binary_little_endian", b"ascii"), "10^8 vertices"),
         ]
-        valid = Upload("valid board images (a calibrate job follows)", "image", "t0.png", thermal,
-                       f"{thermal_device.width}x{thermal_device.height} 16-bit", (202,))
+        valid = [Upload("valid board images (a calibrate job follows)", "image", "t0.png", thermal,
+                        f"{thermal_device.width}x{thermal_device.height} 16-bit", (202,)),
+                 Upload("valid part type: a closed sphere mesh", "mesh", "sphere.stl", _sphere_stl(),
+                        "199,808 triangles", (201,))]
         rows: list[Row] = []
         with Poller(service.url, "/readyz", {}, 0.01) as ready, \
                 Poller(service.url, f"/v1/jobs/{job_id}", {"Authorization": f"Bearer {reader}"}, 0.05) as poll:
@@ -426,7 +443,8 @@ def test_hostile_input_against_the_embedded_service(tmp_path):
             for upload in uploads:
                 _measure(service, client, calibration, upload, thermal, camera, rows, statuses)
 
-            _measure(service, client, calibration, valid, thermal, camera, rows, statuses)
+            for upload in valid:
+                _measure(service, client, calibration, upload, thermal, camera, rows, statuses)
 
             # three hostile uploads at once, again and again for PARALLEL_SECONDS
             parallel = [uploads[0], uploads[2], uploads[3]]
