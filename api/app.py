@@ -9,7 +9,7 @@ from contextlib import asynccontextmanager
 from fastapi import FastAPI
 from fastapi.routing import APIRoute
 
-from api.bodylimit import BodySizeLimit
+from services.bodylimit import BodySizeLimit
 from api.decoding import DecoderPool
 from api.deps import KeyCache
 from api.metrics import ApiMetrics, MetricsMiddleware

@@ -27,7 +27,7 @@ from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse, Response
 from pydantic import BaseModel, Field
 
-from api.bodylimit import BodySizeLimit
+from services.bodylimit import BodySizeLimit
 from device_gateway.devices import DeviceError
 from device_gateway.station import ExposureControl, Station
 from device_gateway.transfer import BOARD_VIEWS_MEDIA_TYPE, MEDIA_TYPE, encode_board_views, encode_capture
