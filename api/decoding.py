@@ -24,6 +24,7 @@ from typing import Any
 
 from fastapi.concurrency import run_in_threadpool
 
+from api.problems import RETRY_AFTER_S, Problem
 from services.errors import InputError
 from services.formats.limits import DeclaredSizeError
 
@@ -61,13 +62,21 @@ class DecoderPool:
             raise DeclaredSizeError(value)
         if kind == "input":
             raise InputError(value)
+        if kind == "unavailable":
+            raise Problem(503, "decoding-unavailable", f"{source}: cannot be decoded now ({value}); retry shortly.",
+                          {"Retry-After": str(RETRY_AFTER_S)})
         raise InputError(f"{source}: cannot be decoded ({value})")
 
     def _run_in_child(self, function: Callable[..., Any], args: tuple) -> tuple[str, Any]:
         receiver, sender = self._context.Pipe(duplex=False)
         process = self._context.Process(target=_decode, args=(sender, function, args, self.memory_bytes),
                                         daemon=True, name="thermofield-decode")
-        process.start()
+        try:
+            process.start()
+        except (OSError, RuntimeError) as error:  # no process to be had (out of memory or processes): the server's
+            receiver.close()                       # fault, not the upload's
+            sender.close()
+            return "unavailable", f"no decoding process could be started: {type(error).__name__}: {error}"
         sender.close()
         try:
             if not receiver.poll(self.timeout_s):

@@ -71,6 +71,19 @@ def test_whatever_goes_wrong_in_a_decoding_is_an_input_error_naming_the_upload(p
     assert type(raised.value) is error
 
 
+def test_no_process_to_decode_in_is_503_with_retry_after(pool, monkeypatch):
+    from api.problems import Problem
+
+    def refuse(self):
+        raise OSError(11, "Resource temporarily unavailable")
+
+    monkeypatch.setattr(type(pool._context.Process(target=print)), "start", refuse)
+    with pytest.raises(Problem) as raised:
+        _run(pool, _returns, 1)
+    assert raised.value.status == 503 and raised.value.kind == "decoding-unavailable"
+    assert int(raised.value.headers["Retry-After"]) > 0 and "upload.png" in raised.value.detail
+
+
 def test_decodings_beyond_the_pool_wait_their_turn():
     pool = DecoderPool(processes=1, memory_bytes=64 << 20, timeout_s=10.0)
 
