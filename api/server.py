@@ -27,6 +27,9 @@ from services.problems import PROBLEM_MEDIA_TYPE, PROBLEM_TYPE_BASE
 from services.settings import Settings
 
 
+_LINGER_S = 2.0
+
+
 @dataclass(frozen=True)
 class HttpLimits:
     """The bounds :func:`limited_protocol` enforces (``THERMOFIELD_MAX_HEADER_BYTES``, ``_HEADER_TIMEOUT_S``,
@@ -47,21 +50,21 @@ def limited_protocol(limits: HttpLimits) -> type[HttpToolsProtocol]:
     class LimitedHttpProtocol(HttpToolsProtocol):
         def __init__(self, *args: Any, **kwargs: Any) -> None:
             super().__init__(*args, **kwargs)
-            self._header_bytes, self._in_headers, self._deadline = 0, True, None
+            self._header_bytes, self._in_headers, self._deadline, self._refused = 0, True, None, False
 
         def connection_made(self, transport: asyncio.Transport) -> None:  # type: ignore[override]
             super().connection_made(transport)
             self._arm(limits.header_timeout_s, "its headers")
 
         def data_received(self, data: bytes) -> None:
-            if self.transport.is_closing():  # refused: the rest is not parsed
+            if self._refused or self.transport.is_closing():  # refused: the rest is read and dropped, unparsed
                 return
             if self._in_headers:
                 if self._deadline is None:  # the first byte of a request on a kept-alive connection
                     self._arm(limits.header_timeout_s, "its headers")
                 self._header_bytes += len(data)
             super().data_received(data)
-            if self._in_headers and self._header_bytes > limits.max_header_bytes and not self.transport.is_closing():
+            if self._in_headers and self._header_bytes > limits.max_header_bytes and not self._refused:
                 self._refuse(431, "request-header-fields-too-large",
                              f"A request's line and headers may have at most {limits.max_header_bytes} bytes.")
 
@@ -74,10 +77,7 @@ def limited_protocol(limits: HttpLimits) -> type[HttpToolsProtocol]:
         def on_message_complete(self) -> None:
             self._disarm()
             super().on_message_complete()
-
-        def on_response_complete(self) -> None:
-            super().on_response_complete()
-            self._header_bytes, self._in_headers = 0, True
+            self._header_bytes, self._in_headers = 0, True  # what comes next is the next request's headers
 
         def connection_lost(self, exc: Exception | None) -> None:
             self._disarm()
@@ -105,14 +105,23 @@ def limited_protocol(limits: HttpLimits) -> type[HttpToolsProtocol]:
             self._refuse(408, "request-timeout", f"A request must send {what} within {seconds:g} s.")
 
         def _refuse(self, status: int, kind: str, detail: str) -> None:
-            """Answer problem+json and close: written here, as no application runs for the request."""
+            """Answer problem+json and close: written here, as no application runs for the request. The close
+            lingers (nginx's lingering_close): the answer is followed by a FIN, what the client still sends is
+            read and dropped for ``_LINGER_S``, then the socket is closed; closed at once with unread bytes,
+            the kernel would send a reset that can destroy the answer before the client reads it."""
+            self._disarm()
+            self._refused = True
             phrase = HTTPStatus(status).phrase
             body = json.dumps({"type": PROBLEM_TYPE_BASE + kind, "title": phrase, "status": status, "detail": detail,
                                "instance": self.scope.get("path", "") if self.scope else ""}).encode()
             self.transport.write(b"HTTP/1.1 %d %s\r\ncontent-type: %s\r\ncontent-length: %d\r\n"
                                  b"connection: close\r\n\r\n%s" % (status, phrase.encode(), PROBLEM_MEDIA_TYPE.encode(),
                                                                    len(body), body))
-            self.transport.close()
+            if self.transport.can_write_eof():
+                self.transport.write_eof()
+                self.loop.call_later(_LINGER_S, self.transport.close)
+            else:
+                self.transport.close()
 
     return LimitedHttpProtocol
 

@@ -121,3 +121,17 @@ def test_a_slow_client_dripping_headers_is_cut_at_the_time_limit(port):
             pass
         status, _, _, closed = _answer(connection)
     assert status == 408 and closed
+
+
+def test_the_next_requests_headers_on_a_kept_alive_connection_are_bounded_too(port):
+    with socket.create_connection(("127.0.0.1", port)) as connection:
+        connection.sendall(b"GET /ping HTTP/1.1\r\nHost: api\r\n\r\nGET /ping HTTP/1.1\r\nHost: api\r\n")
+        status, _, _, closed = _answer(connection)
+        assert status == 200 and not closed
+        try:
+            for _ in range(64):  # 512 kB of the second request's headers
+                connection.sendall(b"X-Filler: " + b"a" * 8192 + b"\r\n")
+        except (BrokenPipeError, ConnectionResetError):
+            pass
+        status, _, _, closed = _answer(connection)
+    assert status == 431 and closed
