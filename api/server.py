@@ -27,7 +27,7 @@ from services.problems import PROBLEM_MEDIA_TYPE, PROBLEM_TYPE_BASE
 from services.settings import Settings
 
 
-_LINGER_S = 2.0
+_LINGER_S, _LINGER_BYTES = 2.0, 1 << 20  # a refused connection's bytes are dropped for 2 s, at most 1 MiB
 
 
 @dataclass(frozen=True)
@@ -51,6 +51,7 @@ def limited_protocol(limits: HttpLimits) -> type[HttpToolsProtocol]:
         def __init__(self, *args: Any, **kwargs: Any) -> None:
             super().__init__(*args, **kwargs)
             self._header_bytes, self._in_headers, self._deadline, self._refused = 0, True, None, False
+            self._dropped = 0
 
         def connection_made(self, transport: asyncio.Transport) -> None:  # type: ignore[override]
             super().connection_made(transport)
@@ -58,6 +59,9 @@ def limited_protocol(limits: HttpLimits) -> type[HttpToolsProtocol]:
 
         def data_received(self, data: bytes) -> None:
             if self._refused or self.transport.is_closing():  # refused: the rest is read and dropped, unparsed
+                self._dropped += len(data)
+                if self._dropped > _LINGER_BYTES and not self.transport.is_closing():
+                    self.transport.close()
                 return
             if self._in_headers:
                 if self._deadline is None:  # the first byte of a request on a kept-alive connection
@@ -107,8 +111,9 @@ def limited_protocol(limits: HttpLimits) -> type[HttpToolsProtocol]:
         def _refuse(self, status: int, kind: str, detail: str) -> None:
             """Answer problem+json and close: written here, as no application runs for the request. The close
             lingers (nginx's lingering_close): the answer is followed by a FIN, what the client still sends is
-            read and dropped for ``_LINGER_S``, then the socket is closed; closed at once with unread bytes,
-            the kernel would send a reset that can destroy the answer before the client reads it."""
+            read and dropped for ``_LINGER_S`` (at most ``_LINGER_BYTES``), then the socket is closed; closed at
+            once with unread bytes, the kernel would send a reset that can destroy the answer before the client
+            reads it."""
             self._disarm()
             self._refused = True
             phrase = HTTPStatus(status).phrase
