@@ -53,15 +53,15 @@ browser:
 exiftool:
 	command -v exiftool >/dev/null || { apt-get update -qq && apt-get install -y -qq --no-install-recommends libimage-exiftool-perl; }
 
-# The load, the long Schemathesis run and the long fault tests, the scaled-out worker crash among them (docs/reliability.md); figures go to
-# reliability-output/.
+# The load, the long Schemathesis run and the long fault tests, the scaled-out worker crash among them, and the hostile
+# input (docs/reliability.md); figures go to reliability-output/ (the hostile-input table: hostile.md).
 # The 10-minute soak is `make test-soak` (about 12 min with its start and warm-up); `.ci/run` runs it last.
 RELIABILITY_OUT ?= reliability-output
 test-reliability: install-test
 	THERMOFIELD_RELIABILITY_OUT=$(abspath $(RELIABILITY_OUT)) THERMOFIELD_SCHEMATHESIS_EXAMPLES=100 \
 		$(BIN)/python -m pytest -m 'reliability or schemathesis' -k 'not soak' -p no:cacheprovider -s \
 		tests/api/test_schemathesis.py tests/integration/test_load.py tests/integration/test_station_faults.py \
-		tests/reliability/test_faults.py tests/integration/test_scaled_out.py
+		tests/reliability/test_faults.py tests/reliability/test_hostile.py tests/integration/test_scaled_out.py
 
 test-soak: install-test
 	THERMOFIELD_RELIABILITY_OUT=$(abspath $(RELIABILITY_OUT)) THERMOFIELD_SOAK_SECONDS=600 \

@@ -2,13 +2,15 @@
 
 from __future__ import annotations
 
+import threading
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
 
 from fastapi import FastAPI
 from fastapi.routing import APIRoute
 
-from api.bodylimit import BodySizeLimit
+from services.bodylimit import BodySizeLimit
+from api.decoding import DecoderPool
 from api.deps import KeyCache
 from api.docs import install_offline_docs
 from api.metrics import ApiMetrics, MetricsMiddleware
@@ -29,9 +31,12 @@ def create_app(runtime: Runtime, job_queue: JobQueue) -> FastAPI:
     """The API serving ``runtime``'s database and artifact store; jobs go to ``job_queue`` (by actor name)
     through the outbox, whose thread runs while the app does (its lifespan)."""
     outbox = Outbox(runtime.sessions, job_queue)
+    settings = runtime.settings
+    decoders = DecoderPool(settings.decode_processes, settings.decode_memory_bytes, settings.decode_timeout_s)
 
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
+        threading.Thread(target=decoders.start, name="thermofield-forkserver", daemon=True).start()
         with outbox:
             yield
 
@@ -48,8 +53,10 @@ def create_app(runtime: Runtime, job_queue: JobQueue) -> FastAPI:
     )
     app.state.runtime = runtime
     app.state.jobs = outbox
+    app.state.decoders = decoders
     app.state.key_cache = KeyCache()
     app.state.rate_limiter = RateLimiter(runtime.settings.rate_limit_per_s, runtime.settings.rate_limit_burst)
+    app.state.auth_failures = RateLimiter(settings.auth_failure_rate_per_s, settings.auth_failure_burst)
     app.state.metrics = ApiMetrics(runtime, outbox.pending)
     install_problem_handlers(app)
     app.add_middleware(BodySizeLimit, limits=lambda: (runtime.settings.max_upload_bytes,
@@ -58,7 +65,8 @@ def create_app(runtime: Runtime, job_queue: JobQueue) -> FastAPI:
     # each router straight under /v1 (one level of FastAPI's route matching less than a /v1 router of routers), the
     # jobs first: the polls match at once
     for module in (jobs, scans, calibrations, parts, devices, apikeys):
-        app.include_router(module.router, prefix="/v1", responses=problem_responses(401, 403, 413, 415, 422, 429, 503))
+        app.include_router(module.router, prefix="/v1",
+                           responses=problem_responses(400, 401, 403, 413, 415, 422, 429, 503))
     app.include_router(health.router)
     install_offline_docs(app)
     return app

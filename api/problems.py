@@ -14,6 +14,7 @@ from sqlalchemy.exc import DBAPIError, OperationalError
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from services.errors import InputError
+from services.formats.limits import DeclaredSizeError
 from services.problems import PROBLEM_MEDIA_TYPE, problem_response
 
 RETRY_AFTER_S = 5  # seconds a client waits after a 503 (database or storage down, queue full)
@@ -32,6 +33,7 @@ class ProblemDetails(BaseModel):
 
 
 _PROBLEM_DESCRIPTIONS = {
+    400: "The request is ambiguous: two Authorization headers.",
     401: "No API key, or an unknown or revoked one.",
     403: "The API key lacks the scope.",
     404: "No such resource, or not produced yet.",
@@ -39,7 +41,8 @@ _PROBLEM_DESCRIPTIONS = {
     413: "The request body or an uploaded file is too large.",
     415: "A JSON body sent without Content-Type: application/json.",
     422: "The request or an uploaded file is invalid.",
-    429: "The API key is over its rate limit; see Retry-After.",
+    429: "The API key is over its rate limit, or the client's address sent too many unknown keys; see "
+         "Retry-After.",
     502: "The device gateway is unreachable.",
     503: "The database or the artifact store is unavailable, or the job queue is full; see Retry-After.",
 }
@@ -77,6 +80,15 @@ def install_problem_handlers(app: FastAPI) -> None:
     @app.exception_handler(InputError)
     async def _input_error(request: Request, error: InputError) -> JSONResponse:
         return problem_response(422, "invalid-input", str(error), request.url.path)
+
+    @app.exception_handler(DeclaredSizeError)
+    async def _declared_too_large(request: Request, error: DeclaredSizeError) -> JSONResponse:
+        return problem_response(413, "payload-too-large", str(error), request.url.path)
+
+    @app.exception_handler(MemoryError)
+    async def _out_of_memory(request: Request, error: MemoryError) -> JSONResponse:
+        return problem_response(413, "payload-too-large", "The request needs more memory than the service can "
+                                                          "give it.", request.url.path)
 
     @app.exception_handler(RequestValidationError)
     async def _validation(request: Request, error: RequestValidationError) -> JSONResponse:

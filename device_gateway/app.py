@@ -8,8 +8,9 @@
 - ``POST /v1/board-views`` ``{"board": {...}, "views": 12, "interval_s": 2}``: films a
   calibration board in that many poses with both cameras (``.npz`` board views).
 
-Errors are RFC 9457 ``application/problem+json``: 422 for a bad request, 503 when a
-device is unavailable or was lost during the capture (it is re-opened; retry).
+Errors are RFC 9457 ``application/problem+json``: 422 for a bad request, 413 for a body
+over the limit, 503 when a device is unavailable or was lost during the capture (it is
+re-opened; retry).
 """
 
 from __future__ import annotations
@@ -26,12 +27,14 @@ from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse, Response
 from pydantic import BaseModel, Field
 
+from services.bodylimit import BodySizeLimit
 from device_gateway.devices import DeviceError
 from device_gateway.station import ExposureControl, Station
 from device_gateway.transfer import BOARD_VIEWS_MEDIA_TYPE, MEDIA_TYPE, encode_board_views, encode_capture
 from services.formats.board import BoardSpec
 from services.formats.sequence import Sequence
 from services.problems import problem_response
+from services.settings import Settings
 
 logger = logging.getLogger(__name__)
 
@@ -71,8 +74,11 @@ def _station(request: Request) -> Station:
 StationDep = Annotated[Station, Depends(_station)]
 
 
-def create_app(station: Station, sequence: Sequence, patterns: np.ndarray) -> FastAPI:
-    """The gateway app serving ``station``, projecting ``patterns`` (described by ``sequence``) per capture."""
+def create_app(station: Station, sequence: Sequence, patterns: np.ndarray,
+               max_body_bytes: int = Settings.model_fields["max_body_bytes"].default) -> FastAPI:
+    """The gateway app serving ``station``, projecting ``patterns`` (described by ``sequence``) per capture;
+    a request body (the JSON of a capture or board-views request) over ``max_body_bytes`` is refused with 413
+    before it is read (``THERMOFIELD_MAX_BODY_BYTES``)."""
 
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
@@ -86,6 +92,7 @@ def create_app(station: Station, sequence: Sequence, patterns: np.ndarray) -> Fa
 
     app = FastAPI(title="thermofield device gateway", version="1", lifespan=lifespan)
     app.state.station = station
+    app.add_middleware(BodySizeLimit, limits=lambda: (max_body_bytes, max_body_bytes))
 
     @app.exception_handler(DeviceError)
     async def device_error(request: Request, error: DeviceError) -> JSONResponse:

@@ -117,4 +117,4 @@ def create_gateway(settings: Settings, station: Station | None = None) -> FastAP
     station = station or build_station(settings)
     projector = station.projector.info
     sequence, patterns = generate_sequence(projector.width, projector.height, closing_black=settings.hot_part_sequence)
-    return create_app(station, sequence, patterns)
+    return create_app(station, sequence, patterns, max_body_bytes=settings.max_body_bytes)

@@ -19,6 +19,8 @@ import numpy as np
 
 from device_gateway.devices import DeviceInfo
 from device_gateway.station import BoardViews, Capture
+from services.errors import InputError
+from services.formats.limits import check_npz
 from services.formats.sequence import Sequence
 
 MEDIA_TYPE = "application/vnd.thermofield.capture+npz"
@@ -77,7 +79,12 @@ def decode_board_views(data: bytes) -> BoardViews:
 
 
 def _load_archive(data: bytes, names: tuple[str, ...], what: str) -> tuple[dict[str, np.ndarray], dict]:
-    """The named arrays and the JSON metadata of an ``.npz`` archive, read without pickle."""
+    """The named arrays and the JSON metadata of an ``.npz`` archive, read without pickle, after every
+    member's declared size was checked against the archive's length (:func:`check_npz`)."""
+    try:
+        check_npz(data, f"the gateway's answer ({what})", max_bytes=max(len(data), 1))
+    except InputError as error:
+        raise ValueError(f"The gateway's answer is not {what}: {error}.") from None
     try:
         with np.load(io.BytesIO(data), allow_pickle=False) as archive:
             return {name: archive[name] for name in names}, json.loads(archive["metadata"].tobytes())

@@ -153,6 +153,29 @@ class Settings(BaseSettings):
     max_body_bytes: int = Field(
         1 << 20, gt=0, description="Largest request body that is not a multipart upload, e.g. JSON (413 "
                                    "payload-too-large beyond).")
+    max_image_pixels: int = Field(
+        1 << 25, gt=0, description="Most pixels an uploaded image may declare in its header (413 beyond, before "
+                                   "it is decoded); board images must also have their device's size.")
+    max_mesh_triangles: int = Field(
+        10_000_000, gt=0, description="Most triangles an uploaded mesh may declare (413 beyond, before it is read).")
+    decode_memory_bytes: int = Field(
+        1 << 30, gt=0, description="Memory one upload's decoding may take: what its headers declare is refused "
+                                   "beyond it (413) before decoding, and the decoding process is capped at it.")
+    decode_processes: int = Field(
+        2, ge=1, description="Uploads decoded at once, each in a process of its own (the API's event loop never "
+                             "decodes); further uploads wait their turn.")
+    decode_timeout_s: float = Field(60.0, gt=0, description="Seconds one upload's decoding may take (422 beyond).")
+    max_header_bytes: int = Field(
+        32 << 10, ge=1024, description="Largest request line and headers of one HTTP request (431 beyond).")
+    header_timeout_s: float = Field(
+        10.0, gt=0, description="Seconds a client has to send a request's line and headers (408 beyond).")
+    body_timeout_s: float = Field(
+        300.0, gt=0, description="Seconds a client has to send a request's body once its headers are in (408 "
+                                 "beyond): a 512 MiB upload at 20 Mbit/s.")
+    auth_failure_rate_per_s: float = Field(
+        1.0, ge=0, description="Failed authentications per second a client address may make on average, per API "
+                               "process, before 429 (0: no limit).")
+    auth_failure_burst: int = Field(20, ge=1, description="Failed authentications a client address may make at once.")
     min_free_bytes: int = Field(
         1 << 30, ge=0, description="Free space the artifact store needs for /readyz to say ready (a scan takes ~100 MB)."
     )

@@ -4,12 +4,8 @@ from __future__ import annotations
 
 import hashlib
 import json
-from functools import partial
 from pathlib import PurePath
 from typing import Annotated
-
-import cv2
-import numpy as np
 
 from fastapi import APIRouter, Depends, File, Form, Request, UploadFile
 from fastapi.concurrency import run_in_threadpool
@@ -26,7 +22,7 @@ from api.schemas import Accepted, CalibrationSetOut, StereoCaptureRequest
 from services.db.calibrations import activate_calibration
 from services.db.models import CalibrationSet
 from services.formats.board import MIN_VIEWS, parse_board
-from services.formats.images import FRAME_SUFFIXES
+from services.formats.images import FRAME_SUFFIXES, decode_image
 from services.formats.rig import Rig, parse_rig, rig_to_json
 
 router = APIRouter(prefix="/calibration-sets", tags=["calibration"])
@@ -114,7 +110,7 @@ async def start_stereo_calibration(
              "device_images": (rig.devices[device].width, rig.devices[device].height)}
     # the thermal reader brings the radiometric model, science the API does not load at start
     from services.formats.flir import JPEG_SUFFIXES
-    from services.formats.thermal import decode_thermal_frame, is_radiometric_file
+    from services.formats.thermal import is_radiometric_file
 
     checked = {}  # every upload is checked before anything is stored
     for field, uploads in (("reference_images", reference_images), ("device_images", device_images)):
@@ -126,16 +122,16 @@ async def start_stereo_calibration(
                 raise Problem(422, "invalid-input", f"{field}: {upload.filename!r} is not one of "
                                                     f"{', '.join(suffixes)}.")
             content = await read_limited(upload, field, runtime.settings.max_image_bytes)
-            if field == "device_images" and is_radiometric_file(content, suffix):
-                # a thermal camera's own file (FLIR R-JPEG, float TIFF in degrees C): its temperatures, read as the
-                # worker will read them; an InputError answers 422 problem+json naming the upload
-                await run_in_threadpool(partial(decode_thermal_frame, content, suffix=suffix,
-                                                source=f"{field}: {upload.filename!r}", size=sizes[field]))
-            else:
-                _check_image(content, field, upload.filename, sizes[field])
+            # a thermal camera's own file (FLIR R-JPEG, float TIFF in degrees C) is read for its temperatures,
+            # as the worker will read it
+            radiometric = field == "device_images" and is_radiometric_file(content, suffix)
             hasher.update(content)
-            checked[field].append((content, suffix))
-    images = {field: [[runtime.store.put_bytes(content), suffix] for content, suffix in uploads]
+            checked[field].append((content, suffix, f"{field}: {upload.filename!r}", sizes[field], radiometric))
+    settings = runtime.settings
+    await request.app.state.decoders.run(
+        check_board_images, [image for uploads in checked.values() for image in uploads],
+        settings.max_image_pixels, settings.decode_memory_bytes, source="the board images")
+    images = {field: [[runtime.store.put_bytes(content), suffix] for content, suffix, *_ in uploads]
               for field, uploads in checked.items()}
     params = {"calibration_set_id": calibration.id, "station": calibration.station, "device": device,
               "name": name, "activate": activate, "board": runtime.store.put_bytes(board_text), **images}
@@ -176,17 +172,19 @@ def _rig_of(runtime, calibration: CalibrationSet) -> Rig:
     return parse_rig(stored_bytes(runtime.store, calibration.rig_sha256, owner).decode(), owner)
 
 
-def _check_image(content: bytes, field: str, filename: str | None, size: tuple[int, int]) -> None:
-    """An upload that decodes to an 8- or 16-bit image of the device's size, or a 422 naming it."""
-    image = cv2.imdecode(np.frombuffer(content, np.uint8), cv2.IMREAD_UNCHANGED) if content else None
-    if image is None:
-        raise Problem(422, "invalid-input", f"{field}: {filename!r} is not a readable PNG, BMP or TIFF image.")
-    if image.dtype not in (np.uint8, np.uint16):
-        raise Problem(422, "invalid-input", f"{field}: {filename!r} is {image.dtype}; board images are 8- or "
-                                            "16-bit.")
-    if (image.shape[1], image.shape[0]) != size:
-        raise Problem(422, "invalid-input", f"{field}: {filename!r} is {image.shape[1]}x{image.shape[0]} but the "
-                                            f"device filming it is {size[0]}x{size[1]}.")
+def check_board_images(images: list[tuple[bytes, str, str, tuple[int, int], bool]], max_pixels: int,
+                       max_bytes: int) -> None:
+    """Each ``(content, suffix, source, (width, height), radiometric)`` decodes to an 8- or 16-bit image of its
+    device's size, or a radiometric thermal file to its temperatures (:func:`services.formats.thermal.
+    decode_thermal_frame`), or an ``InputError`` names it; the header is checked before the pixels are decoded
+    (:func:`services.formats.images.decode_image`). Run in a decoding process (api/decoding.py)."""
+    for content, suffix, source, size, radiometric in images:
+        if radiometric:
+            from services.formats.thermal import decode_thermal_frame
+
+            decode_thermal_frame(content, suffix=suffix, source=source, size=size)
+        else:  # decoded, then converted to grey when in colour: two copies at most
+            decode_image(content, source, max_pixels=max_pixels, size=size, max_bytes=max_bytes // 2)
 
 
 def _require_thermal_device(rig: Rig, calibration: CalibrationSet, device: str) -> None:

@@ -20,7 +20,8 @@ from api.schemas import PartTypeOut
 from api.uploads import read_limited
 from services.db.models import PartType
 from services.db.parts import select_part_type
-from services.formats.part import MESH_SUFFIXES, Part, parse_part_with_mesh
+from services.errors import InputError
+from services.formats.part import MESH_SUFFIXES, parse_part_with_mesh
 
 router = APIRouter(prefix="/part-types", tags=["part types"])
 _MAX_PART_BYTES = 1 << 20
@@ -45,24 +46,27 @@ def _existing_part_type(part_type_id: str, session: SessionDep, _: ReaderKey) ->
 ExistingPartType = Annotated[PartType, Depends(_existing_part_type)]
 
 
-def _validated(text: bytes, part_name: str | None, mesh: bytes, mesh_name: str | None) -> Part:
+def validate_part(text: bytes, part_name: str | None, mesh: bytes, mesh_name: str | None, max_triangles: int,
+                  max_bytes: int) -> tuple[str, str]:
     """The part file and its mesh as the inspection will load and prepare them (Open3D reads the mesh, each
-    feature is fitted to it), or a 422 naming the field: ``part`` (JSON, material, features, a feature
-    whose region misses the nominal) or ``mesh`` (not a triangle mesh in the part file's format)."""
-    from services.inspection.inspect import prepare_part  # loaded on the first upload, not with the API
+    feature is fitted to it): the part's name and material, or an ``InputError`` naming the field: ``part``
+    (JSON, material, features, a feature whose region misses the nominal) or ``mesh`` (not a triangle mesh
+    in the part file's format, or more triangles or memory than the limits; checked before Open3D reads it).
+    Run in a decoding process (api/decoding.py)."""
+    from services.inspection.inspect import prepare_part
 
     part = parse_part_with_mesh(text.decode("utf-8", errors="replace"), mesh, f"part ({part_name})",
-                                f"mesh ({mesh_name})")
+                                f"mesh ({mesh_name})", max_triangles=max_triangles, max_bytes=max_bytes)
     declared = PurePath(part.definition.nominal).suffix.lower()
     uploaded = PurePath(mesh_name or "").suffix.lower()
     if uploaded in MESH_SUFFIXES and uploaded != declared:
-        raise Problem(422, "invalid-input", f"mesh: {mesh_name!r} is a {uploaded} file but the part file's nominal "
-                                            f"{part.definition.nominal!r} is {declared}.")
+        raise InputError(f"mesh: {mesh_name!r} is a {uploaded} file but the part file's nominal "
+                         f"{part.definition.nominal!r} is {declared}.")
     try:
         prepare_part(part)
     except ValueError as error:
-        raise Problem(422, "invalid-input", f"part ({part_name}): {error}") from None
-    return part
+        raise InputError(f"part ({part_name}): {error}") from None
+    return part.name, part.material.name
 
 
 @router.post("", name="create_part_type", status_code=201, response_model=PartTypeOut,
@@ -77,11 +81,14 @@ async def create_part_type(request: Request, session: SessionDep, runtime: Runti
     """Store a validated part file and its nominal mesh as a part type of this station."""
     text = await read_limited(part, "part", _MAX_PART_BYTES)
     mesh_bytes = await read_limited(mesh, "mesh", _MAX_MESH_BYTES)
-    loaded = await run_in_threadpool(_validated, text, part.filename, mesh_bytes, mesh.filename)
+    settings = runtime.settings
+    name, material = await request.app.state.decoders.run(
+        validate_part, text, part.filename, mesh_bytes, mesh.filename, settings.max_mesh_triangles,
+        settings.decode_memory_bytes, source=f"mesh ({mesh.filename})")
     part_digest, mesh_digest = runtime.store.put_bytes(text), runtime.store.put_bytes(mesh_bytes)
 
     def create() -> Outcome:
-        part_type = PartType(name=loaded.name, station=runtime.settings.station, material=loaded.material.name,
+        part_type = PartType(name=name, station=runtime.settings.station, material=material,
                              part_sha256=part_digest, mesh_sha256=mesh_digest)
         session.add(part_type)
         session.flush()

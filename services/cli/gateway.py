@@ -41,8 +41,7 @@ def settings_of(args: argparse.Namespace) -> Settings:
 
 
 def _run(args: argparse.Namespace) -> int:
-    import uvicorn
-
+    from api.server import HttpLimits, serve
     from device_gateway.service import create_gateway
 
     settings = settings_of(args)
@@ -50,5 +49,5 @@ def _run(args: argparse.Namespace) -> int:
     drivers = settings.station_drivers
     print(f"thermofield gateway (camera {drivers.camera}, thermal {drivers.thermal}, projector {drivers.projector}) "
           f"on http://{settings.gateway_host}:{settings.gateway_port}", flush=True)
-    uvicorn.run(app, host=settings.gateway_host, port=settings.gateway_port, log_level="warning")
+    serve(app, settings.gateway_host, settings.gateway_port, HttpLimits.of(settings), log_level="warning")
     return 0

@@ -157,10 +157,10 @@ def _opcua_server(runtime, jobs):
 def _run_uvicorn(app, settings: Settings) -> None:
     """Serve ``app``; a SIGTERM ends it with SystemExit (after uvicorn's graceful shutdown, which re-raises
     the signal) so that the caller's clean-up runs: the embedded worker, gateway and Rerun proxy stop too."""
-    import uvicorn
+    from api.server import HttpLimits, serve
 
     signal.signal(signal.SIGTERM, _exit_on_terminate)
-    uvicorn.run(app, host=settings.api_host, port=settings.api_port, log_level="warning")
+    serve(app, settings.api_host, settings.api_port, HttpLimits.of(settings), log_level="warning")
 
 
 def _exit_on_terminate(signum, frame) -> None:

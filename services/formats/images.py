@@ -12,29 +12,47 @@ import numpy as np
 
 from services.errors import InputError
 from services.formats.files import atomic_output
+from services.formats.limits import DEFAULT_MAX_PIXELS, check_image
 
 FRAME_SUFFIXES = (".png", ".bmp", ".tif", ".tiff")
 
 
-def read_frame(path: str | Path) -> np.ndarray:
+def read_frame(path: str | Path, max_pixels: int = DEFAULT_MAX_PIXELS) -> np.ndarray:
     """Read one frame as a 2-D grey array, keeping its bit depth (uint8 or uint16).
 
-    Colour frames are converted to grey with OpenCV's luma weights.
+    Colour frames are converted to grey with OpenCV's luma weights. The header is checked before the
+    pixels are decoded (:func:`services.formats.limits.check_image`): at most ``max_pixels``.
     """
     path = Path(path)
     if not path.is_file():
         raise InputError(f"{path}: frame file is missing")
-    return _grey_frame(cv2.imread(str(path), cv2.IMREAD_UNCHANGED), str(path))
+    try:
+        content = path.read_bytes()
+    except OSError as error:
+        raise InputError(f"{path}: cannot read the frame ({error.strerror or error})") from None
+    return decode_image(content, str(path), max_pixels=max_pixels)
 
 
-def decode_image(content: bytes, source: str) -> np.ndarray:
-    """:func:`read_frame` of an image file's bytes (an upload); errors name ``source``."""
-    return _grey_frame(cv2.imdecode(np.frombuffer(content, np.uint8), cv2.IMREAD_UNCHANGED), source)
+def decode_image(content: bytes, source: str, *, max_pixels: int = DEFAULT_MAX_PIXELS,
+                 size: tuple[int, int] | None = None, max_bytes: int | None = None) -> np.ndarray:
+    """:func:`read_frame` of an image file's bytes (an upload); errors name ``source``.
+
+    The header is checked first (:func:`services.formats.limits.check_image`: ``max_pixels``, the device's
+    ``size`` and the ``max_bytes`` of memory when given); an error of the decoder (``cv2.error``, a failed
+    allocation) is an ``InputError`` naming ``source``.
+    """
+    check_image(content, source, max_pixels=max_pixels, size=size, max_bytes=max_bytes)
+    try:
+        image = cv2.imdecode(np.frombuffer(content, np.uint8), cv2.IMREAD_UNCHANGED)
+    except (cv2.error, MemoryError) as error:
+        raise InputError(f"{source}: cannot decode the image ({type(error).__name__}: "
+                         f"{str(error).strip().splitlines()[-1] if str(error).strip() else 'out of memory'})") from None
+    return _grey_frame(image, source)
 
 
 def _grey_frame(image: np.ndarray | None, source: str) -> np.ndarray:
     if image is None:
-        raise InputError(f"{source}: cannot read the frame (not a PNG, BMP or TIFF image, or corrupt)")
+        raise InputError(f"{source}: cannot read the frame (not a readable PNG, BMP, TIFF or JPEG image, or corrupt)")
     if image.ndim == 3:
         code = cv2.COLOR_BGRA2GRAY if image.shape[2] == 4 else cv2.COLOR_BGR2GRAY
         image = cv2.cvtColor(image, code)

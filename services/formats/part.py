@@ -28,6 +28,7 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator, model_valida
 
 from services.errors import InputError
 from services.formats.json_files import read_text, validate_json
+from services.formats.limits import DEFAULT_MAX_TRIANGLES, check_mesh
 from services.inspection.materials import Material, builtin_material
 from services.open3d_loader import open3d
 
@@ -238,21 +239,37 @@ def _material(definition: PartFile, source: str) -> Material:
         raise InputError(f"{source}: material: {error}") from None
 
 
-def read_mesh(path: Path, field: str, shown: str | None = None) -> tuple[np.ndarray, np.ndarray]:
+def read_mesh(path: Path, field: str, shown: str | None = None, *, max_triangles: int = DEFAULT_MAX_TRIANGLES,
+              max_bytes: int | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Vertices (V, 3) and triangles (T, 3) of an STL, PLY or OBJ mesh, via Open3D; errors call the file
-    ``shown`` (default its path)."""
-    o3d = open3d()
+    ``shown`` (default its path).
 
+    The counts the file declares are checked against its length, ``max_triangles`` and the ``max_bytes`` of
+    memory when given, before Open3D reads it (:func:`services.formats.limits.check_mesh`); an error Open3D
+    raises is an ``InputError`` naming the file.
+    """
     shown = shown or str(path)
     if not path.is_file():
         raise InputError(f"{field}: mesh file {shown} is missing")
-    mesh = o3d.io.read_triangle_mesh(str(path))
-    vertices = np.asarray(mesh.vertices, dtype=np.float64)
-    triangles = np.asarray(mesh.triangles, dtype=np.int32)
+    try:
+        content = path.read_bytes()
+    except OSError as error:
+        raise InputError(f"{field}: cannot read {shown} ({error.strerror or error})") from None
+    check_mesh(content, path.suffix, f"{field}: {shown}", max_triangles=max_triangles, max_bytes=max_bytes)
+    del content
+    o3d = open3d()  # loaded (with numba, a second) only for a mesh whose header holds
+    try:
+        mesh = o3d.io.read_triangle_mesh(str(path))
+        vertices = np.asarray(mesh.vertices, dtype=np.float64)
+        triangles = np.asarray(mesh.triangles, dtype=np.int32)
+    except (RuntimeError, MemoryError) as error:  # Open3D's reader errors, a failed allocation
+        raise InputError(f"{field}: {shown} cannot be read as a triangle mesh ({type(error).__name__})") from None
     if len(vertices) < 3 or len(triangles) == 0:
         raise InputError(f"{field}: {shown} is not a readable triangle mesh (STL, PLY or OBJ with faces)")
     if not np.isfinite(vertices).all():
         raise InputError(f"{field}: {shown} has non-finite vertex coordinates")
+    if triangles.min() < 0 or triangles.max() >= len(vertices):
+        raise InputError(f"{field}: {shown} has triangles naming vertices it does not have")
     return vertices, triangles
 
 
@@ -264,16 +281,18 @@ def parse_part(text: str, source: str = "part", base_directory: str | Path = "."
     return Part(definition, material, vertices, triangles, source)
 
 
-def parse_part_with_mesh(text: str, mesh: bytes, source: str = "part", mesh_source: str = "mesh") -> Part:
+def parse_part_with_mesh(text: str, mesh: bytes, source: str = "part", mesh_source: str = "mesh", *,
+                         max_triangles: int = DEFAULT_MAX_TRIANGLES, max_bytes: int | None = None) -> Part:
     """Validate part-file JSON whose nominal mesh is given as bytes (an upload, a stored artifact) in the
     format the part file's ``nominal`` names by its suffix; a bad mesh is an ``InputError`` naming
-    ``mesh_source``."""
+    ``mesh_source`` (limits as :func:`read_mesh`)."""
     definition = validate_json(PartFile, text, source, tags=frozenset(MEASURES))
     material = _material(definition, source)
     with tempfile.TemporaryDirectory(prefix="thermofield-mesh-") as directory:
         path = Path(directory) / f"nominal{Path(definition.nominal).suffix.lower()}"
         path.write_bytes(mesh)
-        vertices, triangles = read_mesh(path, mesh_source, f"the {path.suffix[1:].upper()} mesh")
+        vertices, triangles = read_mesh(path, mesh_source, f"the {path.suffix[1:].upper()} mesh",
+                                        max_triangles=max_triangles, max_bytes=max_bytes)
     return Part(definition, material, vertices, triangles, source)
 
 

@@ -15,6 +15,7 @@ from plyfile import PlyData, PlyElement
 
 from services.errors import InputError
 from services.formats.files import atomic_output
+from services.formats.limits import ply_header
 from services.geometry.cloud import PointCloud
 
 _UNIT_COMMENT = "unit "
@@ -43,7 +44,9 @@ def cloud_to_ply(cloud: PointCloud | Mapping[str, np.ndarray]) -> bytes:
 
 
 def cloud_from_ply(data: bytes, source: str = "PLY") -> PointCloud:
-    """Parse PLY bytes (binary or ASCII) into a cloud; an ``InputError`` names ``source``."""
+    """Parse PLY bytes (binary or ASCII) into a cloud; an ``InputError`` names ``source``, also for a header
+    declaring more than the file holds (checked before plyfile allocates it)."""
+    ply_header(data, source)
     try:
         ply = PlyData.read(io.BytesIO(data))
     except Exception as error:  # plyfile raises several types for malformed headers and bodies

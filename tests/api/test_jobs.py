@@ -58,9 +58,11 @@ def test_a_key_revoked_by_another_process_stops_working_within_the_cache_time(cl
     import time
 
     from api.deps import KeyCache
+    from api.ratelimit import RateLimiter
     from services.db.apikeys import create_api_key, revoke_api_key
 
     client.app.state.key_cache = KeyCache(seconds=0.5)
+    client.app.state.auth_failures = RateLimiter(0, 1)  # the loop below sends the revoked key ever again
     job_id = _succeeded_scan_job(runtime)
     with runtime.sessions.begin() as session:
         key, secret = create_api_key(session, "mes", ["read"])

@@ -102,7 +102,7 @@ def api_schema(tmp_path, gateway_url):
     # no worker runs the queued jobs: the queue's bound (tested in tests/api/test_limits.py) is lifted so
     # that the thousands of accepted POSTs are not refused once it is reached
     settings_ = Settings(data_dir=tmp_path, broker_url="", mqtt_host="", gateway_url=gateway_url,
-                         rate_limit_per_s=0, min_free_bytes=0, job_queue_bound=0)
+                         rate_limit_per_s=0, auth_failure_rate_per_s=0, min_free_bytes=0, job_queue_bound=0)
     sessions = make_sessions(engine)
     runtime = Runtime(settings_, engine, sessions, ArtifactStore(tmp_path / "artifacts"), JobTracker(sessions))
     seeds = _seed(runtime, tmp_path)

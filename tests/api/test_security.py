@@ -26,7 +26,20 @@ def _operations(client):
             yield operation["operationId"], method, concrete
 
 
-def test_every_operation_but_health_needs_a_key_of_its_scope(client, auth):
+@pytest.fixture
+def patient_client(runtime, job_queue):
+    """A client whose address may send any number of unknown keys (the scope checks send one per operation)."""
+    from fastapi.testclient import TestClient
+
+    from api.app import create_app
+
+    runtime.settings = runtime.settings.model_copy(update={"auth_failure_rate_per_s": 0.0})
+    with TestClient(create_app(runtime, job_queue), raise_server_exceptions=False) as client:
+        yield client
+
+
+def test_every_operation_but_health_needs_a_key_of_its_scope(patient_client, auth):
+    client = patient_client
     operations = list(_operations(client))
     assert len(operations) >= 24
     for operation_id, method, path in operations:
@@ -130,3 +143,64 @@ def test_apikey_command_takes_scopes_as_users_type_them_lists_and_revokes(apikey
     assert re.search(r"\d{4}-\d\d-\d\d \d\d:\d\d:\d\d\s+\d{4}-\d\d-\d\d", row), row  # a revocation time
     missing = apikey("revoke", "nope")
     assert missing.returncode == 2 and "no API key 'nope'" in missing.stderr
+
+
+def test_two_authorization_headers_are_refused_as_ambiguous(client, auth):
+    for second in (auth["read"]["Authorization"], "Bearer tf_someone-else"):
+        response = client.get("/v1/jobs", headers=[("Authorization", auth["admin"]["Authorization"]),
+                                                   ("Authorization", second)])
+        assert response.status_code == 400 and response.headers["content-type"] == PROBLEM, response.text
+        assert response.json()["type"].endswith("/ambiguous-credentials") and "one Authorization" in \
+            response.json()["detail"]
+    assert client.get("/v1/jobs", headers=auth["admin"]).status_code == 200
+
+
+def _requests(app, requests, address="10.0.0.1"):
+    """Send ``(path, headers)`` requests all at once from ``address``; their responses in order."""
+    import asyncio
+
+    import httpx
+
+    async def send():
+        transport = httpx.ASGITransport(app=app, client=(address, 40000))
+        async with httpx.AsyncClient(transport=transport, base_url="http://api") as client:
+            return await asyncio.gather(*(client.get(path, headers=headers) for path, headers in requests))
+
+    return asyncio.run(send())
+
+
+@pytest.fixture
+def app_and_queries(runtime, job_queue):
+    """The app with a failure limit of 5 at once, 1 per second, and a list collecting its queries of API keys."""
+    from sqlalchemy import event
+
+    from api.app import create_app
+
+    runtime.settings = runtime.settings.model_copy(update={"auth_failure_rate_per_s": 1.0, "auth_failure_burst": 5})
+    queries = []
+
+    def record(conn, cursor, statement, parameters, context, executemany):
+        if "api_keys" in statement and statement.lstrip().upper().startswith("SELECT"):
+            queries.append(statement)
+
+    event.listen(runtime.engine, "before_cursor_execute", record)
+    yield create_app(runtime, job_queue), queries
+    event.remove(runtime.engine, "before_cursor_execute", record)
+
+
+def test_unknown_keys_cost_one_query_each_and_their_address_is_then_held_off(app_and_queries, auth):
+    app, queries = app_and_queries
+    unknown = [{"Authorization": f"Bearer tf_unknown-{n % 4}"} for n in range(60)]
+    responses = _requests(app, [("/v1/jobs", headers) for headers in unknown])
+    statuses = [response.status_code for response in responses]
+    assert set(statuses) <= {401, 429} and statuses.count(401) <= 5 + 1, statuses  # the burst (+1 refilled)
+    assert len(queries) <= 4, queries  # one query per distinct key at most, however many ask at once
+    held_off = next(response for response in responses if response.status_code == 429)
+    assert held_off.headers["content-type"] == PROBLEM and int(held_off.headers["retry-after"]) >= 1
+    assert "client address" in held_off.json()["detail"]
+    again = _requests(app, [("/v1/jobs", headers) for headers in unknown[:4]], address="10.0.0.2")
+    assert [response.status_code for response in again] == [401] * 4  # another address is not held off
+    assert len(queries) <= 4, queries  # and its unknown keys were cached: no query
+    known = _requests(app, [("/v1/jobs", auth["read"])], address="10.0.0.3")
+    assert known[0].status_code == 200
+    assert _requests(app, [("/v1/jobs", auth["read"])])[0].status_code == 200  # a cached key passes even there

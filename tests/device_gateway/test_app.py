@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import threading
 import time
 from collections.abc import Iterator
@@ -76,6 +77,26 @@ def test_bad_capture_request_is_a_problem_document(gateway):
     with pytest.raises(GatewayError, match="thermal_frames") as error:
         gateway.capture(thermal_frames=0)
     assert error.value.status == 422
+
+
+def test_request_bodies_over_the_limit_are_413_before_they_are_read(station, sequence_and_patterns):
+    from fastapi.testclient import TestClient
+
+    app = create_app(station, *sequence_and_patterns, max_body_bytes=1024)
+    board = {"type": "chessboard", "inner_corners": [9, 6], "square_mm": 25.0, "padding": "x" * 4096}
+    nested = "[" * 2000 + "]" * 2000  # a nesting bomb, also longer than the limit
+    with TestClient(app) as client:
+        for path, body in (("/v1/captures", json.dumps({"thermal_frames": 1, "padding": "x" * 4096})),
+                           ("/v1/board-views", json.dumps({"board": board, "views": 3})),
+                           ("/v1/board-views", nested)):
+            for chunked in (False, True):
+                content = iter([body.encode()]) if chunked else body.encode()
+                response = client.post(path, content=content, headers={"content-type": "application/json"})
+                assert response.status_code == 413, (path, chunked, response.text)
+                assert response.headers["content-type"] == "application/problem+json"
+                assert "1024 bytes" in response.json()["detail"]
+        small = client.post("/v1/board-views", json={"board": {"type": "chessboard"}, "views": 3})
+        assert small.status_code == 422  # within the limit: read and validated
 
 
 def test_empty_capture_request_takes_the_defaults(gateway, small_rig):

@@ -1,4 +1,5 @@
-"""A bound on every request body, checked before the application reads any of it and while it streams in."""
+"""A bound on every request body, checked before the application reads any of it and while it streams in: the
+API's and the device gateway's."""
 
 from __future__ import annotations
 
