@@ -1,0 +1,176 @@
+"""Wrong points at projector shadows and under a hot part's glow: issue 34's tuning scene, scored against
+the simulator's ground truth (docs/structured-light.md, "Points at projector shadows").
+
+Run: ``nice -n 10 .venv/bin/python experiments/shadow_scene.py [--scale S] [--cases cold,blue1200,white1250]``
+(full size: about a minute per case on 2 cores).
+
+The scene (``shadow_scene``): a capped cylinder (r 40 mm, 160 mm long, vertical) and a sphere (r 60 mm)
+before a plate tilted 25 degrees about the vertical, 720..800 mm from the rig; the rig (``shadow_rig``): a
+1024x768 projector (f 1150 px) at the origin and a 1280x800 camera (f 1400 px, mild distortion) 260 mm to
+its side, both aimed at (0, 0, 650). The parts cast projector shadows on the plate that the camera sees.
+Frames are the project's own patterns (complementary Gray code + 12-step phase shift). Three cases:
+
+- ``cold``: the cold simulator, camera blur 0.7 px, projector blur 0.8 px, noise 1.5 grey levels, 8 bits;
+- ``blue1200``: the parts at 1200 C, blue projector and a 450/40 nm filter, 12 bits, automatic exposure;
+- ``white1250``: the parts at 1250 C under the unfiltered white projector, automatic exposure.
+
+A point is wrong when it lies more than 1 mm from the true surface point of its pixel's centre.
+Coverage is the share of the pixels lit by the projector and seen by the camera, whose 4-neighbours see
+the same surface, that have a point. This scene was used to tune the decoder's shadow test
+(``decode.SHADOW_CONTRAST``); it is a tuning scene, not a held-out figure.
+"""
+
+from __future__ import annotations
+
+import argparse
+from dataclasses import dataclass
+
+import numpy as np
+
+from services.formats.rig import Rig
+from services.geometry.camera_model import CameraModel
+from services.simulation.presets import HOT_STEEL_EMISSIVITY, hot_optics, look_at_rotation
+from services.simulation.render import CameraEffects, ProjectorEffects, render_frames, render_view
+from services.simulation.scene import Albedo, Cylinder, Plane, Scene, Sphere
+from services.simulation.temperature import Spot, SurfaceTemperature, TemperatureScene
+from services.structured_light.patterns import generate_sequence
+from services.structured_light.reconstruct import reconstruct_scan
+
+AIM = (0.0, 0.0, 650.0)
+BASELINE_MM = 260.0
+PART_SURFACES = (0, 1)
+PLATE_SURFACE = 2
+FRAME_INTERVAL_S = 1 / 30
+
+
+def shadow_rig(scale: float = 1.0) -> Rig:
+    """Projector 1024x768 at the origin, camera 1280x800 260 mm to its side; both aimed at (0, 0, 650)."""
+    def device(kind, width, height, focal, dist, centre):
+        w, h = round(width * scale), round(height * scale)
+        R = look_at_rotation(centre, AIM)
+        K = [[focal * scale, 0.0, (w - 1) / 2], [0.0, focal * scale, (h - 1) / 2], [0.0, 0.0, 1.0]]
+        return CameraModel(kind=kind, width=w, height=h, K=K, dist=dist, R=R.tolist(),
+                           t=(-R @ np.asarray(centre, np.float64)).tolist())
+
+    return Rig(devices={
+        "projector": device("projector", 1024, 768, 1150.0, [], (0.0, 0.0, 0.0)),
+        "camera": device("camera", 1280, 800, 1400.0, [-0.06, 0.09, 0.0004, -0.0002, 0.0], (BASELINE_MM, 0.0, 0.0)),
+    })
+
+
+def shadow_scene(peak_c: float | None = None, projector: str = "white",
+                 band_pass: tuple[float, float] | None = None) -> Scene:
+    """A cylinder and a sphere before a tilted plate; glowing at ``peak_c`` when given (module docstring)."""
+    hot = peak_c is not None
+    part = Albedo(base=1 - HOT_STEEL_EMISSIVITY if hot else 0.5, texture_amplitude=0.03 if hot else 0.12,
+                  feature_size=25.0, seed=3)
+    tilt = np.radians(25.0)
+    normal = [-np.sin(tilt), 0.0, -np.cos(tilt)]
+    u_axis = [np.cos(tilt), 0.0, -np.sin(tilt)]
+    surfaces = [
+        Cylinder(center=[-75.0, 0.0, 600.0], axis=[0.0, 1.0, 0.0], radius=40.0, length=160.0, albedo=part),
+        Sphere(center=[85.0, 10.0, 640.0], radius=60.0, albedo=part),
+        Plane(center=[0.0, 0.0, 760.0], normal=normal, u_axis=u_axis, size=[700.0, 500.0],
+              albedo=Albedo(base=0.45, texture_amplitude=0.12, feature_size=35.0, seed=4)),
+    ]
+    if not hot:
+        return Scene(ambient=0.1, surfaces=surfaces)  # room light: the shadows are not dark
+    temperature = TemperatureScene(background=25.0, surfaces=[
+        SurfaceTemperature(base=peak_c - 60.0, spots=[Spot(center=[-75.0, 0.0, 560.0], radius=60.0, amplitude=60.0)]),
+        SurfaceTemperature(base=peak_c - 80.0, spots=[Spot(center=[85.0, 10.0, 580.0], radius=60.0, amplitude=80.0)]),
+        SurfaceTemperature(base=40.0),
+    ])
+    return Scene(ambient=0.1, temperature=temperature, optics=hot_optics(projector, band_pass), surfaces=surfaces)
+
+
+@dataclass(frozen=True)
+class Score:
+    case: str
+    points: int
+    wrong: int  # points more than 1 mm from the truth
+    wrong_on_plate: int
+    coverage: float  # of the lit, seen interior pixels
+    part_coverage: float
+    glow_hint: str | None
+
+    @property
+    def wrong_fraction(self) -> float:
+        return self.wrong / max(self.points, 1)
+
+
+def _interior(surface: np.ndarray) -> np.ndarray:
+    inside = np.zeros(surface.shape, bool)
+    inside[1:-1, 1:-1] = True
+    for axis, shift in ((0, 1), (0, -1), (1, 1), (1, -1)):
+        inside &= np.roll(surface, shift, axis=axis) == surface
+    return inside
+
+
+def capture(case: str, scale: float = 1.0, seed: int = 0):
+    """The frames, sequence, saturation level and ground truth of one case."""
+    rig = shadow_rig(scale)
+    camera, projector = rig.devices["camera"], rig.devices["projector"]
+    if case == "cold":
+        sequence, patterns = generate_sequence(projector.width, projector.height)
+        view = render_view(shadow_scene(), camera, projector)
+        frames = render_frames(view, patterns, np.random.default_rng(seed),
+                               CameraEffects(exposure=0.8, blur_sigma=0.7, noise_sigma=1.5),
+                               ProjectorEffects(blur_sigma=0.8))
+        return rig, sequence, frames, None, view.truth
+    from device_gateway.drivers.simulated import SimulatedStation, SimulationOptions
+    from device_gateway.station import ExposureControl, Station
+    from services.simulation.thermal import ThermalEffects
+
+    peak, light, band = {"blue1200": (1200.0, "blue", (450.0, 40.0)), "white1250": (1250.0, "white", None),
+                         "white1000": (1000.0, "white", None)}[case]
+    scene = shadow_scene(peak, light, band)
+    sequence, patterns = generate_sequence(projector.width, projector.height, closing_black=True)
+    options = SimulationOptions(camera_effects=CameraEffects(blur_sigma=0.7),
+                                projector_effects=ProjectorEffects(blur_sigma=0.8), seed=seed,
+                                frame_interval_s=FRAME_INTERVAL_S, thermal_effects=ThermalEffects(supersample=1))
+    rig_with_thermal = Rig(devices={**rig.devices, "thermal": CameraModel(
+        kind="thermal", width=160, height=128, K=[[190.0, 0, 79.5], [0, 190.0, 63.5], [0, 0, 1]], dist=[],
+        R=np.eye(3).tolist(), t=[0.0, 0.0, 0.0])})
+    simulated = SimulatedStation(rig_with_thermal, scene, scene.temperature, options)
+    station = Station(simulated.camera, simulated.thermal, simulated.projector, settle_s=0.0)
+    captured = station.capture(sequence, patterns, exposure=ExposureControl(mode="auto"))
+    return rig, sequence, captured.frames, captured.exposure["saturation_level"], simulated.view().truth
+
+
+def score(case: str, scale: float = 1.0, seed: int = 0) -> Score:
+    rig, sequence, frames, saturation, truth = capture(case, scale, seed)
+    camera, projector = rig.devices["camera"], rig.devices["projector"]
+    scan = reconstruct_scan(frames, sequence, camera, projector, saturation_level=saturation)
+    cloud = scan.cloud
+    u, v = np.rint(cloud["u"]).astype(int), np.rint(cloud["v"]).astype(int)
+    points = np.column_stack([cloud["x"], cloud["y"], cloud["z"]]).astype(np.float64)
+    error = np.linalg.norm(points - truth.points[v, u], axis=1)
+    error[~np.isfinite(error)] = np.inf  # a point where the camera sees nothing
+    wrong = error > 1.0
+    has_point = np.zeros(truth.surface.shape, bool)
+    has_point[v, u] = True
+    counted = _interior(truth.surface) & truth.lit & (truth.surface >= 0)
+    part = counted & np.isin(truth.surface, PART_SURFACES)
+    return Score(case=case, points=len(error), wrong=int(wrong.sum()),
+                 wrong_on_plate=int((wrong & (truth.surface[v, u] == PLATE_SURFACE)).sum()),
+                 coverage=float(has_point[counted].mean()),
+                 part_coverage=float(has_point[part].mean()) if part.any() else float("nan"),
+                 glow_hint=None if scan.glow is None else scan.glow.hint)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--scale", type=float, default=1.0)
+    parser.add_argument("--cases", default="cold,blue1200,white1250")
+    parser.add_argument("--seed", type=int, default=0)
+    args = parser.parse_args()
+    print("| case | points | off > 1 mm | of them on the plate | coverage of lit, seen pixels | of the parts | hint |")
+    print("|---|---|---|---|---|---|---|")
+    for case in args.cases.split(","):
+        s = score(case, args.scale, args.seed)
+        print(f"| {case} | {s.points} | {s.wrong} ({100 * s.wrong_fraction:.3f} %) | {s.wrong_on_plate} | "
+              f"{100 * s.coverage:.2f} % | {100 * s.part_coverage:.2f} % | {s.glow_hint or '-'} |", flush=True)
+
+
+if __name__ == "__main__":
+    main()
