@@ -88,10 +88,6 @@ def main() -> None:
     sys.stdout.flush()
 
 
-if __name__ == "__main__":
-    main()
-
-
 # --- SLStudio's real skull, coded by Gray code alone (docs/real-data.md) -------------------------------------
 
 SLSTUDIO = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "slstudio"
@@ -99,54 +95,16 @@ SKULL_MANIFEST = Path(__file__).resolve().parent / "slstudio" / "skull_sequence.
 ROUGHNESS_WINDOW_PX = 7
 
 
-def slstudio_gray_capture(seed: int = 0) -> tuple[Sequence, np.ndarray, dict[str, np.ndarray]]:
-    """A Gray-code-only capture of SLStudio's real skull, made from its real phase-shift frames.
-
-    The shared data hold no Gray-code capture, so the skull's Gray planes are rendered from what its real
-    frames measure at every camera pixel: the offset A (mean of the fine period's 3 frames), the
-    modulation B (their amplitude) and the projector column c (the phase decoded and unwrapped, filled
-    from the nearest decoded pixel where it is not). Plane b shows A + B (2 g_b(c) - 1), the white frame
-    A + B and the black A - B, the binary edges blurred by the capture's own camera blur
-    (``estimate_camera_blur``), and each frame gets the capture's own noise: the fine and the coarse
-    period's offsets both estimate A, so their difference has variance 2 sigma^2 / 3. The sequence is
-    ``gray_only_sequence(1824, 1140)``: white, black and the column planes 10..1, 2-pixel stripes.
-    Returns the sequence, the uint8 frames and the real maps (``A``, ``B``, ``c``, ``sigma``, ``blur``).
-    """
-    from scipy.ndimage import distance_transform_edt
-
+def slstudio_gray_capture(seed: int = 0) -> tuple[Sequence, np.ndarray, float, float]:
+    """A Gray-code-only capture of SLStudio's real skull (``gray_from_phase``), ``gray_only_sequence(1824, 1140)``:
+    white, black and the column planes 10..1 (2-pixel stripes); the sequence, frames, noise and blur."""
     from services.formats.sequence import read_capture
-    from services.structured_light.decode import decode
-    from services.structured_light.outline import ASSUMED_CAMERA_BLUR_PX, estimate_camera_blur
+    from services.simulation.gray_from_phase import gray_frames_from_phase
 
     phase_sequence, real = read_capture(SLSTUDIO / "skull_2x3", SKULL_MANIFEST)
-    real = real.astype(np.float64)
-    offset_fine, offset_coarse = real[0:3].mean(axis=0), real[3:6].mean(axis=0)
-    decoded = decode(real.astype(np.uint8), phase_sequence, consistency=0.5, edge_margin=0)
-    c = decoded.projector_x.astype(np.float64)
-    known = np.isfinite(c)
-    nearest = distance_transform_edt(~known, return_distances=False, return_indices=True)
-    c = c[nearest[0], nearest[1]]
-    modulation = decoded.modulation.astype(np.float64)
-    lit = decoded.rejection != 1  # not DARK
-    sigma = float(np.std((offset_fine - offset_coarse)[lit]) * np.sqrt(1.5))
-    blur = estimate_camera_blur(decoded.intensity, decoded.rejection) or ASSUMED_CAMERA_BLUR_PX
     sequence = gray_only_sequence(1824, 1140)
-    column = np.clip(np.floor(c + 0.5), 0, 1823).astype(np.int64)
-    gray = column ^ (column >> 1)
-    rng = np.random.default_rng(seed)
-    frames = []
-    for frame in sequence.frames:
-        if frame.kind == "white":
-            sign = np.ones_like(c)
-        elif frame.kind == "black":
-            sign = -np.ones_like(c)
-        else:
-            sign = 2.0 * ((gray >> frame.bit) & 1) - 1.0
-            sign = cv2.GaussianBlur(sign, (0, 0), blur)
-        image = offset_fine + modulation * sign + rng.normal(0.0, sigma, c.shape)
-        frames.append(np.clip(np.rint(image), 0, 255).astype(np.uint8))
-    return sequence, np.stack(frames), {"A": offset_fine, "B": modulation, "c": c, "sigma": np.array(sigma),
-                                        "blur": np.array(blur)}
+    frames, noise, blur = gray_frames_from_phase(real, phase_sequence, sequence, np.random.default_rng(seed))
+    return sequence, frames, noise, blur
 
 
 def local_roughness(points: np.ndarray, window: int = ROUGHNESS_WINDOW_PX) -> np.ndarray:
@@ -177,3 +135,108 @@ def local_roughness(points: np.ndarray, window: int = ROUGHNESS_WINDOW_PX) -> np
     solution = np.linalg.solve(system[enough], rhs[enough][..., None])[..., 0]
     out[enough] = z[enough] - solution[:, 0]
     return out
+
+
+# The commit before the sub-pixel Gray work (git log -- services/structured_light/gray_subpixel.py): its
+# decoder gave stripe centres.
+BEFORE_SUBPIXEL = "df1f3b4^"
+BEFORE_COVERAGE_FIX = "8d9d7aa"  # the sub-pixel Gray decoding as issue 35 found it
+_OLD_CODE_SCRIPT = """
+import sys, numpy as np
+from services.formats.rig import load_rig
+from services.formats.sequence import load_sequence
+from services.structured_light.reconstruct import reconstruct_points
+rig = load_rig(sys.argv[1])
+frames = np.load(sys.argv[2])["frames"]
+cloud = reconstruct_points(frames, load_sequence(sys.argv[3]), rig.devices["camera"], rig.devices["projector"])
+np.savez(sys.argv[4], **{name: cloud[name] for name in ("x", "y", "z", "u", "v")})
+"""
+
+
+def _point_map(cloud, shape: tuple[int, int]) -> np.ndarray:
+    points = np.full(shape + (3,), np.nan)
+    u, v = np.rint(cloud["u"]).astype(int), np.rint(cloud["v"]).astype(int)
+    points[v, u] = np.column_stack([cloud["x"], cloud["y"], cloud["z"]])
+    return points
+
+
+def _old_code_points(commit: str, work: Path, rig_path: Path, frames_path: Path, sequence_path: Path) -> dict:
+    """The cloud of an earlier commit's ``reconstruct_points``, run from a copy of its tree."""
+    import subprocess
+
+    repo = Path(__file__).resolve().parents[1]
+    tree = work / commit.replace("^", "-parent")
+    tree.mkdir()
+    archive = subprocess.run(["git", "-C", str(repo), "archive", commit, "services"], check=True,
+                             capture_output=True).stdout
+    subprocess.run(["tar", "-x", "-C", str(tree)], input=archive, check=True)
+    out = tree / "cloud.npz"
+    subprocess.run([sys.executable, "-c", _OLD_CODE_SCRIPT, str(rig_path), str(frames_path), str(sequence_path),
+                    str(out)], check=True, cwd=tree, env={"PYTHONPATH": str(tree), "PATH": "/usr/bin:/bin"})
+    return dict(np.load(out))
+
+
+def slstudio_rows(seed: int = 0) -> list[dict]:
+    """Gray-only decodings of SLStudio's skull (``slstudio_gray_capture``) against its phase decoding."""
+    import tempfile
+
+    from services.cli.main import main as thermofield
+    from services.formats.rig import load_rig
+    from services.formats.sequence import read_capture, save_sequence
+
+    sequence, frames, noise, blur = slstudio_gray_capture(seed)
+    print(f"Gray capture rendered from skull_2x3: noise {noise:.2f} grey levels, blur {blur:.2f} px", flush=True)
+    phase_sequence, real = read_capture(SLSTUDIO / "skull_2x3", SKULL_MANIFEST)
+    shape = real.shape[1:]
+    with tempfile.TemporaryDirectory() as directory:
+        work = Path(directory)
+        rig_path = work / "slstudio_rig.json"
+        assert thermofield(["rig", "import", "--format", "slstudio", str(SLSTUDIO / "calibration" / "calibration.xml"),
+                            "--out", str(rig_path)]) == 0
+        rig = load_rig(rig_path)
+        camera, projector = rig.device(None, "camera")[1], rig.device(None, "projector")[1]
+        np.savez(work / "frames.npz", frames=frames)
+        save_sequence(sequence, work)
+        clouds = {"phase (SLStudio's 2x3 capture)": reconstruct_points(real, phase_sequence, camera, projector,
+                                                                       consistency=0.5, max_indirect=0.33),
+                  "stripe centres": reconstruct_points(frames, sequence, camera, projector, gray_boundaries=False),
+                  "sub-pixel boundaries (now)": reconstruct_points(frames, sequence, camera, projector),
+                  f"before the sub-pixel work ({BEFORE_SUBPIXEL})": _old_code_points(
+                      BEFORE_SUBPIXEL, work, rig_path, work / "frames.npz", work),
+                  f"sub-pixel boundaries before the coverage fix ({BEFORE_COVERAGE_FIX})": _old_code_points(
+                      BEFORE_COVERAGE_FIX, work, rig_path, work / "frames.npz", work)}
+    maps = {name: _point_map(cloud, shape) for name, cloud in clouds.items()}
+    reference = maps["phase (SLStudio's 2x3 capture)"]
+    object_pixels = np.isfinite(reference[..., 2])
+    common = object_pixels.copy()
+    for points in maps.values():
+        common &= np.isfinite(points[..., 2])
+    rows = []
+    for name, points in maps.items():
+        have = np.isfinite(points[..., 2])
+        roughness = local_roughness(points)
+        on_object = have & object_pixels
+        rows.append({"decoding": name, "points": int(have.sum()),
+                     "object_share": float(on_object.sum() / object_pixels.sum()),
+                     "roughness_mm": float(np.sqrt(np.nanmean(roughness[on_object]**2))),
+                     "roughness_common_mm": float(np.sqrt(np.nanmean(roughness[common]**2))),
+                     "to_phase_mm": float(np.sqrt(np.mean(np.sum((points[on_object] - reference[on_object])**2,
+                                                                 axis=-1))))})
+    return rows
+
+
+def slstudio_table(seed: int = 0) -> str:
+    rows = slstudio_rows(seed)
+    lines = ["| decoding | points | of the object pixels | roughness RMS on them (mm) | on the pixels all decode (mm) "
+             "| RMS distance to the phase cloud (mm) |", "|---|---|---|---|---|---|"]
+    for row in rows:
+        lines.append(f"| {row['decoding']} | {row['points']} | {100 * row['object_share']:.2f} % | "
+                     f"{row['roughness_mm']:.3f} | {row['roughness_common_mm']:.3f} | {row['to_phase_mm']:.3f} |")
+    return "\n".join(lines) + "\n"
+
+
+if __name__ == "__main__":
+    if "--slstudio" in sys.argv[1:]:
+        print(slstudio_table(), flush=True)
+    else:
+        main()

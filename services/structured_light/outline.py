@@ -27,7 +27,7 @@ _OUTLINE_RAMP = 0.9
 # docs/structured-light.md): it removes the leaks there while the paper sphere's terminator, where the
 # pattern fades by the cosine of incidence, keeps its coverage.
 SHADOW_CONTRAST = 0.9
-_STEP_COMPLETE = 0.8
+_STEP_COMPLETE = 0.7
 # The bias correction: the largest bias corrected rather than dropped (projector pixels), and the largest
 # fringe washout s^2 k^2 / 2 for which its first-order form holds.
 _MAX_CORRECTED_BIAS = 0.5
@@ -241,7 +241,7 @@ def _brightest_within(intensity: np.ndarray, row: np.ndarray, col: np.ndarray, r
 # In numpy on the few pixels near the outline (np.nonzero of the mask, then arithmetic on their index
 # arrays), where whole-image gradients and dilations would cost more than the whole outline step may.
 def _outline_pixels(decoded, intensity, no_signal, margin, reach, variance, wavenumber,
-                    modulation=None, no_pattern=None) -> np.ndarray:
+                    modulation=None, no_pattern=None, drop_washed_out=False) -> np.ndarray:
     height, width = decoded.shape
     out = decoded.copy()
     row, col = np.nonzero((_near(no_signal, reach) != 0) & np.isfinite(decoded))
@@ -255,12 +255,12 @@ def _outline_pixels(decoded, intensity, no_signal, margin, reach, variance, wave
         # The pattern's own outline (a projector shadow under room light or glow): within the margin of a
         # pixel without a pattern, a pixel whose pattern is below a share of the strongest around it is
         # mostly its lit neighbour's blurred pattern, carrying the neighbour's code.
-        # A step that completes within the margin (the strongest pattern within it is nearly that within
-        # twice it), not the gradual fade of a terminator, where the pattern is the pixel's own.
+        # A step that completes within the margin (the strongest pattern within it is most of that within
+        # three times it), not the gradual fade of a terminator, where the pattern is the pixel's own.
         leak_row, leak_col = np.nonzero((_near(no_pattern, margin) != 0) & np.isfinite(out))
         strongest = _brightest_within(modulation, leak_row, leak_col, margin).astype(np.float64)
         leaked = (modulation[leak_row, leak_col] < SHADOW_CONTRAST * strongest) & (
-            strongest >= _STEP_COMPLETE * _brightest_within(modulation, leak_row, leak_col, 2 * margin))
+            strongest >= _STEP_COMPLETE * _brightest_within(modulation, leak_row, leak_col, 3 * margin))
         out[leak_row[leaked], leak_col[leaked]] = np.nan
         dropped |= np.isnan(out[row, col])
     if variance == 0.0:
@@ -271,6 +271,9 @@ def _outline_pixels(decoded, intensity, no_signal, margin, reach, variance, wave
     slope_y = 0.5 * (decoded[row + 1, col] - decoded[row - 1, col]).astype(np.float64)
     washout = 0.5 * variance * wavenumber * wavenumber * (slope_x * slope_x + slope_y * slope_y)
     keep = washout <= _MAX_WASHOUT  # NaN: a neighbour without a coordinate, left as decoded
+    if drop_washed_out:  # interpolated between Gray boundaries that the blur no longer locates
+        washed = ~keep & np.isfinite(washout)
+        out[row[washed], col[washed]] = np.nan
     row, col, slope_x, slope_y = row[keep], col[keep], slope_x[keep], slope_y[keep]
     log_x = 0.5 * (_log_intensity(intensity, row, col + 1) - _log_intensity(intensity, row, col - 1))
     log_y = 0.5 * (_log_intensity(intensity, row + 1, col) - _log_intensity(intensity, row - 1, col))
@@ -281,7 +284,7 @@ def _outline_pixels(decoded, intensity, no_signal, margin, reach, variance, wave
 
 def outline_corrected(coordinates: np.ndarray, intensity: np.ndarray, rejection: np.ndarray,
                       period: float | None, blur_sigma: float | None,
-                      modulation: np.ndarray | None = None) -> np.ndarray:
+                      modulation: np.ndarray | None = None, boundaries: bool = False) -> np.ndarray:
     """Projector coordinates without the outline margin, corrected for the camera blur's bias beside it.
 
     Parameters
@@ -291,9 +294,9 @@ def outline_corrected(coordinates: np.ndarray, intensity: np.ndarray, rejection:
     intensity, rejection : (H, W) arrays
         ``DecodedCapture.intensity`` and ``DecodedCapture.rejection``.
     period : float or None
-        The finest fringe period in projector pixels; ``inf`` for a Gray-code-only axis interpolated between
-        its stripe boundaries (biased like a phase, without fringes to wash out); None for stripe centres,
-        which are not corrected.
+        The finest fringe period in projector pixels (for coordinates interpolated between Gray stripe
+        boundaries, that of the finest Gray plane, four stripes); None for Gray stripe centres, which are
+        not corrected.
     blur_sigma : float or None
         The camera's total point spread s in pixels (:func:`estimate_camera_blur`); None when unknown.
     modulation : (H, W) array, optional
@@ -304,6 +307,10 @@ def outline_corrected(coordinates: np.ndarray, intensity: np.ndarray, rejection:
         glowing part is then an outline too: the pixels a pixel or two inside it carry only the blurred
         pattern of their lit neighbour, and its code. Without it, only dark and saturated pixels count and
         the brightness is the weight.
+    boundaries : bool
+        The coordinates were interpolated between Gray-code stripe boundaries (``gray_subpixel``): where the
+        finest plane washes out within the spread its boundaries are not located, so such pixels within the
+        corrected band are dropped rather than left as decoded.
 
     Returns
     -------
@@ -335,7 +342,7 @@ def outline_corrected(coordinates: np.ndarray, intensity: np.ndarray, rejection:
     the pixel is left as decoded. Gradients are central differences. A Gray-code stripe boundary located
     where a blurred plane crosses its threshold is shifted alike: for w locally exp(a . x) the zero crossing
     of g * (w sign) lies s^2 a from the true edge, so coordinates interpolated between such boundaries carry
-    the same b (without a washout limit: ``period`` inf).
+    the same b, while the finest plane (period four stripes) is not washed out.
 
     References
     ----------
@@ -368,4 +375,4 @@ def outline_corrected(coordinates: np.ndarray, intensity: np.ndarray, rejection:
         no_pattern = _no_pattern(rejection)
     return _outline_pixels(coordinates, intensity, _no_signal(rejection), margin, reach,
                            spread**2 if corrected else 0.0, 2 * np.pi / period if corrected else 0.0,
-                           modulation, no_pattern)
+                           modulation, no_pattern, boundaries)

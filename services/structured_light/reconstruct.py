@@ -56,9 +56,13 @@ def _refined_coordinates(decoded: DecodedCapture, sequence: Sequence, axis: str,
     else the capture's one noise level)."""
     groups = sequence.phase_groups(axis)
     blur = estimate_camera_blur(decoded.intensity, decoded.rejection)
+    # Gray-code-only coordinates interpolated between stripe boundaries are biased beside the outline like a
+    # phase; the finest Gray plane, four stripes long, then plays the finest period's part.
+    interpolated = not groups and gray_boundaries and bool(sequence.gray_planes(axis))
+    period = groups[-1].period if groups else float(4 << sequence.gray_planes(axis)[0].bit) if interpolated else None
     coordinates = outline_corrected(getattr(decoded, f"projector_{axis}"), decoded.intensity, decoded.rejection,
-                                    groups[-1].period if groups else np.inf if gray_boundaries else None,
-                                    ASSUMED_CAMERA_BLUR_PX if blur is None else blur, modulation=decoded.modulation)
+                                    period, ASSUMED_CAMERA_BLUR_PX if blur is None else blur,
+                                    modulation=decoded.modulation, boundaries=interpolated)
     if not groups or len(groups[-1].frames) <= 3 or not np.isfinite(coordinates).any():
         return coordinates
     finest = groups[-1]
