@@ -107,36 +107,6 @@ def slstudio_gray_capture(seed: int = 0) -> tuple[Sequence, np.ndarray, float, f
     return sequence, frames, noise, blur
 
 
-def local_roughness(points: np.ndarray, window: int = ROUGHNESS_WINDOW_PX) -> np.ndarray:
-    """Per pixel of an (H, W, 3) point map (NaN where no point), the distance along z of its point from the
-    least-squares plane z = a + b u + c v through the points of its ``window`` x ``window`` neighbourhood
-    (at least half of them present); NaN elsewhere."""
-    z = points[..., 2]
-    height, width = z.shape
-    have = np.isfinite(z).astype(np.float64)
-    zz = np.where(have > 0, z, 0.0)
-    v, u = np.mgrid[0:height, 0:width].astype(np.float64)
-    box = lambda image: cv2.boxFilter(image, -1, (window, window), normalize=False,  # noqa: E731
-                                      borderType=cv2.BORDER_CONSTANT)
-    # Moments about each pixel: coordinates relative to the window's centre keep the system well conditioned.
-    n, su, sv = box(have), box(have * u), box(have * v)
-    suu, svv, suv = box(have * u * u), box(have * v * v), box(have * u * v)
-    sz, suz, svz = box(zz), box(zz * u), box(zz * v)
-    su_c, sv_c = su - n * u, sv - n * v
-    suu_c = suu - 2 * u * su + n * u * u
-    svv_c = svv - 2 * v * sv + n * v * v
-    suv_c = suv - u * sv - v * su + n * u * v
-    suz_c, svz_c = suz - u * sz, svz - v * sz
-    system = np.stack([np.stack([n, su_c, sv_c], -1), np.stack([su_c, suu_c, suv_c], -1),
-                       np.stack([sv_c, suv_c, svv_c], -1)], -2)
-    rhs = np.stack([sz, suz_c, svz_c], -1)
-    enough = (n >= window * window / 2) & (have > 0)
-    out = np.full(z.shape, np.nan)
-    solution = np.linalg.solve(system[enough], rhs[enough][..., None])[..., 0]
-    out[enough] = z[enough] - solution[:, 0]
-    return out
-
-
 # The commit before the sub-pixel Gray work (git log -- services/structured_light/gray_subpixel.py): its
 # decoder gave stripe centres.
 BEFORE_SUBPIXEL = "df1f3b4^"
@@ -182,6 +152,7 @@ def slstudio_rows(seed: int = 0) -> list[dict]:
 
     from services.cli.main import main as thermofield
     from services.formats.rig import load_rig
+    from services.geometry.roughness import local_roughness
     from services.formats.sequence import read_capture, save_sequence
 
     sequence, frames, noise, blur = slstudio_gray_capture(seed)
@@ -214,7 +185,7 @@ def slstudio_rows(seed: int = 0) -> list[dict]:
     rows = []
     for name, points in maps.items():
         have = np.isfinite(points[..., 2])
-        roughness = local_roughness(points)
+        roughness = local_roughness(points, ROUGHNESS_WINDOW_PX)
         on_object = have & object_pixels
         rows.append({"decoding": name, "points": int(have.sum()),
                      "object_share": float(on_object.sum() / object_pixels.sum()),

@@ -29,58 +29,14 @@ import numpy as np
 
 from services.formats.rig import Rig
 from services.geometry.camera_model import CameraModel
-from services.simulation.presets import HOT_STEEL_EMISSIVITY, hot_optics, look_at_rotation
+from services.simulation.presets import shadow_rig, shadow_scene
 from services.simulation.render import CameraEffects, ProjectorEffects, render_frames, render_view
-from services.simulation.scene import Albedo, Cylinder, Plane, Scene, Sphere
-from services.simulation.temperature import Spot, SurfaceTemperature, TemperatureScene
 from services.structured_light.patterns import generate_sequence
 from services.structured_light.reconstruct import reconstruct_scan
 
-AIM = (0.0, 0.0, 650.0)
-BASELINE_MM = 260.0
 PART_SURFACES = (0, 1)
 PLATE_SURFACE = 2
 FRAME_INTERVAL_S = 1 / 30
-
-
-def shadow_rig(scale: float = 1.0) -> Rig:
-    """Projector 1024x768 at the origin, camera 1280x800 260 mm to its side; both aimed at (0, 0, 650)."""
-    def device(kind, width, height, focal, dist, centre):
-        w, h = round(width * scale), round(height * scale)
-        R = look_at_rotation(centre, AIM)
-        K = [[focal * scale, 0.0, (w - 1) / 2], [0.0, focal * scale, (h - 1) / 2], [0.0, 0.0, 1.0]]
-        return CameraModel(kind=kind, width=w, height=h, K=K, dist=dist, R=R.tolist(),
-                           t=(-R @ np.asarray(centre, np.float64)).tolist())
-
-    return Rig(devices={
-        "projector": device("projector", 1024, 768, 1150.0, [], (0.0, 0.0, 0.0)),
-        "camera": device("camera", 1280, 800, 1400.0, [-0.06, 0.09, 0.0004, -0.0002, 0.0], (BASELINE_MM, 0.0, 0.0)),
-    })
-
-
-def shadow_scene(peak_c: float | None = None, projector: str = "white",
-                 band_pass: tuple[float, float] | None = None) -> Scene:
-    """A cylinder and a sphere before a tilted plate; glowing at ``peak_c`` when given (module docstring)."""
-    hot = peak_c is not None
-    part = Albedo(base=1 - HOT_STEEL_EMISSIVITY if hot else 0.5, texture_amplitude=0.03 if hot else 0.12,
-                  feature_size=25.0, seed=3)
-    tilt = np.radians(25.0)
-    normal = [-np.sin(tilt), 0.0, -np.cos(tilt)]
-    u_axis = [np.cos(tilt), 0.0, -np.sin(tilt)]
-    surfaces = [
-        Cylinder(center=[-75.0, 0.0, 600.0], axis=[0.0, 1.0, 0.0], radius=40.0, length=160.0, albedo=part),
-        Sphere(center=[85.0, 10.0, 640.0], radius=60.0, albedo=part),
-        Plane(center=[0.0, 0.0, 760.0], normal=normal, u_axis=u_axis, size=[700.0, 500.0],
-              albedo=Albedo(base=0.45, texture_amplitude=0.12, feature_size=35.0, seed=4)),
-    ]
-    if not hot:
-        return Scene(ambient=0.1, surfaces=surfaces)  # room light: the shadows are not dark
-    temperature = TemperatureScene(background=25.0, surfaces=[
-        SurfaceTemperature(base=peak_c - 60.0, spots=[Spot(center=[-75.0, 0.0, 560.0], radius=60.0, amplitude=60.0)]),
-        SurfaceTemperature(base=peak_c - 80.0, spots=[Spot(center=[85.0, 10.0, 580.0], radius=60.0, amplitude=80.0)]),
-        SurfaceTemperature(base=40.0),
-    ])
-    return Scene(ambient=0.1, temperature=temperature, optics=hot_optics(projector, band_pass), surfaces=surfaces)
 
 
 @dataclass(frozen=True)
