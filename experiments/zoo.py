@@ -376,6 +376,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--cache", type=Path, default=default_cache(),
                         help="per-scene result cache (default $XDG_CACHE_HOME/thermofield/zoo)")
     parser.add_argument("--allow-tuning", action="store_true", help="allow tuning seeds into --markdown")
+    parser.add_argument("--summarise", action="store_true",
+                        help="run nothing: read the per-scene results of --json (those of --seeds) and write the tables")
     args = parser.parse_args(argv)
     seeds = parse_seeds(args.seeds)
     if not seeds:
@@ -386,23 +388,31 @@ def main(argv: list[str] | None = None) -> int:
     if tuning and args.markdown is not None and not args.allow_tuning:
         parser.error(f"--seeds includes tuning seeds ({TUNING_SEEDS.start}..{TUNING_SEEDS.stop - 1}); they are never "
                      "reported (give --allow-tuning to write them anyway, marked as such)")
-    digest = code_digest()
     results: list[dict] = []
-    if args.jobs == 1:
-        for seed in seeds:
-            results.append(_cached_run(seed, args.cache, digest))
-            print(json.dumps({k: results[-1].get(k) for k in ("seed", "kind", "wrong_rate", "coverage", "verdict",
-                                                               "in_tolerance", "seconds")}), flush=True)
+
+    def keep(result: dict) -> None:  # the JSON is rewritten after every scene, so a cut-short run keeps its scenes
+        results.append(result)
+        results.sort(key=lambda r: r["seed"])
+        args.json.write_text(json.dumps(results, indent=1, default=float))
+        print(json.dumps({k: result.get(k) for k in ("seed", "kind", "wrong_rate", "coverage", "verdict",
+                                                     "in_tolerance", "seconds")}), flush=True)
+
+    if args.summarise:
+        wanted = set(seeds)
+        results = [r for r in json.loads(args.json.read_text()) if r["seed"] in wanted]
+        if not results:
+            parser.error(f"--summarise: {args.json} holds none of the seeds asked for")
     else:
-        with ProcessPoolExecutor(max_workers=args.jobs) as pool:
-            futures = [pool.submit(_cached_run, seed, args.cache, digest) for seed in seeds]
-            for future in as_completed(futures):
-                results.append(future.result())
-                print(json.dumps({k: results[-1].get(k) for k in ("seed", "kind", "wrong_rate", "coverage", "verdict",
-                                                                   "in_tolerance", "seconds")}), flush=True)
-    results.sort(key=lambda r: r["seed"])
-    args.json.parent.mkdir(parents=True, exist_ok=True)
-    args.json.write_text(json.dumps(results, indent=1, default=float))
+        digest = code_digest()
+        args.json.parent.mkdir(parents=True, exist_ok=True)
+        if args.jobs == 1:
+            for seed in seeds:
+                keep(_cached_run(seed, args.cache, digest))
+        else:
+            with ProcessPoolExecutor(max_workers=args.jobs) as pool:
+                futures = [pool.submit(_cached_run, seed, args.cache, digest) for seed in seeds]
+                for future in as_completed(futures):
+                    keep(future.result())
     command = "python experiments/zoo.py " + " ".join(argv if argv is not None else sys.argv[1:])
     table = summarise(results, command, tuning)
     print(table)

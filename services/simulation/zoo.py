@@ -7,8 +7,8 @@
   resolution and lens, and a random world frame (every pose and surface moved by one rigid motion);
 - a hot part of one of ``PART_KINDS`` (the kind is ``PART_KINDS[seed % 7]``, so every run of seven
   seeds holds each once), its size, material, pose and temperature field (gradient and a spot);
-- whether it is in tolerance: an out-of-tolerance part has a diameter or a length off by 1.5 to 3
-  tolerances, or a dent or bulge of 2.5 to 4 surface tolerances where the camera and projector see it;
+- whether it is in tolerance: an out-of-tolerance part has a diameter off by 1.5 to 3 tolerances
+  (shafts, billets, flanges, spheres), or a dent or bulge of 2.5 to 4 surface tolerances where the camera and projector see it;
   an in-tolerance part has deviations within 0.4 of its tolerances;
 - its part file (docs/part-file.md): the nominal cold mesh, features with tolerances, the surface
   tolerance; the part's true cold feature values;
@@ -233,14 +233,8 @@ def _draw_shape(kind: str, rng: np.random.Generator, out: bool, size_tolerance: 
         size = np.array([rng.uniform(2.0, 4.0), rng.uniform(1.0, 2.0), rng.uniform(0.8, 1.5)]) * radius
         nominal = box_mesh(tuple(size), _MAX_EDGE_MM)
         true = box_mesh((size[0] + off, size[1], size[2]), _MAX_EDGE_MM)
-        a, b = size[1] / 2 - 2.0, size[2] / 2 - 2.0
-        x = size[0] / 2
-        features = [
-            {"name": "face_a", "type": "plane", "region": {"min": [-x - 1.5, -a, -b], "max": [-x + 1.0, a, b]}},
-            {"name": "face_b", "type": "plane", "region": {"min": [x - 1.0, -a, -b], "max": [x + 1.5, a, b]}},
-            {"name": "length", "type": "distance", "between": ["face_a", "face_b"], "nominal": round(size[0], 4),
-             "tolerance": [-size_tolerance, size_tolerance]}]
-        values = {"length": float(size[0] + off)}
+        # one view never shows two opposite faces, so no size of a box can be measured: judged by its surface
+        features, values = [], {}
         bound = float(np.linalg.norm(size) / 2)
         text = f"box {size[0]:.1f} x {size[1]:.1f} x {size[2]:.1f}; length {off:+.3f} mm"
     else:
@@ -357,8 +351,8 @@ def zoo_scene(seed: int) -> ZooScene:
     surface_tolerance = float(rng.choice([0.5, 0.8, 1.0]))
     material = str(rng.choice(["carbon-steel", "stainless-steel"]))
     defect = "none"
-    # an out-of-tolerance part is off in size or has a dent or bulge (a tube or ring: always the latter)
-    size_out = out and (kind not in ("open_tube", "ring")) and rng.uniform() < 0.5
+    # an out-of-tolerance part is off in size or has a dent or bulge (a tube, ring or box: always the latter)
+    size_out = out and (kind not in ("open_tube", "ring", "box")) and rng.uniform() < 0.5
     shape = _draw_shape(kind, rng, size_out, size_tolerance)
     yaw, pitch, roll = rng.uniform(-50.0, 50.0), rng.uniform(-25.0, 25.0), rng.uniform(0.0, 360.0)
     if kind == "box":
@@ -436,8 +430,6 @@ def zoo_scene(seed: int) -> ZooScene:
                 high = np.asarray(feature["region"]["max"]) + 3 * bump.sigma_mm
                 if np.all((np.asarray(bump.center) >= low) & (np.asarray(bump.center) <= high)):
                     values.pop(feature["name"], None)
-                    if feature["name"] in ("face_a", "face_b"):
-                        values.pop("length", None)
     hot = HotPart(shape.true[0], shape.true[1], builtin_material(material), part_temperature, pose=pose, bumps=bumps)
 
     # temperatures: the part's field in the world; fixtures and wall warm a little
