@@ -131,15 +131,16 @@ def test_short_zoo_through_the_real_commands(tmp_path):
     assert len(scored) >= 9
     wrong = np.array([r["wrong_rate"] for r in scored])
     coverage = np.array([r["coverage"] for r in scored])
-    assert np.median(wrong) < 0.01  # target 0.0002
-    assert np.percentile(wrong, 95) < 0.05  # target 0.001
-    assert np.median(coverage) > 0.9  # target 0.95
+    assert np.median(wrong) < 0.004  # today about 0.0013; target 0.0002
+    assert np.percentile(wrong, 95) < 0.02  # today about 0.006; target 0.001
+    assert np.median(coverage) > 0.95  # today about 0.99; target 0.95
     assert np.median([r["error"]["median"] for r in scored]) < 0.2
-    # every scene gets a verdict or a stated refusal; a part out of tolerance is never passed today? not yet:
-    # the bound is on the share of right verdicts
-    right = sum((r.get("verdict") == "OK") == r["in_tolerance"] and r.get("verdict") in ("OK", "NotOK")
-                for r in results)
-    assert right >= 3
+    # verdicts: today no out-of-tolerance part of these ten is passed, and one in-tolerance part is rejected
+    # (seed 1006, a flange: docs/zoo.md); the target is none of either
+    false_ok = [r["seed"] for r in results if not r["in_tolerance"] and r.get("verdict") == "OK"]
+    false_not_ok = [r["seed"] for r in results if r["in_tolerance"] and r.get("verdict") == "NotOK"]
+    assert not false_ok
+    assert len(false_not_ok) <= 2
     # a rerun reads the cache
     assert main(["--seeds", f"{SHORT_ZOO.start}-{SHORT_ZOO.stop - 1}", "--json", str(output),
                  "--cache", str(tmp_path / "cache")]) == 0
