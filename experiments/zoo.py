@@ -83,13 +83,17 @@ def parse_seeds(text: str) -> list[int]:
 
 
 def code_digest() -> str:
-    """SHA-256 of the code a scene's result depends on (services/, device_gateway/, this script)."""
+    """SHA-256 of the code a scene's result depends on: services/, device_gateway/ and this script's scoring
+    (``run_scene`` and the helpers it calls; the tables may change without invalidating the cache)."""
+    import inspect
+
     hasher = hashlib.sha256(f"zoo-result-{RESULT_VERSION}".encode())
     for directory in ("services", "device_gateway"):
         for path in sorted((ROOT / directory).rglob("*.py")):
             hasher.update(str(path.relative_to(ROOT)).encode())
             hasher.update(path.read_bytes())
-    hasher.update(Path(__file__).read_bytes())
+    for function in (run_scene, _interior, _stats, _best_similarity):
+        hasher.update(inspect.getsource(function).encode())
     return hasher.hexdigest()
 
 
@@ -344,11 +348,52 @@ def summarise(results: list[dict], command: str, tuning: bool) -> str:
                          f"{_fmt(_percentile([r['wrong_rate'] for r in group], 50), 100, 3, ' %')}, 95th percentile "
                          f"{_fmt(_percentile([r['wrong_rate'] for r in group], 95), 100, 3, ' %')}; part coverage median "
                          f"{_fmt(_percentile([r['part_coverage'] for r in group], 50), 100, 1, ' %')}.")
+    lines += ["", *failure_classes(done)]
     if refused:
         lines.append(f"- refused by reconstruct: seeds {', '.join(str(r['seed']) for r in refused)}.")
     if crashed:
         lines.append(f"- crashed: seeds {', '.join(str(r['seed']) for r in crashed)} (traceback in the JSON).")
     return "\n".join(lines) + "\n"
+
+
+def _seeds(group: list[dict]) -> str:
+    return ", ".join(str(r["seed"]) for r in group) or "none"
+
+
+def failure_classes(results: list[dict]) -> list[str]:
+    """Where the wrong points lie and which scenes each wrong verdict comes from (markdown lines)."""
+    scored = [r for r in results if "refused" not in r]
+    total = sum(r["wrong"] for r in scored) or 1
+    lines = ["Where the points more than 1 mm off lie (all scenes together; a point may be in several rows):", "",
+             "| where | points | share of the wrong points |", "|---|---|---|"]
+    for key, label in (("wrong_at_edge", "at a depth edge (a pixel whose 8-neighbours see another surface or are unlit)"),
+                       ("wrong_unlit", "on a pixel the projector does not light (shadow or facing away)"),
+                       ("wrong_in_lit_interior", "inside a lit surface, away from edges"),
+                       ("wrong_on_part", "on the part"), ("wrong_off_part", "on fixtures and the wall"),
+                       ("wrong_on_miss", "where the pixel's centre ray meets nothing")):
+        count = sum(r.get(key, 0) for r in scored)
+        lines.append(f"| {label} | {count} | {100 * count / total:.1f} % |")
+    lines.append("")
+    false_not_ok = [r for r in results if r["in_tolerance"] and r.get("verdict") == "NotOK"]
+    false_ok = [r for r in results if not r["in_tolerance"] and r.get("verdict") == "OK"]
+    undecided = [r for r in results if r.get("verdict") == "NotDecidable"]
+    refused = [r for r in results if r.get("verdict") == "refused"]
+    unseen = [r for r in results if (r.get("part_points") or 0) < 100 and r.get("verdict") in ("OK", "NotOK")]
+    far = [r for r in false_not_ok if r.get("surface") and r["surface"].get("cell_min") is not None
+           and max(abs(r["surface"]["cell_min"]), abs(r["surface"]["cell_max"])) > 4.0]
+    size_wrong = [r for r in false_not_ok if any(f.get("verdict") == "NotOK" for f in r.get("features", {}).values())]
+    lines += [f"- false NotOK (in tolerance, rejected): {len(false_not_ok)}: seeds {_seeds(false_not_ok)}; of them "
+              f"{len(far)} with a surface cell beyond 4 mm (near the 5 mm segmentation distance: alignment or "
+              f"segmentation, not a dent): {_seeds(far)}; {len(size_wrong)} with a size feature NotOK: "
+              f"{_seeds(size_wrong)}.",
+              f"- false OK (out of tolerance, passed): {len(false_ok)}: seeds {_seeds(false_ok)}.",
+              f"- NotDecidable: {len(undecided)}: seeds {_seeds(undecided)}.",
+              f"- inspect refused (an error): {len(refused)}: seeds {_seeds(refused)}.",
+              f"- a verdict on a part with fewer than 100 reconstructed points: {len(unseen)}: seeds {_seeds(unseen)}."]
+    hot_off = [r for r in scored if r.get("hot_readings_off_part", 0) >= 100]
+    lines.append(f"- 100 or more fixture or wall points given a part temperature (>= 300 C) by the field: "
+                 f"{len(hot_off)}: seeds {_seeds(hot_off)}.")
+    return lines
 
 
 def write_markdown(path: Path, table: str) -> None:
