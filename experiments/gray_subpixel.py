@@ -1,7 +1,8 @@
 """Gray-code-only captures: sub-pixel boundary interpolation against stripe centres; the table of
 docs/structured-light.md.
 
-Run: ``.venv/bin/python experiments/gray_subpixel.py`` (a few minutes on 2 cores).
+Run: ``.venv/bin/python experiments/gray_subpixel.py`` (a few minutes on 2 cores); with ``--slstudio`` the table of
+docs/real-data.md instead: SLStudio's real skull coded by Gray code alone (``slstudio_rows``).
 
 A foreign scanner's sequence, white, black and the 10 column Gray planes of an 1824-pixel projector with
 the finest bit dropped (stripes 2 projector pixels wide, no inverse planes), is projected onto a plane and a
@@ -17,7 +18,6 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
-import cv2
 import numpy as np
 
 from services.formats.sequence import BlackFrame, GrayFrame, ProjectorSize, Sequence, WhiteFrame
@@ -170,11 +170,12 @@ def slstudio_rows(seed: int = 0) -> list[dict]:
         save_sequence(sequence, work)
         clouds = {"phase (SLStudio's 2x3 capture)": reconstruct_points(real, phase_sequence, camera, projector,
                                                                        consistency=0.5, max_indirect=0.33),
-                  "stripe centres": reconstruct_points(frames, sequence, camera, projector, gray_boundaries=False),
-                  "sub-pixel boundaries (now)": reconstruct_points(frames, sequence, camera, projector),
-                  f"before the sub-pixel work ({BEFORE_SUBPIXEL})": _old_code_points(
+                  "Gray, stripe centres (`gray_boundaries=False`)": reconstruct_points(
+                      frames, sequence, camera, projector, gray_boundaries=False),
+                  "Gray, sub-pixel boundaries (now)": reconstruct_points(frames, sequence, camera, projector),
+                  f"Gray, before the sub-pixel work ({BEFORE_SUBPIXEL})": _old_code_points(
                       BEFORE_SUBPIXEL, work, rig_path, work / "frames.npz", work),
-                  f"sub-pixel boundaries before the coverage fix ({BEFORE_COVERAGE_FIX})": _old_code_points(
+                  f"Gray, sub-pixel boundaries before the coverage fix ({BEFORE_COVERAGE_FIX})": _old_code_points(
                       BEFORE_COVERAGE_FIX, work, rig_path, work / "frames.npz", work)}
     maps = {name: _point_map(cloud, shape) for name, cloud in clouds.items()}
     reference = maps["phase (SLStudio's 2x3 capture)"]
