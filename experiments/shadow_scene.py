@@ -2,7 +2,8 @@
 the simulator's ground truth (docs/structured-light.md, "Points at projector shadows").
 
 Run: ``nice -n 10 .venv/bin/python experiments/shadow_scene.py [--scale S] [--cases cold,blue1200,white1250]``
-(full size: about a minute per case on 2 cores).
+(full size: about a minute per case on 2 cores); ``--zoo 1000-1015`` reconstructs zoo scenes instead
+(``zoo_points``: reconstruction alone, scored as experiments/zoo.py scores it).
 
 The scene (``shadow_scene``): a capped cylinder (r 40 mm, 160 mm long, vertical) and a sphere (r 60 mm)
 before a plate tilted 25 degrees about the vertical, 720..800 mm from the rig; the rig (``shadow_rig``): a
@@ -29,7 +30,6 @@ import numpy as np
 
 from services.formats.rig import Rig
 from services.geometry.camera_model import CameraModel
-from services.simulation.presets import shadow_rig, shadow_scene
 from services.simulation.render import CameraEffects, ProjectorEffects, render_frames, render_view
 from services.structured_light.patterns import generate_sequence
 from services.structured_light.reconstruct import reconstruct_scan
@@ -64,6 +64,8 @@ def _interior(surface: np.ndarray) -> np.ndarray:
 
 def capture(case: str, scale: float = 1.0, seed: int = 0):
     """The frames, sequence, saturation level and ground truth of one case."""
+    from services.simulation.presets import shadow_rig, shadow_scene
+
     rig = shadow_rig(scale)
     camera, projector = rig.devices["camera"], rig.devices["projector"]
     if case == "cold":
@@ -114,12 +116,84 @@ def score(case: str, scale: float = 1.0, seed: int = 0) -> Score:
                  glow_hint=None if scan.glow is None else scan.glow.hint)
 
 
+def zoo_points(seed: int) -> dict:
+    """Reconstruction alone of zoo scene ``seed`` (services/simulation/zoo.py), scored as experiments/zoo.py
+    scores it: wrong points (> 1 mm from the truth at the pixel centre) and the coverage of the pixels lit and
+    seen whose 8-neighbours are lit and see the same surface."""
+    from device_gateway.drivers.simulated import SimulatedStation, SimulationOptions
+    from device_gateway.station import ExposureControl, Station
+    from services.errors import InputError
+    from services.pipeline.reconstruct import reconstruct_capture
+    from services.pipeline.tables import TriangulationTables
+    from services.simulation.zoo import zoo_scene
+
+    zoo = zoo_scene(seed)
+    rig = zoo.rig
+    projector = rig.devices["projector"]
+    sequence, patterns = generate_sequence(projector.width, projector.height, closing_black=True)
+    options = SimulationOptions(camera_effects=zoo.camera_effects, projector_effects=zoo.projector_effects,
+                                thermal_effects=zoo.thermal_effects, camera_supersample=1, seed=seed)
+    simulated = SimulatedStation(rig, zoo.scene, zoo.temperatures, options)
+    station = Station(simulated.camera, simulated.thermal, simulated.projector, settle_s=0.0)
+    capture = station.capture(sequence, patterns, thermal_frames=1, exposure=ExposureControl(mode="auto"))
+    truth = simulated.view().truth
+    result = {"seed": seed, "kind": zoo.kind}
+    try:
+        cloud = reconstruct_capture(frames=capture.frames, sequence=sequence, rig=rig, tables=TriangulationTables(),
+                                    saturation_level=capture.exposure["saturation_level"]).cloud
+    except InputError as error:
+        return {**result, "refused": str(error), "points": 0, "wrong": 0, "coverage": 0.0}
+    u, v = np.rint(cloud["u"]).astype(int), np.rint(cloud["v"]).astype(int)
+    error = np.linalg.norm(cloud.points - truth.points[v, u], axis=1)
+    wrong = ~(error <= 1.0)  # NaN: the pixel's centre ray meets nothing
+    same = truth.lit & (truth.surface >= 0)  # lit pixels whose 8-neighbours are lit and see the same surface
+    same[[0, -1], :] = same[:, [0, -1]] = False
+    for dy in (-1, 0, 1):
+        for dx in (-1, 0, 1):
+            if dy or dx:
+                shifted = np.roll(np.roll(truth.surface, dy, axis=0), dx, axis=1)
+                same &= (shifted == truth.surface) & np.roll(np.roll(truth.lit, dy, axis=0), dx, axis=1)
+    has_point = np.zeros(truth.surface.shape, bool)
+    has_point[v, u] = True
+    return {**result, "points": int(len(error)), "wrong": int(wrong.sum()),
+            "coverage": float(has_point[same].mean()) if same.any() else float("nan")}
+
+
+def zoo_table(seeds: list[int]) -> str:
+    rows = []
+    lines = ["| seed | part | points | off > 1 mm | coverage |", "|---|---|---|---|---|"]
+    for seed in seeds:
+        row = zoo_points(seed)
+        rows.append(row)
+        rate = row["wrong"] / max(row["points"], 1)
+        lines.append(f"| {seed} | {row['kind']} | {row['points']} | {100 * rate:.3f} % | {100 * row['coverage']:.2f} % |")
+        print(lines[-1], flush=True)
+    rates = [r["wrong"] / max(r["points"], 1) for r in rows]
+    coverage = [r["coverage"] for r in rows]
+    lines.append(f"| {len(rows)} scenes | | | median {100 * np.median(rates):.3f} %, 95th percentile "
+                 f"{100 * np.percentile(rates, 95):.3f} %, worst {100 * max(rates):.3f} % | median "
+                 f"{100 * np.median(coverage):.2f} %, 5th percentile {100 * np.percentile(coverage, 5):.2f} % |")
+    return "\n".join(lines) + "\n"
+
+
+def _seeds(text: str) -> list[int]:
+    seeds = []
+    for part in text.split(","):
+        first, _, last = part.partition("-")
+        seeds.extend(range(int(first), int(last or first) + 1))
+    return seeds
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--scale", type=float, default=1.0)
     parser.add_argument("--cases", default="cold,blue1200,white1250")
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--zoo", help="instead, reconstruct zoo scenes (seeds: 1000-1015,1020) and score the points")
     args = parser.parse_args()
+    if args.zoo:
+        print(zoo_table(_seeds(args.zoo)))
+        return
     print("| case | points | off > 1 mm | of them on the plate | coverage of lit, seen pixels | of the parts | hint |")
     print("|---|---|---|---|---|---|---|")
     for case in args.cases.split(","):
