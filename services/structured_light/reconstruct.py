@@ -43,9 +43,14 @@ def _coordinate_step_limit(sequence: Sequence, axis: str) -> float:
 
 
 # Decoding thresholds for reconstruction: weak signals (grazing light) are kept and refined by
-# ``refine_low_snr`` instead of rejected; the outline margin is seeded only where there is no signal.
+# ``refine_low_snr`` instead of rejected; the outline margins are seeded only where there is no signal, or no
+# pattern (``outline_corrected``).
 _MIN_QUALITY = 0.3
 _MIN_MODULATION_OF_FULL_SCALE = 0.004  # 1 grey level at 8 bits
+# 4-neighbours whose coordinates differ by more than this many finest periods are both EDGE: a depth step,
+# where a pixel straddling the silhouette mixes two surfaces' fringes. One period keeps the steep field beside
+# a sphere's limb (half a period cost 0.7 % of the paper sphere) and drops the mixed pixels of issue 34's
+# tuning scene (docs/structured-light.md, "Points at projector shadows and depth steps").
 _JUMP_OF_PERIOD = 1.0
 
 
