@@ -170,3 +170,55 @@ def hot_part_scene(peak_c: float, optics: Optics | None = None, cooling_rate: fl
         Plane(center=[0.0, 0.0, 700.0], normal=[0.0, 0.0, -1.0], u_axis=[1.0, 0.0, 0.0], size=[600.0, 400.0],
               albedo=Albedo(base=0.4, texture_amplitude=0.1, feature_size=40.0, seed=2)),
     ])
+
+
+SHADOW_AIM = (0.0, 0.0, 650.0)
+SHADOW_BASELINE_MM = 260.0
+
+
+def shadow_rig(scale: float = 1.0) -> Rig:
+    """Projector 1024x768 (f 1150 px) at the origin, camera 1280x800 (f 1400 px, mild distortion) 260 mm to its
+    side, both aimed at (0, 0, 650); ``scale`` shrinks both images and focal lengths alike."""
+    def device(kind, width, height, focal, dist, centre):
+        w, h = round(width * scale), round(height * scale)
+        R = look_at_rotation(centre, SHADOW_AIM)
+        K = [[focal * scale, 0.0, (w - 1) / 2], [0.0, focal * scale, (h - 1) / 2], [0.0, 0.0, 1.0]]
+        return CameraModel(kind=kind, width=w, height=h, K=K, dist=dist, R=R.tolist(),
+                           t=(-R @ np.asarray(centre, np.float64)).tolist())
+
+    return Rig(devices={
+        "projector": device("projector", 1024, 768, 1150.0, [], (0.0, 0.0, 0.0)),
+        "camera": device("camera", 1280, 800, 1400.0, [-0.06, 0.09, 0.0004, -0.0002, 0.0],
+                         (SHADOW_BASELINE_MM, 0.0, 0.0)),
+    })
+
+
+def shadow_scene(peak_c: float | None = None, projector: str = "white",
+                 band_pass: tuple[float, float] | None = None) -> Scene:
+    """A capped cylinder (r 40 mm, 160 mm long, vertical) and a sphere (r 60 mm) before a plate tilted 25 degrees
+    about the vertical, 720..800 mm away, under room light (ambient 0.1): the parts cast projector shadows on
+    the plate that the camera sees, and the shadows are not dark. Surfaces: 0 cylinder, 1 sphere, 2 plate.
+    Glowing at ``peak_c`` (C, the cylinder 60 K and the sphere 80 K cooler away from their hot spots; the
+    plate 40 C) under ``hot_optics(projector, band_pass)`` when given. Issue 34's tuning scene."""
+    hot = peak_c is not None
+    part = Albedo(base=1 - HOT_STEEL_EMISSIVITY if hot else 0.5, texture_amplitude=0.03 if hot else 0.12,
+                  feature_size=25.0, seed=3)
+    tilt = np.radians(25.0)
+    normal = [-np.sin(tilt), 0.0, -np.cos(tilt)]
+    u_axis = [np.cos(tilt), 0.0, -np.sin(tilt)]
+    surfaces = [
+        Cylinder(center=[-75.0, 0.0, 600.0], axis=[0.0, 1.0, 0.0], radius=40.0, length=160.0, albedo=part),
+        Sphere(center=[85.0, 10.0, 640.0], radius=60.0, albedo=part),
+        Plane(center=[0.0, 0.0, 760.0], normal=normal, u_axis=u_axis, size=[700.0, 500.0],
+              albedo=Albedo(base=0.45, texture_amplitude=0.12, feature_size=35.0, seed=4)),
+    ]
+    if not hot:
+        return Scene(ambient=0.1, surfaces=surfaces)  # room light: the shadows are not dark
+    temperature = TemperatureScene(background=25.0, surfaces=[
+        SurfaceTemperature(base=peak_c - 60.0,
+                           spots=[Spot(center=[-75.0, 0.0, 560.0], radius=60.0, amplitude=60.0)]),
+        SurfaceTemperature(base=peak_c - 80.0,
+                           spots=[Spot(center=[85.0, 10.0, 580.0], radius=60.0, amplitude=80.0)]),
+        SurfaceTemperature(base=40.0),
+    ])
+    return Scene(ambient=0.1, temperature=temperature, optics=hot_optics(projector, band_pass), surfaces=surfaces)

@@ -16,7 +16,8 @@ import numpy as np
 from services.formats.sequence import AXES, Axis, Sequence
 
 _MAX_STRIPES_BETWEEN_PIXELS = 2  # more boundaries between two neighbours: a bit flips twice, not locatable
-_MAX_BOUNDARY_GAP_STRIPES = 2  # brackets may span one lost boundary
+_STRIPE_TOLERANCE = 1.5  # a result within a misread finest bit of the pixel's own stripe centre
+_MAX_BOUNDARY_GAP_STRIPES = 4  # brackets may span three lost boundaries of a washed-out fine plane
 _FIT_BOUNDARIES_PER_SIDE = 2  # a line through two boundaries each side: wider windows feel the curvature
 
 
@@ -149,7 +150,7 @@ def _subpixel_kernel(frames, plane_frame, plane_complement, plane_sign, referenc
                     determinant = sw * suu - su * su
                     if determinant > 0:
                         value = (suu * sc - su * suc) / determinant
-            if abs(value - (stripe_width * k + 0.5 * (stripe_width - 1))) <= stripe_width:
+            if abs(value - (stripe_width * k + 0.5 * (stripe_width - 1))) <= _STRIPE_TOLERANCE * stripe_width:
                 out[row, col] = value
 
 
@@ -199,9 +200,11 @@ def gray_subpixel(frames: np.ndarray, sequence: Sequence, axis: Axis, stripe_cen
     plane washed out by blur or grazing light count little. Past a run's last boundary its last interval is
     extrapolated by up to its own length. Scan lines are the camera rows, or the columns when
     they cross more stripe boundaries (stripes along the rows): for a rig whose baseline runs along the
-    coded axis, the image axis nearer the epipolar direction. The result is refused (NaN) where it leaves
-    the pixel's own stripe by more than a stripe (a misread bit), and boundaries that disagree with the
-    decoded stripes (no sign change, more than two stripes between neighbours) are not used.
+    coded axis, the image axis nearer the epipolar direction. Boundaries that disagree with the decoded
+    stripes (no sign change, more than two stripes between neighbours) are not used; a bracket may span up
+    to four stripes (the boundaries of a fine plane that blur or grazing light washes out are lost, those of
+    the coarser planes around them still bracket the pixel). The result is refused (NaN) where it lies more
+    than 1.5 stripes from the pixel's own stripe centre: further than a misread finest bit can put it.
 
     References
     ----------

@@ -20,6 +20,14 @@ ASSUMED_CAMERA_BLUR_PX = float(np.sqrt(0.7**2 + 1 / 12))
 _MARGIN_SIGMAS = 2.6
 _UNCORRECTED_MARGIN_SIGMAS = 4.0
 _OUTLINE_RAMP = 0.9
+# Within the margin of a pixel without a projected pattern (the pattern's outline, which ambient light or a
+# hot part's glow hides from the brightness), pixels whose modulation is below this share of the strongest
+# within the margin are dropped: a pixel a blur sigma inside a projector shadow keeps Phi(-1) = 16 % of its
+# lit neighbour's pattern, and its code. Chosen on the shadow tuning scene (experiments/shadow_scene.py,
+# docs/structured-light.md): it removes the leaks there while the paper sphere's terminator, where the
+# pattern fades by the cosine of incidence, keeps its coverage.
+SHADOW_CONTRAST = 0.9
+_STEP_COMPLETE = 0.7
 # The bias correction: the largest bias corrected rather than dropped (projector pixels), and the largest
 # fringe washout s^2 k^2 / 2 for which its first-order form holds.
 _MAX_CORRECTED_BIAS = 0.5
@@ -129,10 +137,26 @@ def _blur_samples(intensity: np.ndarray, rejection: np.ndarray, candidate: np.nd
     return (1.0 / slope[keep]).astype(np.float32)
 
 
+def _no_signal(rejection: np.ndarray) -> np.ndarray:
+    """uint8 mask, non-zero at the dark or saturated pixels."""
+    return cv2.inRange(rejection, int(Rejection.DARK), int(Rejection.SATURATED))
+
+
+def _no_pattern(rejection: np.ndarray) -> np.ndarray:
+    """uint8 mask, non-zero at the pixels without a projected pattern: dark, saturated, low modulation (a
+    projector shadow under ambient light or a hot part's glow) or saturated by the glow."""
+    return (cv2.inRange(rejection, int(Rejection.DARK), int(Rejection.LOW_MODULATION))
+            | (rejection == Rejection.GLOW_SATURATED).view(np.uint8))
+
+
+def _near(mask: np.ndarray, radius: int) -> np.ndarray:
+    """uint8 mask, non-zero within ``radius`` pixels (chessboard distance) of a non-zero pixel of ``mask``."""
+    return cv2.dilate(mask, np.ones((2 * radius + 1, 2 * radius + 1), np.uint8))
+
+
 def _no_signal_near(rejection: np.ndarray, radius: int) -> np.ndarray:
     """uint8 mask, non-zero within ``radius`` pixels (chessboard distance) of a dark or saturated pixel."""
-    no_signal = cv2.inRange(rejection, int(Rejection.DARK), int(Rejection.SATURATED))
-    return cv2.dilate(no_signal, np.ones((2 * radius + 1, 2 * radius + 1), np.uint8))
+    return _near(_no_signal(rejection), radius)
 
 
 def _checked(intensity: np.ndarray, rejection: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -192,9 +216,9 @@ def _log_intensity(intensity: np.ndarray, row: np.ndarray, col: np.ndarray) -> n
     return np.log(np.maximum(intensity[row, col].astype(np.float64), 0.5))
 
 
-def _distance_to_no_signal(rejection: np.ndarray, row: np.ndarray, col: np.ndarray, limit: int) -> np.ndarray:
-    """Chessboard distance from each pixel to the nearest other dark or saturated one; limit + 1 if further."""
-    no_signal = cv2.inRange(rejection, int(Rejection.DARK), int(Rejection.SATURATED))
+def _distance_to_no_signal(no_signal: np.ndarray, row: np.ndarray, col: np.ndarray, limit: int) -> np.ndarray:
+    """Chessboard distance from each pixel to the nearest other pixel of the uint8 mask ``no_signal``; limit + 1
+    if further."""
     distance = np.full(row.shape, limit + 1, np.int64)
     for reach in range(limit, 0, -1):  # nearest last
         ring = np.ones((2 * reach + 1, 2 * reach + 1), np.uint8)
@@ -216,16 +240,29 @@ def _brightest_within(intensity: np.ndarray, row: np.ndarray, col: np.ndarray, r
 
 # In numpy on the few pixels near the outline (np.nonzero of the mask, then arithmetic on their index
 # arrays), where whole-image gradients and dilations would cost more than the whole outline step may.
-def _outline_pixels(decoded, intensity, rejection, near, margin, reach, variance, wavenumber) -> np.ndarray:
+def _outline_pixels(decoded, intensity, no_signal, margin, reach, variance, wavenumber,
+                    modulation=None, no_pattern=None, drop_washed_out=False) -> np.ndarray:
     height, width = decoded.shape
     out = decoded.copy()
-    row, col = np.nonzero((near != 0) & np.isfinite(decoded))
-    distance = _distance_to_no_signal(rejection, row, col, reach)
+    row, col = np.nonzero((_near(no_signal, reach) != 0) & np.isfinite(decoded))
+    distance = _distance_to_no_signal(no_signal, row, col, reach)
     ramp = (distance > 1) & (distance <= margin)
     dropped = distance <= 1
     dropped[ramp] = intensity[row[ramp], col[ramp]] < _OUTLINE_RAMP * _brightest_within(
         intensity, row[ramp], col[ramp], margin).astype(np.float64)
     out[row[dropped], col[dropped]] = np.nan
+    if modulation is not None:
+        # The pattern's own outline (a projector shadow under room light or glow): within the margin of a
+        # pixel without a pattern, a pixel whose pattern is below a share of the strongest around it is
+        # mostly its lit neighbour's blurred pattern, carrying the neighbour's code.
+        # A step that completes within the margin (the strongest pattern within it is most of that within
+        # three times it), not the gradual fade of a terminator, where the pattern is the pixel's own.
+        leak_row, leak_col = np.nonzero((_near(no_pattern, margin) != 0) & np.isfinite(out))
+        strongest = _brightest_within(modulation, leak_row, leak_col, margin).astype(np.float64)
+        leaked = (modulation[leak_row, leak_col] < SHADOW_CONTRAST * strongest) & (
+            strongest >= _STEP_COMPLETE * _brightest_within(modulation, leak_row, leak_col, 3 * margin))
+        out[leak_row[leaked], leak_col[leaked]] = np.nan
+        dropped |= np.isnan(out[row, col])
     if variance == 0.0:
         return out
     keep = ~dropped & (distance <= reach) & (row > 0) & (col > 0) & (row < height - 1) & (col < width - 1)
@@ -234,6 +271,9 @@ def _outline_pixels(decoded, intensity, rejection, near, margin, reach, variance
     slope_y = 0.5 * (decoded[row + 1, col] - decoded[row - 1, col]).astype(np.float64)
     washout = 0.5 * variance * wavenumber * wavenumber * (slope_x * slope_x + slope_y * slope_y)
     keep = washout <= _MAX_WASHOUT  # NaN: a neighbour without a coordinate, left as decoded
+    if drop_washed_out:  # interpolated between Gray boundaries that the blur no longer locates
+        washed = ~keep & np.isfinite(washout)
+        out[row[washed], col[washed]] = np.nan
     row, col, slope_x, slope_y = row[keep], col[keep], slope_x[keep], slope_y[keep]
     log_x = 0.5 * (_log_intensity(intensity, row, col + 1) - _log_intensity(intensity, row, col - 1))
     log_y = 0.5 * (_log_intensity(intensity, row + 1, col) - _log_intensity(intensity, row - 1, col))
@@ -243,7 +283,8 @@ def _outline_pixels(decoded, intensity, rejection, near, margin, reach, variance
 
 
 def outline_corrected(coordinates: np.ndarray, intensity: np.ndarray, rejection: np.ndarray,
-                      period: float | None, blur_sigma: float | None) -> np.ndarray:
+                      period: float | None, blur_sigma: float | None,
+                      modulation: np.ndarray | None = None, boundaries: bool = False) -> np.ndarray:
     """Projector coordinates without the outline margin, corrected for the camera blur's bias beside it.
 
     Parameters
@@ -253,18 +294,32 @@ def outline_corrected(coordinates: np.ndarray, intensity: np.ndarray, rejection:
     intensity, rejection : (H, W) arrays
         ``DecodedCapture.intensity`` and ``DecodedCapture.rejection``.
     period : float or None
-        The finest fringe period in projector pixels; None for a Gray-code-only axis, which is not corrected.
+        The finest fringe period in projector pixels (for coordinates interpolated between Gray stripe
+        boundaries, that of the finest Gray plane, four stripes); None for Gray stripe centres, which are
+        not corrected.
     blur_sigma : float or None
         The camera's total point spread s in pixels (:func:`estimate_camera_blur`); None when unknown.
+    modulation : (H, W) array, optional
+        ``DecodedCapture.modulation``. When given, the outline is where the projected pattern ends: pixels
+        without a pattern (dark, saturated, low modulation, saturated by a hot part's glow) seed the margin,
+        and the ramp and the bias follow the modulation, the weight w of the pattern (Notes), rather than the
+        brightness, which holds ambient light and glow. A projector shadow under room light or beside a
+        glowing part is then an outline too: the pixels a pixel or two inside it carry only the blurred
+        pattern of their lit neighbour, and its code. Without it, only dark and saturated pixels count and
+        the brightness is the weight.
+    boundaries : bool
+        The coordinates were interpolated between Gray-code stripe boundaries (``gray_subpixel``): where the
+        finest plane washes out within the spread its boundaries are not located, so such pixels within the
+        corrected band are dropped rather than left as decoded.
 
     Returns
     -------
     coordinates : (H, W) float32 array
-        NaN at the neighbours of a dark or saturated pixel and, within the margin m = round(2.6 s) of one
-        (2 px for s = 0.76 px), where the brightness is below 90 % of the brightest pixel within m (the
-        blur ramp); within m + 1, the coordinate less its blur bias b, NaN where |b| > 0.5 projector px.
-        Without a period or a blur the bias is not corrected and the wider margin round(4 s) applies
-        (3 px for the assumed s).
+        NaN at the neighbours of a pixel without signal and, within the margin m = round(2.6 s) of one
+        (2 px for s = 0.76 px), where the weight is below 90 % of the largest within m (the blur ramp);
+        within m + 1, the coordinate less its blur bias b, NaN where |b| > 0.5 projector px. Without a
+        period or a blur the bias is not corrected and the wider margin round(4 s) applies (3 px for the
+        assumed s).
 
     Raises
     ------
@@ -276,15 +331,18 @@ def outline_corrected(coordinates: np.ndarray, intensity: np.ndarray, rejection:
     A camera pixel records sum_x g(x - x0) w(x) exp(i phi(x)) over its point spread g of variance s^2,
     with w the weight of the projected signal (albedo times the cosine of incidence, zero beyond the
     outline). For a locally linear phase that is the phase at the centroid of g w, and for a Gaussian g the
-    centroid lies exactly s^2 grad ln (g * w)(x0) from x0, where g * w is the recorded intensity I. The
-    coordinate is therefore biased by
+    centroid lies exactly s^2 grad ln (g * w)(x0) from x0, where g * w is the recorded modulation (or, without
+    ambient light, the intensity) I. The coordinate is therefore biased by
 
         b = s^2 grad ln I . grad x,
 
     which beside the outline, where I ramps into the dark, is large and measurable. The first-order form
     holds while the fringes are not washed out within the spread, s^2 k^2 / 2 <= 0.5 for the fringe
     wavenumber k = 2 pi |grad x| / P; at a steeper fringe field, and where a neighbour has no coordinate,
-    the pixel is left as decoded. Gradients are central differences.
+    the pixel is left as decoded. Gradients are central differences. A Gray-code stripe boundary located
+    where a blurred plane crosses its threshold is shifted alike: for w locally exp(a . x) the zero crossing
+    of g * (w sign) lies s^2 a from the true edge, so coordinates interpolated between such boundaries carry
+    the same b, while the finest plane (period four stripes) is not washed out.
 
     References
     ----------
@@ -308,5 +366,13 @@ def outline_corrected(coordinates: np.ndarray, intensity: np.ndarray, rejection:
     spread = ASSUMED_CAMERA_BLUR_PX if blur_sigma is None else float(blur_sigma)
     margin = max(1, round((_MARGIN_SIGMAS if corrected else _UNCORRECTED_MARGIN_SIGMAS) * spread))
     reach = margin + 1 if corrected else margin
-    return _outline_pixels(coordinates, intensity, rejection, _no_signal_near(rejection, reach), margin, reach,
-                           spread**2 if corrected else 0.0, 2 * np.pi / period if corrected else 0.0)
+    no_pattern = None
+    if modulation is not None:
+        modulation = np.ascontiguousarray(modulation, dtype=np.float32)
+        if modulation.shape != intensity.shape:
+            raise ValueError(f"modulation must have the shape of the intensity, {intensity.shape}; got "
+                             f"{modulation.shape}.")
+        no_pattern = _no_pattern(rejection)
+    return _outline_pixels(coordinates, intensity, _no_signal(rejection), margin, reach,
+                           spread**2 if corrected else 0.0, 2 * np.pi / period if corrected else 0.0,
+                           modulation, no_pattern, boundaries)

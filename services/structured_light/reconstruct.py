@@ -43,21 +43,31 @@ def _coordinate_step_limit(sequence: Sequence, axis: str) -> float:
 
 
 # Decoding thresholds for reconstruction: weak signals (grazing light) are kept and refined by
-# ``refine_low_snr`` instead of rejected; the outline margin is seeded only where there is no signal.
+# ``refine_low_snr`` instead of rejected; the outline margins are seeded only where there is no signal, or no
+# pattern (``outline_corrected``).
 _MIN_QUALITY = 0.3
 _MIN_MODULATION_OF_FULL_SCALE = 0.004  # 1 grey level at 8 bits
+# 4-neighbours whose coordinates differ by more than this many finest periods are both EDGE: a depth step,
+# where a pixel straddling the silhouette mixes two surfaces' fringes. One period keeps the steep field beside
+# a sphere's limb (half a period cost 0.7 % of the paper sphere) and drops the mixed pixels of issue 34's
+# tuning scene (docs/structured-light.md, "Points at projector shadows and depth steps").
+_JUMP_OF_PERIOD = 1.0
 
 
 def _refined_coordinates(decoded: DecodedCapture, sequence: Sequence, axis: str,
-                         noise: np.ndarray | None = None) -> np.ndarray:
+                         noise: np.ndarray | None = None, gray_boundaries: bool = True) -> np.ndarray:
     """The decoded coordinates off the outline and corrected for the camera blur's bias beside it, with
     weak-signal pixels refined when the axis is phase coded (against the per-pixel ``noise`` when given,
     else the capture's one noise level)."""
     groups = sequence.phase_groups(axis)
     blur = estimate_camera_blur(decoded.intensity, decoded.rejection)
+    # Gray-code-only coordinates interpolated between stripe boundaries are biased beside the outline like a
+    # phase; the finest Gray plane, four stripes long, then plays the finest period's part.
+    interpolated = not groups and gray_boundaries and bool(sequence.gray_planes(axis))
+    period = groups[-1].period if groups else float(4 << sequence.gray_planes(axis)[0].bit) if interpolated else None
     coordinates = outline_corrected(getattr(decoded, f"projector_{axis}"), decoded.intensity, decoded.rejection,
-                                    groups[-1].period if groups else None,
-                                    ASSUMED_CAMERA_BLUR_PX if blur is None else blur)
+                                    period, ASSUMED_CAMERA_BLUR_PX if blur is None else blur,
+                                    modulation=decoded.modulation, boundaries=interpolated)
     if not groups or len(groups[-1].frames) <= 3 or not np.isfinite(coordinates).any():
         return coordinates
     finest = groups[-1]
@@ -312,10 +322,13 @@ def reconstruct_scan(
         decoded, noise, report = decode_glowing(frames, sequence, saturation_level=full_scale,
                                                 min_quality=_MIN_QUALITY, window_sigma_px=glow_window_px)
     else:
+        groups = sequence.phase_groups(axis)
+        max_jump = _JUMP_OF_PERIOD * min(g.period for g in groups) if groups else np.inf
         decoded = decode(frames, sequence, min_quality=_MIN_QUALITY, edge_margin=0, saturation_level=full_scale,
+                         max_jump=max_jump,
                          min_modulation=_MIN_MODULATION_OF_FULL_SCALE * full_scale, gray_boundaries=gray_boundaries,
                          max_indirect=max_indirect, consistency=consistency)
-    coordinates = _refined_coordinates(decoded, sequence, axis, noise)
+    coordinates = _refined_coordinates(decoded, sequence, axis, noise, gray_boundaries)
     coordinates = remove_speckles(coordinates, _coordinate_step_limit(sequence, axis))
     points_map = triangulate_map(table, coordinates)
     return Reconstruction(cloud=_cloud(points_map, table.centre_world, coordinates, decoded), glow=report)

@@ -137,3 +137,40 @@ def test_a_cool_pixel_beside_a_lost_glowing_one_is_an_edge():
     assert np.all(decoded.rejection[rows, 100:102] == Rejection.EDGE)
     assert np.all(np.isnan(decoded.projector_x[rows, 100:102]))
     assert np.mean(decoded.rejection[rows, 103:250] == Rejection.VALID) > 0.99
+
+
+def test_a_part_the_glow_buries_gets_no_wrong_point_and_a_refusal_that_says_why():
+    """Issue 34's tuning scene at 1250 C under the unfiltered white projector (half size): the glow is 88 times
+    the pattern, so less than 1 % of the part may be kept; none of it may be off by 1 mm, and the scan says
+    why the part is missing."""
+    from device_gateway.drivers.simulated import SimulatedStation, SimulationOptions
+    from device_gateway.station import ExposureControl, Station
+    from services.formats.rig import Rig
+    from services.geometry.camera_model import CameraModel
+    from services.simulation.presets import shadow_rig, shadow_scene
+    from services.simulation.render import CameraEffects, ProjectorEffects
+    from services.simulation.thermal import ThermalEffects
+    from services.structured_light.reconstruct import reconstruct_scan
+
+    rig = shadow_rig(scale=0.5)
+    camera, projector = rig.devices["camera"], rig.devices["projector"]
+    thermal = CameraModel(kind="thermal", width=80, height=64, K=[[95.0, 0, 39.5], [0, 95.0, 31.5], [0, 0, 1]],
+                          dist=[], R=np.eye(3).tolist(), t=[0.0, 0.0, 0.0])  # not scored
+    scene = shadow_scene(1250.0, "white")
+    sequence, patterns = generate_sequence(projector.width, projector.height, closing_black=True)
+    options = SimulationOptions(camera_effects=CameraEffects(blur_sigma=0.7), projector_effects=ProjectorEffects(
+        blur_sigma=0.8), thermal_effects=ThermalEffects(supersample=1))
+    simulated = SimulatedStation(Rig(devices={**rig.devices, "thermal": thermal}), scene, scene.temperature, options)
+    station = Station(simulated.camera, simulated.thermal, simulated.projector, settle_s=0.0)
+    capture = station.capture(sequence, patterns, exposure=ExposureControl(mode="auto"))
+    scan = reconstruct_scan(capture.frames, sequence, camera, projector,
+                            saturation_level=capture.exposure["saturation_level"])
+    truth = simulated.view().truth
+    cloud = scan.cloud
+    u, v = np.rint(cloud["u"]).astype(int), np.rint(cloud["v"]).astype(int)
+    error = np.linalg.norm(np.column_stack([cloud["x"], cloud["y"], cloud["z"]]) - truth.points[v, u], axis=1)
+    on_part = np.isin(truth.surface[v, u], (0, 1))
+    part_pixels = np.isin(truth.surface, (0, 1)) & truth.lit
+    assert on_part.sum() < 0.01 * part_pixels.sum()
+    assert not np.any(error[on_part] > 1.0)
+    assert "blue projector and a band-pass filter" in scan.glow.hint

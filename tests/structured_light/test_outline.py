@@ -121,3 +121,54 @@ def test_bad_input_is_refused():
         outline_corrected(image, image, np.zeros((10, 10), np.uint8), 16.0, -0.7)
     with pytest.raises(ValueError, match="positive number of projector pixels"):
         outline_corrected(image, image, np.zeros((10, 10), np.uint8), 0.0, 0.7)
+
+
+def _shadow_capture(sigma, fade_px):
+    """A plate under room light (ambient 40 grey levels) whose projected fringes end at column 50.3, in a step
+    (a projector shadow, ``fade_px`` 0) or fading in over ``fade_px`` pixels (a terminator); the coordinate
+    decoded from the blurred fringes, the pattern-less pixels LOW_MODULATION (not dark: the room lights them)."""
+    u, v = _subpixel_grid(40, 100)
+    lit = (u > 50.3) if fade_px == 0 else np.clip((u - 50.3) / fade_px, 0, 1)
+    lit = lit.astype(np.float32)
+    period, slope = 16.0, 0.8
+    truth_samples = 300.0 + slope * u
+    fringe = lit * np.exp(2j * np.pi * truth_samples / period)
+    signal = _blurred(fringe.real.astype(np.float32), sigma) + 1j * _blurred(fringe.imag.astype(np.float32), sigma)
+    modulation = (FULL_SCALE * 0.35 * np.abs(signal)).astype(np.float32)
+    intensity = (40.0 + FULL_SCALE * 0.35 * _blurred(lit, sigma)).astype(np.float32)
+    cols = np.meshgrid(np.arange(100.0), np.arange(40.0))[0]
+    truth = 300.0 + slope * cols
+    decoded = truth + period / (2 * np.pi) * np.angle(signal * np.exp(-2j * np.pi * truth / period))
+    rejection = np.where(modulation < 0.004 * FULL_SCALE, Rejection.LOW_MODULATION, 0).astype(np.uint8)
+    decoded[rejection != 0] = np.nan
+    return decoded.astype(np.float32), intensity, modulation, rejection, cols, period
+
+
+def test_a_projector_shadow_under_room_light_keeps_no_leaked_code():
+    """Pixels inside the shadow that only carry their lit neighbour's blurred fringes (and code) are dropped
+    when the modulation is given; by the brightness alone, which the room light holds up, they were kept."""
+    sigma = 0.7
+    decoded, intensity, modulation, rejection, cols, period = _shadow_capture(sigma, 0)
+    inside_shadow = cols < 50.3
+    leaked = inside_shadow & np.isfinite(decoded)
+    assert leaked.any()  # the blur leaks a pattern into the shadow: the failure this guards against
+    by_brightness = outline_corrected(decoded, intensity, rejection, period, _total_spread(sigma))
+    assert np.isfinite(by_brightness[inside_shadow]).any()
+    corrected = outline_corrected(decoded, intensity, rejection, period, _total_spread(sigma), modulation=modulation)
+    assert not np.isfinite(corrected[inside_shadow]).any()
+    assert np.isfinite(corrected[:, 56:]).all()  # the lit plate beyond the margin stays
+
+
+def test_a_terminators_fade_is_not_taken_for_a_shadow():
+    """Light fading in over 30 px keeps its pattern, and its code, down to a pixel beside the pattern-less ones."""
+    sigma = 0.7
+    decoded, intensity, modulation, rejection, cols, period = _shadow_capture(sigma, 30.0)
+    corrected = outline_corrected(decoded, intensity, rejection, period, _total_spread(sigma), modulation=modulation)
+    faded_in = (cols > 56) & (cols < 80)
+    assert np.isfinite(corrected[faded_in]).mean() >= 0.99
+
+
+def test_modulation_of_another_shape_is_refused():
+    image = np.zeros((10, 10), np.float32)
+    with pytest.raises(ValueError, match="modulation"):
+        outline_corrected(image, image, np.zeros((10, 10), np.uint8), 16.0, 0.7, modulation=np.zeros((9, 10)))
