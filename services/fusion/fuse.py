@@ -292,11 +292,16 @@ def _sample_view(count: int, points_of: Rows, normals_of: Rows, view: ThermalVie
             seen &= within_tolerance(chunk_index, chunk_depth, nearest,
                                      depth_tolerance(gradient, depth_tolerance_mm, guard_footprints))
         # the footprint sees this surface alone: nothing farther (background, empty space) within its reach
+        (bilinear_far, bilinear_footprints), (nearest_far, nearest_footprints) = stencils
         at = np.maximum(chunk_index, 0)
-        bilinear_pure, nearest_pure = (
-            farthest[at] <= chunk_depth + depth_tolerance(gradient, depth_tolerance_mm, footprints)
-            for farthest, footprints in stencils)
-        usable = np.flatnonzero(seen & (bilinear_pure | nearest_pure) & (angle <= max_angle))
+        reach = depth_tolerance(gradient, depth_tolerance_mm, bilinear_footprints)
+        reach += chunk_depth
+        bilinear_pure = bilinear_far[at] <= reach  # False for +inf (empty space within the footprint)
+        pure = bilinear_pure.copy()
+        edge = np.flatnonzero(seen & ~bilinear_pure)  # few: the band along depth edges
+        pure[edge] = nearest_far[at[edge]] <= chunk_depth[edge] + depth_tolerance(gradient[edge], depth_tolerance_mm,
+                                                                                  nearest_footprints)
+        usable = np.flatnonzero(seen & pure & (angle <= max_angle))
         temperature = np.full(len(angle), np.nan)
         weight = np.zeros(len(angle))
         if len(usable):
