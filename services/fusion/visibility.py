@@ -94,7 +94,7 @@ def background_depth(buffer: np.ndarray, radius_px: int) -> np.ndarray:
 
     ``buffer`` is the raw z-buffer (+inf where no point fell). Empty pixels that a morphological
     closing of the occupied pixels by the window fills (gaps between the splats of a cloud sparser
-    than the view, narrower than the window) take the nearest depth around them; empty pixels
+    than the view, narrower than the window) add nothing to the maximum; empty pixels
     outside the cloud's outline stay +inf, so that a window over a silhouette sees the empty space
     (or the farther surface) behind it, and so do pixels beyond the image's edge.
     """
@@ -104,7 +104,8 @@ def background_depth(buffer: np.ndarray, radius_px: int) -> np.ndarray:
     # nothing beyond the image's edge: a strip of background there is no gap
     closed = cv2.morphologyEx(occupied.astype(np.uint8), cv2.MORPH_CLOSE, square, borderType=cv2.BORDER_CONSTANT,
                               borderValue=0).astype(bool)
-    filled = np.where(occupied, buffer, np.where(closed, nearest_depth_around(buffer, radius_px), np.inf))
+    filled = buffer.copy()
+    filled[closed & ~occupied] = 0.0  # a gap adds nothing to the maximum: its neighbours' depths stand for it
     # a window maximum (OpenCV's dilation); beyond the image is unknown, so +inf (what a pixel at the image's
     # edge mixes in from outside it is not in the image)
     return cv2.dilate(np.ascontiguousarray(filled), square, borderType=cv2.BORDER_CONSTANT, borderValue=np.inf)
