@@ -549,3 +549,72 @@ def write_forging_part(directory, segments: int = 180) -> Path:
     path = directory / "part.json"
     path.write_text(json.dumps(part, indent=2))
     return path
+
+
+def _split_polyline(points: list[tuple[float, float]], max_edge_mm: float, closed: bool) -> np.ndarray:
+    """The polyline's vertices with every edge longer than ``max_edge_mm`` split evenly (closed: last to first too)."""
+    corners = [np.asarray(p, dtype=np.float64) for p in points]
+    if closed:
+        corners.append(corners[0])
+    result = [corners[0]]
+    for a, b in zip(corners[:-1], corners[1:]):
+        pieces = max(1, int(np.ceil(np.linalg.norm(b - a) / max_edge_mm)))
+        result.extend(np.linspace(a, b, pieces + 1)[1:])
+    return np.array(result[:-1] if closed else result)
+
+
+def revolved_loop_mesh(profile: list[tuple[float, float]], segments: int = 180,
+                       max_edge_mm: float = 5.0) -> tuple[np.ndarray, np.ndarray]:
+    """A closed mesh of revolution about x with a hole along the axis (a tube, a ring, a washer).
+
+    ``profile`` is a closed polygon of (x, r) points, every r > 0 (the last point joins the first);
+    vertices (V, 3), outward triangles (T, 3). Profile edges longer than ``max_edge_mm`` are split.
+    """
+    loop = _split_polyline(profile, max_edge_mm, closed=True)
+    if len(loop) < 3 or np.any(loop[:, 1] <= 0):
+        raise ValueError("a ring's profile is a closed polygon of at least 3 points off the axis (every r > 0)")
+    angles = np.arange(segments) * 2 * np.pi / segments
+    vertices = np.stack([np.column_stack([np.full(segments, x), r * np.cos(angles), r * np.sin(angles)])
+                         for x, r in loop]).reshape(-1, 3)
+    j = np.arange(segments)
+    k = (j + 1) % segments
+    triangles = []
+    for ring in range(len(loop)):
+        following = (ring + 1) % len(loop)
+        a, b = ring * segments + j, ring * segments + k
+        c, d = following * segments + j, following * segments + k
+        triangles += [np.column_stack([a, b, d]), np.column_stack([a, d, c])]
+    triangles = np.concatenate(triangles).astype(np.int32)
+    corners = vertices[triangles]
+    if np.einsum("ij,ij->i", corners[:, 0], np.cross(corners[:, 1], corners[:, 2])).sum() < 0:
+        triangles = triangles[:, ::-1].copy()  # the loop ran the other way round: turn the faces outward
+    return vertices, triangles
+
+
+def box_mesh(size: tuple[float, float, float], max_edge_mm: float = 5.0) -> tuple[np.ndarray, np.ndarray]:
+    """A closed box of ``size`` (x, y, z extents, mm) centred at the origin, each face a grid of triangles
+    no longer than about ``max_edge_mm``; vertices shared along the edges (V, 3), outward triangles (T, 3)."""
+    half = np.asarray(size, dtype=np.float64) / 2
+    if half.shape != (3,) or np.any(half <= 0):
+        raise ValueError(f"a box's size is three positive extents; got {size}")
+    vertices, triangles = [], []
+    for axis in range(3):
+        u_axis, v_axis = (axis + 1) % 3, (axis + 2) % 3
+        nu = max(1, int(np.ceil(2 * half[u_axis] / max_edge_mm)))
+        nv = max(1, int(np.ceil(2 * half[v_axis] / max_edge_mm)))
+        grid_u, grid_v = np.meshgrid(np.linspace(-half[u_axis], half[u_axis], nu + 1),
+                                     np.linspace(-half[v_axis], half[v_axis], nv + 1), indexing="ij")
+        for side in (-1.0, 1.0):
+            face = np.zeros((nu + 1, nv + 1, 3))
+            face[..., axis], face[..., u_axis], face[..., v_axis] = side * half[axis], grid_u, grid_v
+            first = sum(len(v) for v in vertices)
+            vertices.append(face.reshape(-1, 3))
+            index = first + np.arange((nu + 1) * (nv + 1)).reshape(nu + 1, nv + 1)
+            a, b, c, d = index[:-1, :-1].ravel(), index[1:, :-1].ravel(), index[:-1, 1:].ravel(), index[1:, 1:].ravel()
+            quads = np.concatenate([np.column_stack([a, b, d]), np.column_stack([a, d, c])])
+            triangles.append(quads if side > 0 else quads[:, ::-1])
+    vertices = np.concatenate(vertices)
+    # weld the copies of each edge vertex so that the box is closed (bumps then move shared vertices alike)
+    unique, inverse = np.unique(np.round(vertices, 9), axis=0, return_inverse=True)
+    triangles = inverse.reshape(-1)[np.concatenate(triangles)].astype(np.int32)
+    return unique, triangles

@@ -81,8 +81,7 @@ def cast_rays(scene: Scene, origins: np.ndarray, directions: np.ndarray, t_min: 
     elif origins.shape != directions.shape:
         raise ValueError(f"origins must have shape (3,) or {directions.shape}; got {origins.shape}.")
 
-    meshes = {index: _build_bvh(surface.triangles()) for index, surface in enumerate(scene.surfaces)
-              if isinstance(surface, Mesh)}
+    meshes = {index: _mesh_bvh(surface) for index, surface in enumerate(scene.surfaces) if isinstance(surface, Mesh)}
     count = len(directions)
     distance = np.full(count, np.inf)
     normals = np.full((count, 3), np.nan)
@@ -108,6 +107,23 @@ def cast_rays(scene: Scene, origins: np.ndarray, directions: np.ndarray, t_min: 
     facing_away = np.einsum("ij,ij->i", normals, directions) > 0
     normals[facing_away] *= -1
     return Hits(distance=distance, points=points, normals=normals, surface=surface)
+
+
+_BVH_KEPT = 8
+_bvh_cache: dict[int, tuple[Mesh, _Bvh]] = {}
+
+
+def _mesh_bvh(mesh: Mesh) -> _Bvh:
+    """The mesh's BVH, built once per mesh object (a render casts several batches of rays at one scene, and
+    building takes seconds for 10^5 triangles); the last few are kept, with the mesh so that its id stays its own."""
+    kept = _bvh_cache.get(id(mesh))
+    if kept is not None and kept[0] is mesh:
+        return kept[1]
+    bvh = _build_bvh(mesh.triangles())
+    if len(_bvh_cache) >= _BVH_KEPT:
+        _bvh_cache.pop(next(iter(_bvh_cache)))
+    _bvh_cache[id(mesh)] = (mesh, bvh)
+    return bvh
 
 
 def _bounding_sphere(shape) -> tuple[np.ndarray, float]:
