@@ -11,7 +11,7 @@ from scipy.spatial import cKDTree
 from services.formats.part import Feature, Part
 from services.inspection.alignment import Alignment, align_nominal
 
-from services.inspection.cold_equivalent import NEIGHBOURHOOD_MM, cold_equivalent
+from services.inspection.cold_equivalent import NEIGHBOURHOOD_MM, NEIGHBOURHOOD_SAMPLES, cold_equivalent
 from services.inspection.deviation import (MIN_DEFECT_CELLS, MIN_DEFECT_POINTS, cell_means, find_defects,
                                           summarize_deviation, surface_deviation, surface_verdict)
 from services.inspection.distance import feature_distance
@@ -225,11 +225,12 @@ def inspect_field(*, field: dict[str, np.ndarray], part: Part | PreparedPart) ->
 
 
 def _beside(points: np.ndarray, hot: np.ndarray, unknown: np.ndarray) -> np.ndarray:
-    """The ``unknown`` points within ``NEIGHBOURHOOD_MM`` of a ``hot`` one (at most 50 000 of those, evenly drawn)."""
+    """The ``unknown`` points within ``NEIGHBOURHOOD_MM`` of a ``hot`` one (of ``NEIGHBOURHOOD_SAMPLES`` of those,
+    evenly drawn)."""
     beside = np.zeros(len(points), dtype=bool)
     wanted = np.flatnonzero(unknown)
     if len(wanted):
-        tree = cKDTree(points[even_subset(np.flatnonzero(hot), 50000)])
+        tree = cKDTree(points[even_subset(np.flatnonzero(hot), NEIGHBOURHOOD_SAMPLES)])
         beside[wanted] = np.isfinite(tree.query(points[wanted], distance_upper_bound=NEIGHBOURHOOD_MM)[0])
     return beside
 
@@ -292,7 +293,10 @@ def _surface_result(in_part: np.ndarray, deviation: np.ndarray, temperature: np.
         reach, mean_t, float(np.hypot(u_t, definition.uncertainty.fallback_temperature_k)), part.material,
         material_fraction, noise, systematic)["expanded"]
     if len(cells.mean):
-        estimated = cell_means(in_part, fallback.astype(np.float64)).mean > 0
+        # the cells holding a point of estimated temperature (every part point is binned: its deviation is finite)
+        estimated = np.zeros(len(cells.keys), dtype=bool)
+        if fallback.any():
+            estimated[np.searchsorted(cells.keys, np.unique(cells.point_keys[fallback]))] = True
         verdict = surface_verdict(cells, tolerance, np.where(estimated, fallback_uncertainty, uncertainty))
     else:
         verdict = "NotDecidable"
