@@ -60,7 +60,7 @@ class Inspection:
     deviation : (N,) float32 array
         Signed deviation from the nominal surface, mm (NaN for points not of the part).
     fallback : (N,) bool array
-        Part points whose temperature came from the part's trend, not their own.
+        Part points whose temperature came from their neighbourhood (or the part's trend), not their own.
     alignment : Alignment
         Part frame to world.
     """
