@@ -18,8 +18,8 @@ from services.geometry.camera_model import CameraModel
 from services.geometry.distortion import distorted_pixels, opencv_distortion_terms
 from services.geometry.rigid import rigid_transform
 from services.fusion.visibility import (
-    SAMPLE_FOOTPRINTS, depth_gradient, depth_tolerance, fill_empty_pixels, nearest_depth_around,
-    nearest_pixel_index, splat_nearest, within_tolerance,
+    SAMPLE_FOOTPRINTS, background_depth, depth_gradient, depth_tolerance, fill_empty_pixels, footprint_radius,
+    nearest_depth_around, nearest_pixel_index, splat_nearest, within_tolerance,
 )
 from services.geometry.camera import project_points
 from services.structured_light.row_bands import map_bands, row_bands
@@ -27,6 +27,9 @@ from services.structured_light.row_bands import map_bands, row_bands
 DEFAULT_MAX_VIEW_ANGLE_DEG = 75.0
 DEFAULT_DEPTH_TOLERANCE_MM = 2.0
 DEFAULT_OCCLUSION_MARGIN_PX = 6
+DEFAULT_THERMAL_BLUR_PX = 1.0
+"""The thermal optics' Gaussian blur (sigma, pixels) the mixed-pixel test assumes: a conservative value for
+uncooled long-wave cameras (the simulator's is 0.6); give the camera's own where it is known."""
 POINT_CHUNK = 1 << 16
 """Points per chunk of the per-point passes."""
 
@@ -191,6 +194,7 @@ def sample_view(
     max_view_angle_deg: float = DEFAULT_MAX_VIEW_ANGLE_DEG,
     depth_tolerance_mm: float = DEFAULT_DEPTH_TOLERANCE_MM,
     occlusion_margin_px: int = DEFAULT_OCCLUSION_MARGIN_PX,
+    thermal_blur_px: float = DEFAULT_THERMAL_BLUR_PX,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Temperature of each point in one thermal view, averaged over the view's frames.
 
@@ -200,7 +204,8 @@ def sample_view(
     -------
     temperature : (N,) float64 array
         NaN where the view does not see the point, sees it beyond the angle
-        limit, or the frames have no finite value there.
+        limit, its pixels mix its surface with another (see :func:`fuse_temperature`),
+        or the frames have no finite value there.
     view_angle : (N,) float64 array
         Radians, for points the view sees (in the image and not occluded); NaN
         otherwise.
@@ -217,7 +222,7 @@ def sample_view(
         temperature[rows], angle[rows], weight[rows] = chunk_temperature, chunk_angle, chunk_weight
 
     _sample_view(len(points), rows_of(points), rows_of(normals), view, max_view_angle_deg, depth_tolerance_mm,
-                 occlusion_margin_px, keep)
+                 occlusion_margin_px, keep, thermal_blur_px)
     return temperature, angle, weight
 
 
@@ -232,7 +237,8 @@ def rows_of(array: np.ndarray) -> Rows:
 
 
 def _sample_view(count: int, points_of: Rows, normals_of: Rows, view: ThermalView, max_view_angle_deg: float,
-                 depth_tolerance_mm: float, occlusion_margin_px: int, result: _ChunkResult) -> None:
+                 depth_tolerance_mm: float, occlusion_margin_px: int, result: _ChunkResult,
+                 thermal_blur_px: float = DEFAULT_THERMAL_BLUR_PX) -> None:
     """:func:`sample_view` of ``count`` points chunk by chunk: ``result(rows, temperature, view_angle, weight)``
     for each chunk of rows (called on the pool's threads; each chunk's rows are its own)."""
     device = view.device
@@ -261,7 +267,13 @@ def _sample_view(count: int, points_of: Rows, normals_of: Rows, view: ThermalVie
     map_bands(project, chunks)
     buffer = np.full(device.height * device.width, np.inf)
     splat_nearest(buffer, index, depth)
-    buffer = fill_empty_pixels(buffer.reshape(device.height, device.width))
+    buffer = buffer.reshape(device.height, device.width)
+    # the bilinear stencil's footprint, and the nearest pixel's alone (used where the first is mixed)
+    stencils = []
+    for stencil_px in (1.0, 0.0):
+        reach = footprint_radius(thermal_blur_px, stencil_px)
+        stencils.append((background_depth(buffer, reach).ravel(), SAMPLE_FOOTPRINTS + np.sqrt(2) * reach))
+    buffer = fill_empty_pixels(buffer)
     # the square window reaches margin * sqrt(2) pixels away along its diagonals
     guard_footprints = SAMPLE_FOOTPRINTS + np.sqrt(2) * occlusion_margin_px
     nearest = nearest_depth_around(buffer, occlusion_margin_px).ravel() if occlusion_margin_px > 0 else None
@@ -279,12 +291,27 @@ def _sample_view(count: int, points_of: Rows, normals_of: Rows, view: ThermalVie
         if nearest is not None:
             seen &= within_tolerance(chunk_index, chunk_depth, nearest,
                                      depth_tolerance(gradient, depth_tolerance_mm, guard_footprints))
-        usable = np.flatnonzero(seen & (angle <= max_angle))
+        # the footprint sees this surface alone: nothing farther (background, empty space) within its reach
+        (bilinear_far, bilinear_footprints), (nearest_far, nearest_footprints) = stencils
+        at = np.maximum(chunk_index, 0)
+        reach = depth_tolerance(gradient, depth_tolerance_mm, bilinear_footprints)
+        reach += chunk_depth
+        bilinear_pure = bilinear_far[at] <= reach  # False for +inf (empty space within the footprint)
+        pure = bilinear_pure.copy()
+        edge = np.flatnonzero(seen & ~bilinear_pure)  # few: the band along depth edges
+        pure[edge] = nearest_far[at[edge]] <= chunk_depth[edge] + depth_tolerance(gradient[edge], depth_tolerance_mm,
+                                                                                  nearest_footprints)
+        usable = np.flatnonzero(seen & pure & (angle <= max_angle))
         temperature = np.full(len(angle), np.nan)
         weight = np.zeros(len(angle))
         if len(usable):
             samples = _bilinear(view.frames, pixels[0, rows][usable], pixels[1, rows][usable], chunk_depth[usable],
                                 buffer, tolerance[usable])
+            alone = ~bilinear_pure[usable]
+            if alone.any():  # the nearest pixel's footprint is pure where the stencil's is not
+                nearest_values = view.frames.reshape(len(view.frames), -1)[:, chunk_index[usable[alone]]]
+                # NaN stays NaN: a saturated corner on the point's own surface leaves it without a temperature
+                samples[:, alone] = np.where(np.isfinite(samples[:, alone]), nearest_values, np.nan)
             if len(samples) == 1:
                 frames_seen = np.isfinite(samples[0]).astype(np.float64)
                 temperature[usable] = samples[0]
@@ -307,6 +334,7 @@ def fuse_temperature(
     max_view_angle_deg: float = DEFAULT_MAX_VIEW_ANGLE_DEG,
     depth_tolerance_mm: float = DEFAULT_DEPTH_TOLERANCE_MM,
     occlusion_margin_px: int = DEFAULT_OCCLUSION_MARGIN_PX,
+    thermal_blur_px: float = DEFAULT_THERMAL_BLUR_PX,
 ) -> TemperatureField:
     """Temperature of every cloud point from calibrated thermal views, fused by view-angle weight.
 
@@ -331,6 +359,9 @@ def fuse_temperature(
         are treated as unseen (0 to disable): it guards against occluders the
         cloud lacks (e.g. parts in the projector's shadow) and against the
         optics' blur mixing an occluder's radiance into the pixels beside it.
+    thermal_blur_px : float
+        The thermal optics' Gaussian blur, sigma in pixels: it sets the reach of
+        the mixed-pixel test (:func:`services.fusion.visibility.footprint_radius`).
 
     Returns
     -------
@@ -345,7 +376,15 @@ def fuse_temperature(
     z-buffer of the cloud at p (see :func:`services.fusion.visibility.depth_buffer`),
     so that a hidden point gets NaN rather than its occluder's temperature, and
     no surface nearer by more than the slope-scaled tolerance (over the
-    window's reach) lies within the occlusion margin (a guard band at depth discontinuities [2]_). Its
+    window's reach) lies within the occlusion margin (a guard band at depth discontinuities [2]_).
+    It gets a temperature only where its thermal footprint sees its surface alone:
+    no z-buffer depth (and no empty pixel outside the cloud's outline) farther
+    than its own depth plus the slope tolerance over the footprint's reach lies
+    within r = ceil(1.5 + 2.5 sigma_blur) pixels of its nearest pixel
+    (:func:`services.fusion.visibility.background_depth`); where that fails but
+    holds within ceil(0.5 + 2.5 sigma_blur), the nearest pixel's value is used
+    alone. A pixel on the part's silhouette mixes the part's radiance with the
+    background's and reads a temperature of neither. Otherwise its
     temperature is the depth-aware bilinear sample at p, averaged over the
     view's frames, and views are fused by
 
@@ -369,13 +408,14 @@ def fuse_temperature(
     if points.ndim != 2 or points.shape[1] != 3 or normals.shape != points.shape:
         raise ValueError(f"points and normals must both be (N, 3); got {points.shape} and {normals.shape}.")
     return fuse_rows(len(points), rows_of(points), rows_of(normals), views, max_view_angle_deg, depth_tolerance_mm,
-                     occlusion_margin_px)
+                     occlusion_margin_px, thermal_blur_px)
 
 
 def fuse_rows(count: int, points_of: Rows, normals_of: Rows, views: Sequence[ThermalView],
               max_view_angle_deg: float = DEFAULT_MAX_VIEW_ANGLE_DEG,
               depth_tolerance_mm: float = DEFAULT_DEPTH_TOLERANCE_MM,
-              occlusion_margin_px: int = DEFAULT_OCCLUSION_MARGIN_PX) -> TemperatureField:
+              occlusion_margin_px: int = DEFAULT_OCCLUSION_MARGIN_PX,
+              thermal_blur_px: float = DEFAULT_THERMAL_BLUR_PX) -> TemperatureField:
     """:func:`fuse_temperature` of ``count`` points given chunk by chunk (e.g. stacked from a cloud's
     coordinate columns, without an (N, 3) copy of the whole cloud)."""
     if occlusion_margin_px < 0:
@@ -396,7 +436,7 @@ def fuse_rows(count: int, points_of: Rows, normals_of: Rows, views: Sequence[The
 
     for view in views:
         _sample_view(count, points_of, normals_of, view, max_view_angle_deg, depth_tolerance_mm, occlusion_margin_px,
-                     accumulate)
+                     accumulate, thermal_blur_px)
     fused = np.empty(count, dtype=np.float32)
     fused_angle = np.empty(count, dtype=np.float32)
 

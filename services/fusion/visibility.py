@@ -69,6 +69,48 @@ def fill_empty_pixels(buffer: np.ndarray) -> np.ndarray:
     return buffer
 
 
+TAIL_SIGMAS = 2.5
+"""How far the optics' blur reaches, in sigmas: a Gaussian puts 0.6 % of its weight beyond 2.5 sigma
+(one side), which on a 1000 degC part beside a cold background moves a long-wave reading by about 5 K,
+half the calibration term of the uncertainty budget."""
+
+
+def footprint_radius(blur_sigma_px: float, stencil_px: float = 1.0) -> int:
+    """Half-width (pixels, a square window about a point's nearest pixel) of the scene area whose radiance
+    reaches the point's temperature sample.
+
+    The sample mixes pixels up to ``stencil_px`` from the nearest one (1 for the bilinear stencil, 0
+    for the nearest pixel alone), each integrates its own area (half a pixel more) and the optics'
+    Gaussian blur spreads radiance over ``TAIL_SIGMAS`` sigma more: r = ceil(stencil + 0.5 + 2.5 sigma).
+    """
+    if not blur_sigma_px >= 0:
+        raise ValueError(f"The thermal blur must be a non-negative number of pixels; got {blur_sigma_px}.")
+    return int(np.ceil(stencil_px + 0.5 + TAIL_SIGMAS * blur_sigma_px - 1e-9))
+
+
+def background_depth(buffer: np.ndarray, radius_px: int) -> np.ndarray:
+    """Largest z-buffer depth within ``radius_px`` pixels (a square window) of each pixel; +inf where the
+    window reaches a pixel on which no surface of the cloud lies.
+
+    ``buffer`` is the raw z-buffer (+inf where no point fell). Empty pixels that a morphological
+    closing of the occupied pixels by the window fills (gaps between the splats of a cloud sparser
+    than the view, narrower than the window) add nothing to the maximum; empty pixels
+    outside the cloud's outline stay +inf, so that a window over a silhouette sees the empty space
+    (or the farther surface) behind it, and so do pixels beyond the image's edge.
+    """
+    size = 2 * int(radius_px) + 1
+    square = np.ones((size, size), np.uint8)
+    occupied = np.isfinite(buffer)
+    # nothing beyond the image's edge: a strip of background there is no gap
+    closed = cv2.morphologyEx(occupied.astype(np.uint8), cv2.MORPH_CLOSE, square, borderType=cv2.BORDER_CONSTANT,
+                              borderValue=0).astype(bool)
+    filled = buffer.copy()
+    filled[closed & ~occupied] = 0.0  # a gap adds nothing to the maximum: its neighbours' depths stand for it
+    # a window maximum (OpenCV's dilation); beyond the image is unknown, so +inf (what a pixel at the image's
+    # edge mixes in from outside it is not in the image)
+    return cv2.dilate(np.ascontiguousarray(filled), square, borderType=cv2.BORDER_CONSTANT, borderValue=np.inf)
+
+
 def depth_gradient(
     points_device: np.ndarray, normals_device: np.ndarray, focal_px: float, max_view_angle: float
 ) -> np.ndarray:

@@ -5,12 +5,18 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from services.inspection.materials import Material
 from services.inspection.point_rows import column_mean, finite_rows
 
 _TREND_SAMPLES = 20000
 _MIN_SCALE_K = 0.01  # below any camera's NETD: an exactly uniform field keeps its weights
+NEIGHBOURHOOD_MM = 25.0
+"""Radius of the neighbourhood whose own temperatures stand in for a point without one."""
+NEIGHBOURS = 8
+NEIGHBOURHOOD_SAMPLES = 10000
+"""Points with a temperature searched for neighbours, evenly drawn (about one per 4 mm^2 of a billet's view)."""
 
 
 @dataclass(frozen=True)
@@ -24,7 +30,7 @@ class ColdGeometry:
     temperature : (N,) array
         The temperature used at each point, degrees C (its own, or the fallback).
     fallback : (N,) bool array
-        Points without a finite temperature of their own, given the trend's.
+        Points without a finite temperature of their own, given their neighbourhood's (or the trend's).
     strain : (N,) array
         Mean thermal strain along each point's segment from the centre.
     centre : (3,) array
@@ -69,6 +75,35 @@ def temperature_trend(points: np.ndarray, temperature: np.ndarray, iterations: i
     return coefficients
 
 
+def neighbourhood_temperature(points: np.ndarray, temperature: np.ndarray, trend: np.ndarray, wanted: np.ndarray,
+                              radius_mm: float = NEIGHBOURHOOD_MM, neighbours: int = NEIGHBOURS) -> np.ndarray:
+    """Temperatures for the points ``wanted`` (indices) from the part's points around them that have their own.
+
+    T(X) = T_lin(X) + median_j (T_j - T_lin(X_j)) over the ``neighbours`` nearest points with a finite
+    temperature within ``radius_mm`` of X (at most 10 000 of them, evenly drawn, are searched): the trend
+    carries the gradient across the gap, the neighbours' median departure from it the local hot or cold
+    spot. Where no such point lies within the radius, the trend T_lin(X) alone.
+    """
+    wanted = np.asarray(wanted, dtype=np.intp)
+    at = points[wanted] @ trend[1:] + trend[0]
+    own = np.flatnonzero(np.isfinite(temperature) & finite_rows(points))
+    if len(wanted) == 0 or len(own) == 0:
+        return at
+    if len(own) > NEIGHBOURHOOD_SAMPLES:
+        own = own[np.linspace(0, len(own) - 1, NEIGHBOURHOOD_SAMPLES).astype(np.intp)]
+    departure = temperature[own] - (points[own] @ trend[1:] + trend[0])
+    tree = cKDTree(points[own])
+    query = np.where(np.isfinite(points[wanted]), points[wanted], 0.0)
+    distance, index = tree.query(query, k=min(neighbours, len(own)), distance_upper_bound=radius_mm)
+    distance, index = distance.reshape(len(wanted), -1), index.reshape(len(wanted), -1)
+    found = np.isfinite(distance)
+    values = np.where(found, departure[np.minimum(index, len(own) - 1)], np.nan)
+    some = found.any(axis=1)
+    if some.any():
+        at[some] += np.nanmedian(values[some], axis=1)
+    return at
+
+
 def cold_equivalent(points: np.ndarray, temperature: np.ndarray, material: Material,
                     centre: np.ndarray | None = None) -> ColdGeometry:
     """Move hot points to where they will be when the part has cooled to 20 degC.
@@ -104,7 +139,9 @@ def cold_equivalent(points: np.ndarray, temperature: np.ndarray, material: Mater
     [T_lin(c), T(X)], which the piecewise-linear table integrates exactly (``Material.mean_strain``).
     For a uniform temperature this is the exact uniform scaling; for a linear field it is exact to
     second order in the strain; a hot or cold spot acts on its own points. Points without a
-    temperature use the trend at their position (flagged). Thermal stresses, plastic flow and a core hotter than the surface are not modelled.
+    temperature (unseen by the thermal camera, or mixed edge pixels the fusion left NaN) take the
+    trend at their position plus the median departure from it of their part's points within 25 mm
+    that have their own (``neighbourhood_temperature``), the trend alone where none is (flagged). Thermal stresses, plastic flow and a core hotter than the surface are not modelled.
     Strains are the material table's, from 20 degC (EN 1993-1-2 [1]_ for steel).
 
     References
@@ -121,7 +158,7 @@ def cold_equivalent(points: np.ndarray, temperature: np.ndarray, material: Mater
     centre = column_mean(points) if centre is None else np.asarray(centre, dtype=np.float64)
     fallback = ~np.isfinite(temperature)
     used = temperature.copy()
-    used[fallback] = points[fallback] @ trend[1:] + trend[0]
+    used[fallback] = neighbourhood_temperature(points, temperature, trend, np.flatnonzero(fallback))
     strain = material.mean_strain(float(trend[0] + centre @ trend[1:]), used)
     cold = points - centre
     cold /= (1 + strain)[:, None]

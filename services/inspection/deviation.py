@@ -117,7 +117,40 @@ def cell_means(points_part: np.ndarray, deviation: np.ndarray, cell_mm: float = 
     return CellMeans(shape, keys, mean, counts, cell_mm, points_part, flat)
 
 
-def find_defects(cells: CellMeans, threshold_mm: float, min_cells: int = 10) -> list[Defect]:
+MIN_DEFECT_CELLS = 10
+"""A patch is a defect (and can decide a verdict) only with at least this many cells: 10 mm^2 of 1 mm cells."""
+MIN_DEFECT_POINTS = 20
+"""... and at least this many points in them."""
+
+
+def patches(cells: CellMeans, beyond: np.ndarray, min_cells: int = MIN_DEFECT_CELLS,
+            min_points: int = MIN_DEFECT_POINTS) -> list[np.ndarray]:
+    """Connected patches of the cells flagged ``beyond`` (a mask over ``cells.keys``), kept where a patch has
+    at least ``min_cells`` cells and ``min_points`` points.
+
+    Cells are grouped by 26-connectivity after a one-cell dilation (``scipy.ndimage``), so that the gaps
+    of a cloud sparser than the cells do not split a patch. Returns the indices into ``cells.keys`` of
+    each patch's cells.
+    """
+    beyond = np.asarray(beyond, dtype=bool)
+    if not beyond.any():
+        return []
+    # labelled in the box of the cells beyond, with a cell of margin for the dilation
+    index = np.column_stack(np.unravel_index(cells.keys[beyond], cells.shape))
+    index -= index.min(axis=0) - 1
+    grid = np.zeros(tuple(index.max(axis=0) + 2), dtype=bool)
+    grid[tuple(index.T)] = True
+    # cells one empty cell apart belong together: a cloud sparser than the cells leaves such gaps
+    bridged = ndimage.binary_dilation(grid, structure=np.ones((3, 3, 3)))
+    labels, _ = ndimage.label(bridged, structure=np.ones((3, 3, 3)))
+    cell_labels = labels[tuple(index.T)]
+    beyond_index = np.flatnonzero(beyond)
+    found = [beyond_index[cell_labels == label] for label in np.unique(cell_labels)]
+    return [members for members in found if len(members) >= min_cells and cells.counts[members].sum() >= min_points]
+
+
+def find_defects(cells: CellMeans, threshold_mm: float, min_cells: int = MIN_DEFECT_CELLS,
+                 min_points: int = MIN_DEFECT_POINTS) -> list[Defect]:
     """Dents and bulges: connected patches where the cell-averaged deviation passes +- ``threshold_mm``.
 
     Parameters
@@ -127,7 +160,9 @@ def find_defects(cells: CellMeans, threshold_mm: float, min_cells: int = 10) -> 
     threshold_mm : float
         A patch is a dent where the mean deviation of its cells is below -threshold, a bulge above.
     min_cells : int
-        Smaller patches are noise or the ragged edge of the view (10 cells of 1 mm: 10 mm^2).
+        Smaller patches are noise, stray points or the ragged edge of the view (10 cells of 1 mm: 10 mm^2).
+    min_points : int
+        Patches of fewer points are stray points, not a defect (``patches``).
 
     Returns
     -------
@@ -136,36 +171,45 @@ def find_defects(cells: CellMeans, threshold_mm: float, min_cells: int = 10) -> 
 
     Notes
     -----
-    Cells beyond the threshold are grouped by 26-connectivity after a one-cell dilation
-    (``scipy.ndimage``), so that the gaps of a cloud sparser than the cells do not split a
-    patch. A patch's depth is the extreme cell mean, its centre that cell's point centroid, its
-    area the cell count times cell_mm^2.
+    The patches of :func:`patches`. A patch's depth is the extreme cell mean, its centre that cell's
+    point centroid, its area the cell count times cell_mm^2.
     """
     defects = []
     for sign in (-1.0, 1.0):
-        beyond = sign * cells.mean > threshold_mm
-        if not beyond.any():
+        found = patches(cells, sign * cells.mean > threshold_mm, min_cells, min_points)
+        if not found:
             continue
-        # labelled in the box of the cells beyond, with a cell of margin for the dilation
-        index = np.column_stack(np.unravel_index(cells.keys[beyond], cells.shape))
-        index -= index.min(axis=0) - 1
-        grid = np.zeros(tuple(index.max(axis=0) + 2), dtype=bool)
-        grid[tuple(index.T)] = True
-        # cells one empty cell apart belong together: a cloud sparser than the cells leaves such gaps
-        bridged = ndimage.binary_dilation(grid, structure=np.ones((3, 3, 3)))
-        labels, _ = ndimage.label(bridged, structure=np.ones((3, 3, 3)))
-        cell_labels = labels[tuple(index.T)]
-        beyond_index = np.flatnonzero(beyond)
-        patches = [beyond_index[cell_labels == label] for label in np.unique(cell_labels)]
-        patches = [members for members in patches if len(members) >= min_cells]
-        if not patches:
-            continue
-        extremes = [members[np.argmax(sign * cells.mean[members])] for members in patches]
-        for members, extreme, center in zip(patches, extremes, cells.centroids(extremes)):
+        extremes = [members[np.argmax(sign * cells.mean[members])] for members in found]
+        for members, extreme, center in zip(found, extremes, cells.centroids(extremes)):
             defects.append(Defect(center=center, depth_mm=float(cells.mean[extreme]),
                                   area_mm2=float(len(members) * cells.cell_mm**2),
                                   points=int(cells.counts[members].sum())))
     return sorted(defects, key=lambda defect: -abs(defect.depth_mm))
+
+
+def surface_verdict(cells: CellMeans, tolerance: tuple[float, float], expanded_uncertainty: float | np.ndarray,
+                    min_cells: int = MIN_DEFECT_CELLS, min_points: int = MIN_DEFECT_POINTS) -> str:
+    """The surface's conformity: ISO 14253-1's rule applied to patches of the cell-averaged deviation map.
+
+    NotOK where a patch (``patches``: ``min_cells`` connected cells holding ``min_points`` points) lies
+    wholly beyond a limit by more than the expanded uncertainty U; else NotDecidable where such a patch
+    lies beyond a limit less U (the limit within its interval); else OK. Fewer cells, or cells of fewer
+    points, decide nothing. ``expanded_uncertainty`` is one U or one per cell; a non-finite U is
+    NotDecidable.
+    """
+    lower, upper = tolerance
+    if lower > upper:
+        raise ValueError(f"The tolerance's lower limit {lower} lies above its upper limit {upper}.")
+    u = np.broadcast_to(np.asarray(expanded_uncertainty, dtype=np.float64), cells.mean.shape)
+    if not np.all(u >= 0):
+        return "NotDecidable"
+    if (patches(cells, cells.mean > upper + u, min_cells, min_points)
+            or patches(cells, cells.mean < lower - u, min_cells, min_points)):
+        return "NotOK"
+    if (patches(cells, cells.mean > upper - u, min_cells, min_points)
+            or patches(cells, cells.mean < lower + u, min_cells, min_points)):
+        return "NotDecidable"
+    return "OK"
 
 
 def deviation_colors(deviation: np.ndarray, tolerance: tuple[float, float]) -> np.ndarray:

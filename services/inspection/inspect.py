@@ -6,11 +6,14 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from services.formats.part import Feature, Part
 from services.inspection.alignment import Alignment, align_nominal
-from services.inspection.cold_equivalent import cold_equivalent
-from services.inspection.deviation import cell_means, find_defects, summarize_deviation, surface_deviation
+
+from services.inspection.cold_equivalent import NEIGHBOURHOOD_MM, NEIGHBOURHOOD_SAMPLES, cold_equivalent
+from services.inspection.deviation import (MIN_DEFECT_CELLS, MIN_DEFECT_POINTS, cell_means, find_defects,
+                                          summarize_deviation, surface_deviation, surface_verdict)
 from services.inspection.distance import feature_distance
 from services.inspection.features import (NominalFeature, element_position_std, fit_measured, fit_nominal_feature,
                                           measure_std, measure_value)
@@ -57,7 +60,7 @@ class Inspection:
     deviation : (N,) float32 array
         Signed deviation from the nominal surface, mm (NaN for points not of the part).
     fallback : (N,) bool array
-        Part points whose temperature came from the part's trend, not their own.
+        Part points whose temperature came from their neighbourhood (or the part's trend), not their own.
     alignment : Alignment
         Part frame to world.
     """
@@ -94,7 +97,8 @@ def inspect_field(*, field: dict[str, np.ndarray], part: Part | PreparedPart) ->
 
     Notes
     -----
-    1. Points at least ``segmentation.min_temperature_c`` hot seed the part; their cold equivalents
+    1. Points at least ``segmentation.min_temperature_c`` hot, and the points without a temperature
+       within 25 mm of them (``NEIGHBOURHOOD_MM``), seed the part; their cold equivalents
        (``cold_equivalent``) are aligned to the nominal (``align_nominal``).
     2. The expansion's fixed point is moved to the nominal's volume centroid as aligned, every
        point with a temperature at least that hot or none is made cold-equivalent, the alignment is
@@ -103,8 +107,10 @@ def inspect_field(*, field: dict[str, np.ndarray], part: Part | PreparedPart) ->
     3. Each feature is fitted to the part's cold points in its region (part frame) and to the same
        points hot; its deviation from nominal gets an expanded uncertainty (k = 2) from the budget
        (``size_uncertainty``) and a verdict (``decide``).
-    4. The surface's verdict applies ``decide`` to the most negative and most positive 1 mm cell
-       means of the deviation map against ``surface_tolerance``.
+    4. The surface's verdict (``surface_verdict``) applies ISO 14253-1's rule to patches of the 1 mm
+       cell means: a defect needs 10 connected cells and 20 points (``MIN_DEFECT_CELLS``,
+       ``MIN_DEFECT_POINTS``); cells with points that took their neighbourhood's temperature are judged
+       with the fallback temperature uncertainty (``_surface_result``).
     """
     prepared = part if isinstance(part, PreparedPart) else prepare_part(part)
     part = prepared.part
@@ -122,7 +128,9 @@ def inspect_field(*, field: dict[str, np.ndarray], part: Part | PreparedPart) ->
                          "degC hot; the field shows no hot part (segmentation.min_temperature_c in the part file).")
     max_distance = definition.segmentation.max_distance_mm
 
-    seed = even_subset(np.flatnonzero(hot), _SEED_POINTS)
+    # the part: its hot points and the points without a temperature beside them (the fusion's mixed edge
+    # pixels, the thermal camera's blind spots), which a one-sided view of a thin part may need to pin its pose
+    seed = even_subset(np.flatnonzero(hot | _beside(points, hot, finite & ~np.isfinite(temperature))), _SEED_POINTS)
     first = cold_equivalent(points[seed], temperature[seed], part.material)
     coarse = align_nominal(first.points, prepared.nominal, max_distance_mm=max_distance, polish=False)
     centre = coarse.to_world(prepared.nominal.centroid[None])[0]
@@ -193,7 +201,8 @@ def inspect_field(*, field: dict[str, np.ndarray], part: Part | PreparedPart) ->
                                        a[0].count + b[0].count, (a[2] + b[2]) / 2, max(a[3], b[3]), part,
                                        material_fraction))
 
-    surface = _surface_result(in_part, deviation[member], used_temperature, part, budget, material_fraction)
+    surface = _surface_result(in_part, deviation[member], used_temperature, used_fallback, part, budget,
+                              material_fraction)
     verdict = overall([result["verdict"] for result in results] + [surface["verdict"]])
     report = {
         "version": REPORT_VERSION,
@@ -213,6 +222,17 @@ def inspect_field(*, field: dict[str, np.ndarray], part: Part | PreparedPart) ->
     }
     return Inspection(report=report, cold_points=cold_points, deviation=deviation_out, fallback=fallback,
                       alignment=alignment)
+
+
+def _beside(points: np.ndarray, hot: np.ndarray, unknown: np.ndarray) -> np.ndarray:
+    """The ``unknown`` points within ``NEIGHBOURHOOD_MM`` of a ``hot`` one (of ``NEIGHBOURHOOD_SAMPLES`` of those,
+    evenly drawn)."""
+    beside = np.zeros(len(points), dtype=bool)
+    wanted = np.flatnonzero(unknown)
+    if len(wanted):
+        tree = cKDTree(points[even_subset(np.flatnonzero(hot), NEIGHBOURHOOD_SAMPLES)])
+        beside[wanted] = np.isfinite(tree.query(points[wanted], distance_upper_bound=NEIGHBOURHOOD_MM)[0])
+    return beside
 
 
 def _temperature_std(mean_t: float, budget: TemperatureBudget, fallback_fraction: float, fallback_k: float) -> float:
@@ -241,8 +261,15 @@ def _feature_result(feature: Feature, hot: float, cold: float, fit_std: float, c
                                                                    "material", "combined")}}
 
 
-def _surface_result(in_part: np.ndarray, deviation: np.ndarray, temperature: np.ndarray, part: Part,
-                    budget: TemperatureBudget, material_fraction: float) -> dict[str, Any]:
+def _surface_result(in_part: np.ndarray, deviation: np.ndarray, temperature: np.ndarray, fallback: np.ndarray,
+                    part: Part, budget: TemperatureBudget, material_fraction: float) -> dict[str, Any]:
+    """The surface's deviation summary, defects and verdict.
+
+    The 1 mm cells of the deviation map give the extremes, the defects and the verdict
+    (``surface_verdict``: patches of ``MIN_DEFECT_CELLS`` cells holding ``MIN_DEFECT_POINTS`` points). A
+    cell that holds a point whose temperature came from its neighbourhood (no reading of its own, or a
+    mixed edge pixel's, which the fusion left NaN) is judged with the fallback temperature uncertainty.
+    """
     definition = part.definition
     tolerance = tuple(definition.surface_tolerance)
     summary = summarize_deviation(deviation, tolerance)
@@ -257,14 +284,27 @@ def _surface_result(in_part: np.ndarray, deviation: np.ndarray, temperature: np.
         reach = float(np.sqrt(np.max(np.einsum("ij,ij->i", offset, offset))))
     else:
         reach = 0.0
-    terms = size_uncertainty(reach, mean_t, temperature_uncertainty(mean_t, budget)["total"], part.material,
-                             material_fraction, definition.uncertainty.structured_light_noise_mm / np.sqrt(5),
-                             definition.uncertainty.structured_light_systematic_mm)
-    uncertainty = terms["expanded"]
-    verdicts = [decide(lowest, tolerance, uncertainty), decide(highest, tolerance, uncertainty)]
+    u_t = temperature_uncertainty(mean_t, budget)["total"]
+    noise = definition.uncertainty.structured_light_noise_mm  # a cell of one point, at the sparsest
+    systematic = definition.uncertainty.structured_light_systematic_mm
+    uncertainty = size_uncertainty(reach, mean_t, u_t, part.material, material_fraction, noise,
+                                   systematic)["expanded"]
+    fallback_uncertainty = size_uncertainty(
+        reach, mean_t, float(np.hypot(u_t, definition.uncertainty.fallback_temperature_k)), part.material,
+        material_fraction, noise, systematic)["expanded"]
+    if len(cells.mean):
+        # the cells holding a point of estimated temperature (every part point is binned: its deviation is finite)
+        estimated = np.zeros(len(cells.keys), dtype=bool)
+        if fallback.any():
+            estimated[np.searchsorted(cells.keys, np.unique(cells.point_keys[fallback]))] = True
+        verdict = surface_verdict(cells, tolerance, np.where(estimated, fallback_uncertainty, uncertainty))
+    else:
+        verdict = "NotDecidable"
     return {"points": summary.points, "mean": summary.mean, "std": summary.std, "min": summary.min,
             "max": summary.max, "fraction_outside": summary.fraction_outside, "tolerance": list(tolerance),
-            "cell_min": lowest, "cell_max": highest, "uncertainty": uncertainty, "verdict": overall(verdicts),
+            "cell_min": lowest, "cell_max": highest, "uncertainty": uncertainty, "verdict": verdict,
+            "fallback_uncertainty": fallback_uncertainty,
+            "evidence": {"cell_mm": cells.cell_mm, "min_cells": MIN_DEFECT_CELLS, "min_points": MIN_DEFECT_POINTS},
             "defects": [{"center": defect.center.tolist(), "depth": defect.depth_mm, "area_mm2": defect.area_mm2,
                          "points": defect.points} for defect in defects]}
 

@@ -26,7 +26,7 @@ from services.geometry.camera_model import CameraModel
 from services.inspection.materials import Material
 from services.open3d_loader import open3d
 from services.simulation.scene import Mesh
-from services.simulation.thermal import SurfaceTemperature
+from services.simulation.thermal import SurfaceTemperature, ThermalEffects
 
 _NODES = 8
 
@@ -83,6 +83,43 @@ def cylinder_mesh(radius: float, length: float, segments: int = 360, rings: int 
                        np.column_stack([np.zeros(len(centre)), centre[:, 1:]]))
     inward = np.einsum("ij,ij->i", normal, outward) < 0
     triangles[inward] = triangles[inward][:, ::-1]
+    return vertices, triangles
+
+
+def tube_mesh(outer_radius: float, inner_radius: float, length: float, segments: int = 360,
+              max_edge_mm: float | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """An open tube along x centred at the origin (outer and inner walls, annular end faces), outward triangles.
+
+    The profile (x, r) runs round the wall's section: the outer side, the +x end face, the inner side
+    and the -x end face, split into edges of at most ``max_edge_mm`` (default the outer arc per segment).
+    """
+    if not 0 < inner_radius < outer_radius:
+        raise ValueError(f"a tube needs 0 < inner radius < outer radius; got {inner_radius} and {outer_radius}")
+    step = max_edge_mm or 2 * np.pi * outer_radius / segments
+    half = length / 2
+    corners = [(-half, outer_radius), (half, outer_radius), (half, inner_radius), (-half, inner_radius)]
+    profile = []
+    for a, b in zip(corners, corners[1:] + corners[:1]):
+        pieces = max(1, int(np.ceil(np.hypot(b[0] - a[0], b[1] - a[1]) / step)))
+        profile.extend(np.linspace(a, b, pieces + 1)[:-1])
+    profile = np.array(profile)
+    angles = np.arange(segments) * 2 * np.pi / segments
+    rings = np.stack([np.column_stack([np.full(segments, x), r * np.cos(angles), r * np.sin(angles)])
+                      for x, r in profile])
+    vertices = rings.reshape(-1, 3)
+    j = np.arange(segments)
+    k = (j + 1) % segments
+    triangles = []
+    count = len(profile)
+    for ring in range(count):
+        a, b = ring * segments + j, ring * segments + k
+        nxt = (ring + 1) % count
+        c, d = nxt * segments + j, nxt * segments + k
+        triangles += [np.column_stack([a, b, d]), np.column_stack([a, d, c])]
+    triangles = np.concatenate(triangles).astype(np.int32)
+    corners3 = vertices[triangles]
+    if np.einsum("ij,ij->i", corners3[:, 0], np.cross(corners3[:, 1], corners3[:, 2])).sum() < 0:
+        triangles = triangles[:, ::-1].copy()  # the profile ran the other way round: turn the faces outward
     return vertices, triangles
 
 
@@ -182,29 +219,76 @@ class ScanNoise:
     temperature_bias_k: float = 0.0
 
 
-class _Raycaster:
-    """Open3D's Embree ray casting against the hot mesh (world frame): the mesh is large and fine."""
+@dataclass(frozen=True)
+class Backdrop:
+    """A flat square wall (world frame) behind the part: its centre, unit normal facing the devices, side
+    length and uniform temperature. The camera measures it where the projector lights it, and the thermal
+    camera sees it around the part's silhouette."""
 
-    def __init__(self, vertices: np.ndarray, triangles: np.ndarray) -> None:
+    centre: tuple[float, float, float]
+    normal: tuple[float, float, float] = (0.0, 0.0, -1.0)
+    size_mm: float = 1500.0
+    temperature_c: float = 60.0
+
+    def mesh(self) -> tuple[np.ndarray, np.ndarray]:
+        """Two triangles facing along ``normal``."""
+        normal = np.asarray(self.normal, dtype=np.float64)
+        normal /= np.linalg.norm(normal)
+        helper = np.array([1.0, 0.0, 0.0]) if abs(normal[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+        u = np.cross(helper, normal)
+        u /= np.linalg.norm(u)
+        v = np.cross(normal, u)
+        half = self.size_mm / 2
+        corners = np.asarray(self.centre, dtype=np.float64) + half * np.array([-u - v, u - v, u + v, -u + v])
+        triangles = np.array([[0, 1, 2], [0, 2, 3]], dtype=np.int32)
+        if np.dot(np.cross(corners[1] - corners[0], corners[2] - corners[0]), normal) < 0:
+            triangles = triangles[:, ::-1].copy()
+        return corners, triangles
+
+
+class _Raycaster:
+    """Open3D's Embree ray casting against the hot mesh (world frame): the mesh is large and fine.
+
+    Further meshes (a backdrop) may be added; ``cast`` also says which mesh each ray hit (0 the first).
+    """
+
+    def __init__(self, vertices: np.ndarray, triangles: np.ndarray,
+                 others: tuple[tuple[np.ndarray, np.ndarray], ...] = ()) -> None:
         o3d = open3d()
 
         self._o3d = o3d
         self._scene = o3d.t.geometry.RaycastingScene()
-        self._scene.add_triangles(o3d.core.Tensor(vertices.astype(np.float32)),
-                                  o3d.core.Tensor(triangles.astype(np.uint32)))
+        self._ids = [self._scene.add_triangles(o3d.core.Tensor(np.asarray(v, dtype=np.float32)),
+                                               o3d.core.Tensor(np.asarray(t, dtype=np.uint32)))
+                     for v, t in ((vertices, triangles), *others)]
 
     def cast(self, origin: np.ndarray, directions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Distance (inf on a miss) and unit normal facing the ray, per unit direction."""
+        distance, normals, _ = self.cast_which(origin, directions)
+        return distance, normals
+
+    def cast_which(self, origin: np.ndarray, directions: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """:meth:`cast` and the index of the mesh each ray hit (-1 on a miss)."""
         rays = np.column_stack([np.broadcast_to(origin, directions.shape), directions]).astype(np.float32)
         answer = self._scene.cast_rays(self._o3d.core.Tensor(rays))
         distance = answer["t_hit"].numpy().astype(np.float64)
         normals = answer["primitive_normals"].numpy().astype(np.float64)
         normals *= np.where(np.einsum("ij,ij->i", normals, directions) > 0, -1.0, 1.0)[:, None]
-        return distance, normals
+        geometry = answer["geometry_ids"].numpy().astype(np.int64)
+        which = np.full(len(distance), -1, dtype=np.int64)
+        for index, ident in enumerate(self._ids):
+            which[(geometry == ident) & np.isfinite(distance)] = index
+        return distance, normals, which
+
+
+def _scene_of(part: HotPart, backdrop: Backdrop | None) -> _Raycaster:
+    return _Raycaster(part.to_world(part.hot_vertices_part()), part.triangles,
+                      () if backdrop is None else (backdrop.mesh(),))
 
 
 def simulated_field(part: HotPart, camera: CameraModel, projector: CameraModel, thermal: CameraModel, rng: np.random.Generator,
-                    noise: ScanNoise = ScanNoise()) -> tuple[dict[str, np.ndarray], np.ndarray]:
+                    noise: ScanNoise = ScanNoise(),
+                    backdrop: Backdrop | None = None) -> tuple[dict[str, np.ndarray], np.ndarray]:
     """What the station measures of a hot part: a temperature field as ``thermofield field`` writes it.
 
     Parameters
@@ -217,14 +301,19 @@ def simulated_field(part: HotPart, camera: CameraModel, projector: CameraModel, 
         Source of the noise.
     noise : ScanNoise
         Measurement errors.
+    backdrop : Backdrop, optional
+        A wall behind the part, measured like the part (its points come after the part's).
 
     Returns
     -------
     field : dict of 1-D arrays
         ``x, y, z`` (world mm), float32 ``temperature`` (NaN where the thermal camera does not see
-        the point) for every camera pixel whose centre ray meets the part where the projector lights it.
+        the point) for every camera pixel whose centre ray meets the part (or the backdrop) where the
+        projector lights it. The temperature is the true one at the point: no mixed pixels (see
+        ``simulated_thermal_frame`` for the thermal camera's image, to fuse as the station does).
     truth : (N, 3) array
-        The exact hot surface point of each field point.
+        The exact hot surface point of each field point (``on_part`` tells the part's from the
+        backdrop's).
 
     Notes
     -----
@@ -235,18 +324,21 @@ def simulated_field(part: HotPart, camera: CameraModel, projector: CameraModel, 
     surface temperature plus the bias and N(0, NETD^2) where the thermal camera's ray reaches the
     point and it falls in its image.
     """
-    scene = _Raycaster(part.to_world(part.hot_vertices_part()), part.triangles)
+    scene = _scene_of(part, backdrop)
     origin = camera.centre
     rays = normalized_coordinates(pixel_grid(camera.width, camera.height), camera.K, camera.dist)
     directions = np.column_stack([rays, np.ones(len(rays))]) @ camera.R
     directions /= np.linalg.norm(directions, axis=1, keepdims=True)
-    distance, normals = scene.cast(origin, directions)
+    distance, normals, which = scene.cast_which(origin, directions)
     hit = np.isfinite(distance)
-    points = origin + distance[hit, None] * directions[hit]
-    normals, directions = normals[hit], directions[hit]
+    order = np.concatenate([np.flatnonzero(hit & (which == 0)), np.flatnonzero(hit & (which > 0))])
+    points = origin + distance[order, None] * directions[order]
+    normals, directions, on_part = normals[order], directions[order], which[order] == 0
     measured = _reaches(scene, projector, points, normals)
-    points, directions = points[measured], directions[measured]
-    temperature = part.surface_temperature(points) + noise.temperature_bias_k
+    points, directions, on_part = points[measured], directions[measured], on_part[measured]
+    temperature = np.full(len(points), np.nan if backdrop is None else backdrop.temperature_c)
+    temperature[on_part] = part.surface_temperature(points[on_part])
+    temperature += noise.temperature_bias_k
     temperature += rng.normal(0.0, noise.netd_k, len(points))
     normals = normals[measured]
     seen = _reaches(scene, thermal, points, normals)
@@ -255,6 +347,54 @@ def simulated_field(part: HotPart, camera: CameraModel, projector: CameraModel, 
     field = {"x": noisy[:, 0].astype(np.float32), "y": noisy[:, 1].astype(np.float32),
              "z": noisy[:, 2].astype(np.float32), "temperature": temperature.astype(np.float32)}
     return field, points
+
+
+def on_part(part: HotPart, truth: np.ndarray, tolerance_mm: float = 1e-3) -> np.ndarray:
+    """Which truth points of ``simulated_field`` lie on the part (not on the backdrop)."""
+    hot = (np.asarray(truth, dtype=np.float64) - part.pose[:3, 3]) @ part.pose[:3, :3]
+    o3d = open3d()
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(o3d.core.Tensor(part.hot_vertices_part().astype(np.float32)),
+                        o3d.core.Tensor(part.triangles.astype(np.uint32)))
+    distance = scene.compute_distance(o3d.core.Tensor(hot.astype(np.float32))).numpy()
+    return distance <= tolerance_mm + 1e-3
+
+
+def simulated_thermal_frame(part: HotPart, thermal: CameraModel, rng: np.random.Generator,
+                            backdrop: Backdrop | None = None, effects: ThermalEffects = ThermalEffects(),
+                            background_c: float = 25.0, temperature_bias_k: float = 0.0) -> np.ndarray:
+    """What the thermal camera reads of the hot part (and the backdrop), degrees C: the image to fuse.
+
+    The model of ``services.simulation.thermal.render_thermal`` (sub-pixel rays through the lens
+    distortion, radiance averaged over each pixel, the optics' Gaussian blur on radiance, NETD noise,
+    the measuring range) with the hot mesh cast by Open3D: pixels on the part's silhouette mix its
+    radiance with the backdrop's (or ``background_c`` where a ray meets nothing), as a real camera's do.
+    ``temperature_bias_k`` is added to the part's (not the backdrop's) temperature.
+    """
+    import cv2
+
+    from services.fusion.radiometry import blackbody_counts, blackbody_temperature
+    from services.simulation.render import integrate_pixels, subsample_rays
+
+    scene = _scene_of(part, backdrop)
+    origin, directions = subsample_rays(thermal, effects.supersample)
+    directions = directions / np.linalg.norm(directions, axis=1, keepdims=True)
+    distance, _, which = scene.cast_which(np.asarray(origin, dtype=np.float64).reshape(3), directions)
+    temperature = np.full(len(distance), background_c)
+    hit_part = which == 0
+    points = origin.reshape(1, 3) + distance[hit_part, None] * directions[hit_part]
+    temperature[hit_part] = part.surface_temperature(points) + temperature_bias_k
+    if backdrop is not None:
+        temperature[which == 1] = backdrop.temperature_c
+    samples = blackbody_counts(temperature, effects.planck).reshape(thermal.height * effects.supersample, -1)
+    counts = integrate_pixels(samples, effects.supersample)
+    if effects.blur_sigma > 0:
+        counts = cv2.GaussianBlur(counts, (0, 0), effects.blur_sigma, borderType=cv2.BORDER_REPLICATE)
+    image = blackbody_temperature(counts, effects.planck) + rng.normal(0.0, effects.netd, counts.shape)
+    if effects.measuring_range is not None:
+        lowest, highest = effects.measuring_range
+        image = np.where((image > lowest) & (image < highest), image, np.nan)
+    return image.astype(np.float32)
 
 
 def _reaches(scene: _Raycaster, device: CameraModel, points: np.ndarray, normals: np.ndarray) -> np.ndarray:
@@ -308,6 +448,34 @@ def write_billet_part(directory, diameter: float = 90.0, length: float = 200.0, 
                 {"name": "body_diameter", "type": "cylinder", "measure": "diameter",
                  "region": {"min": [-0.8 * half, -r - 5, -r - 5], "max": [0.8 * half, r + 5, r + 5]},
                  "nominal": diameter, "tolerance": list(diameter_tolerance)}],
+            "surface_tolerance": list(surface_tolerance)}
+    path = directory / "part.json"
+    path.write_text(json.dumps(part, indent=2))
+    return path
+
+
+def write_tube_part(directory, outer_diameter: float = 90.0, inner_diameter: float = 70.0, length: float = 200.0,
+                    material: str = "carbon-steel", diameter_tolerance=(-0.3, 0.3), surface_tolerance=(-1.0, 1.0),
+                    segments: int = 360) -> Path:
+    """Write an open tube's nominal mesh (``tube.stl``, ``tube_mesh``) and part file (``part.json``).
+
+    Features: ``body_diameter``, the outer cylinder over the middle half of the length (the bore seen
+    through an open end reaches no deeper than a diameter's worth at the view angles of the station).
+    """
+    o3d = open3d()
+    directory = Path(directory)
+    directory.mkdir(parents=True, exist_ok=True)
+    vertices, triangles = tube_mesh(outer_diameter / 2, inner_diameter / 2, length, segments)
+    mesh = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(vertices), o3d.utility.Vector3iVector(triangles))
+    mesh.compute_triangle_normals()
+    o3d.io.write_triangle_mesh(str(directory / "tube.stl"), mesh)
+    half, r = length / 2, outer_diameter / 2
+    part = {"version": 1, "name": f"tube-{outer_diameter:g}x{inner_diameter:g}", "material": material,
+            "nominal": "tube.stl",
+            "features": [
+                {"name": "body_diameter", "type": "cylinder", "measure": "diameter",
+                 "region": {"min": [-0.5 * half, -r - 5, -r - 5], "max": [0.5 * half, r + 5, r + 5]},
+                 "nominal": outer_diameter, "tolerance": list(diameter_tolerance)}],
             "surface_tolerance": list(surface_tolerance)}
     path = directory / "part.json"
     path.write_text(json.dumps(part, indent=2))

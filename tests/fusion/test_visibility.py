@@ -46,3 +46,31 @@ def test_unknown_normals_use_the_angle_limit_and_window_minimum():
 def test_bad_shapes_are_refused():
     with pytest.raises(ValueError, match=r"\(N, 2\)"):
         depth_buffer(np.zeros((3, 3)), np.zeros(3), 4, 4)
+
+
+def test_footprint_radius_covers_the_stencil_the_pixel_and_the_blur():
+    from services.fusion.visibility import footprint_radius
+
+    assert footprint_radius(0.0) == 2  # the bilinear stencil's corner 1 px away and half its pixel
+    assert footprint_radius(0.0, stencil_px=0.0) == 1
+    assert footprint_radius(0.6) == 3 and footprint_radius(1.0) == 4 and footprint_radius(1.0, 0.0) == 3
+    with pytest.raises(ValueError, match="blur"):
+        footprint_radius(-1.0)
+
+
+def test_background_depth_sees_empty_space_beyond_an_outline_but_not_gaps_between_splats():
+    from services.fusion.visibility import background_depth
+
+    buffer = np.full((40, 60), np.inf)
+    buffer[10:30, 10:50] = 500.0
+    buffer[20, 30] = np.inf  # a gap between splats
+    buffer[15, 12] = np.inf
+    far = background_depth(buffer, 2)
+    assert far[20, 30] == 500.0 and far[15, 12] == 500.0  # gaps add nothing
+    assert far[20, 20] == 500.0
+    assert np.isinf(far[11, 20]) and np.isinf(far[20, 48])  # within 2 px of the outline: empty space
+    buffer[:, 50:] = 700.0  # a wall behind, on the right
+    far = background_depth(buffer, 2)
+    assert far[20, 48] == 700.0 and far[20, 40] == 500.0
+    edge = np.full((10, 10), 500.0)
+    assert np.isinf(background_depth(edge, 2)[5, 0]) and background_depth(edge, 2)[5, 5] == 500.0  # beyond the image

@@ -55,3 +55,25 @@ def test_points_without_temperature_use_the_trend_and_are_flagged():
     assert np.linalg.norm(result.points - cold, axis=1).max() < 0.005
     with pytest.raises(ValueError, match="at least 4 are needed"):
         cold_equivalent(hot[:3], np.full(3, np.nan), STEEL)
+
+
+def test_points_without_a_temperature_take_their_neighbourhood_s_not_the_trend_s():
+    """A hot spot the trend does not follow: a point inside it without a reading gets the spot's temperature."""
+    from services.inspection.cold_equivalent import neighbourhood_temperature, temperature_trend
+
+    rng = np.random.default_rng(0)
+    points = rng.uniform(-100.0, 100.0, (20000, 3))
+    points[:, 2] = 0.0
+    temperature = 1000.0 + 0.2 * points[:, 0] + 80.0 * np.exp(-np.sum((points - [50.0, 0.0, 0.0]) ** 2, axis=1)
+                                                              / (2 * 15.0**2))
+    truth = temperature.copy()
+    missing = np.flatnonzero(np.linalg.norm(points - [50.0, 0.0, 0.0], axis=1) < 4.0)  # the spot's core
+    temperature[missing] = np.nan
+    trend = temperature_trend(points, temperature)
+    estimated = neighbourhood_temperature(points, temperature, trend, missing)
+    assert np.max(np.abs(estimated - truth[missing])) < 6.0
+    assert np.min(np.abs(points[missing] @ trend[1:] + trend[0] - truth[missing])) > 40.0  # the trend alone: not
+    far = np.array([[500.0, 500.0, 0.0]])
+    alone = neighbourhood_temperature(np.vstack([points, far]), np.append(temperature, np.nan), trend,
+                                      np.array([len(points)]))
+    assert alone[0] == pytest.approx(far[0] @ trend[1:] + trend[0])  # nobody within 25 mm: the trend
