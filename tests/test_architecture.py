@@ -97,7 +97,7 @@ from services.fusion.fuse import ThermalView
 from services.geometry.camera_model import CameraModel
 
 imported = sorted(sys.modules)
-x, y = (value.ravel() for value in np.meshgrid(np.linspace(-100, 100, 120), np.linspace(-80, 80, 100)))
+x, y = (value.ravel() for value in np.meshgrid(np.linspace(-300, 300, 120), np.linspace(-240, 240, 100)))
 cloud = {"x": x, "y": y, "z": np.full_like(x, 600.0), "nx": np.zeros_like(x), "ny": np.zeros_like(x),
          "nz": -np.ones_like(x)}
 cloud["nx"][::50] = np.nan  # a few unknown normals, estimated from their neighbours
@@ -114,7 +114,7 @@ def test_the_fusion_modules_load_neither_numba_nor_scipy_nor_matplotlib():
     imported, loaded, seen = json.loads(subprocess.run(
         [sys.executable, "-c", _FIELD_WITHOUT_HEAVY_IMPORTS], cwd=ROOT, capture_output=True, text=True, check=True,
         timeout=120).stdout.splitlines()[-1])
-    assert seen > 10000
+    assert seen > 7000  # of 12 000: the plane's rim, whose thermal footprint holds empty space, stays NaN
     assert not [name for name in imported if _within(name, ("numba", "scipy", "matplotlib"))]
     assert not [name for name in loaded if _within(name, ("numba", "scipy", "matplotlib"))]
 
