@@ -44,3 +44,10 @@ def test_every_figure_the_readme_quotes_is_in_the_doc_it_links():
         if absent:
             missing[experiment] = absent
     assert missing == {}, "README figures that their docs do not state"
+
+
+def test_the_docs_index_links_every_page():
+    index = (ROOT / "docs" / "README.md").read_text()
+    linked = {target.split("#")[0] for target in re.findall(r"\]\(([^)]+\.md)[^)]*\)", index)}
+    pages = {path.name for path in (ROOT / "docs").glob("*.md")} - {"README.md"}
+    assert pages - linked == set(), "pages a newcomer cannot find from docs/README.md"
