@@ -15,6 +15,7 @@ from matplotlib.figure import Figure
 
 from services.calibration.camera import calibrate_camera
 from services.calibration.corner_window import WindowSelection, select_corner_window
+from services.calibration.determination import poorly_determined
 from services.calibration.corners import DEFAULT_WINDOW_FRACTION, BoardDetection, detect_board, refine_corners
 from services.calibration.model_selection import ModelSelection
 from services.calibration.projector import calibrate_projector, projector_corners
@@ -120,7 +121,7 @@ def calibrate_camera_views(*, images: Sequence[LabelledImage], board: BoardSpec,
         distortion_model=result.distortion_model, rms_px=result.rms, std=result.std, board=board, views=views,
         rejected=[RejectedView(image=names[i], reason=reason) for i, reason in result.rejected],
         model_selection=_model_selection_record(result.model_selection),
-        corner_window=_corner_window_record(window),
+        corner_window=_corner_window_record(window), poorly_determined=poorly_determined(result),
     )
     kept_points = [image_points[i] for i in result.views]
     figures = {
