@@ -1,14 +1,15 @@
 """Calibration over cameras drawn at random: the distribution of the errors of f, the principal point and the
 distortion against the simulator's truth, and how often each reported sigma covers its error.
 
-Run (reporting seeds, both populations; the corners are cached so that a second run only recalibrates)::
+Run (reporting seeds, both populations; the rendered views and detected corners are cached, so a second run
+only calibrates; a run split over processes is summarised with ``--summarise ROWS.json ...``)::
 
-    nice -n 10 .venv/bin/python experiments/calibration_random.py --seeds 100-151 --cache /tmp/calib-random
+    nice -n 10 .venv/bin/python experiments/calibration_random.py --seeds 100-149 --cache /tmp/calib-random
     nice -n 10 .venv/bin/python experiments/calibration_random.py --thermal16 --seeds 1100-1119 --cache /tmp/calib-random
 
 Seeds. TUNING (used to choose the sigma rule and the "poorly determined" limits; never reported):
-random population 0-11, thermal 320x256 population 1000-1005. REPORTING: random population 100-151
-(52 cameras), thermal 320x256 population 1100-1119 (20 cameras).
+random population 0-11, thermal 320x256 population 1000-1005. REPORTING: random population 100-149
+(50 cameras), thermal 320x256 population 1100-1119 (20 cameras).
 
 Populations (``services.simulation.boards.random_calibration``):
 
@@ -19,7 +20,8 @@ Populations (``services.simulation.boards.random_calibration``):
   noise 2 grey levels, the rest drawn as above.
 
 Each camera is calibrated as ``thermofield calibrate camera --distortion auto`` does (board detection, corner
-window chosen by cross-validation, outlier views, lens model by BIC); the thermal16 population is also
+window chosen by cross-validation, outlier views, lens model by BIC, corners refined again in the board frame
+and the camera calibrated again, sigmas from the view jackknife); the thermal16 population is also
 calibrated by stock OpenCV (``cv2.calibrateCamera``, five coefficients, on the detector's corners).
 A sigma covers its error when |error| <= 1.645 sigma (the two-sided 90 % interval).
 """
@@ -33,10 +35,11 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from services.calibration.camera import INTRINSIC_NAMES, calibrate_camera, view_jackknife
+from services.calibration.camera import INTRINSIC_NAMES, view_jackknife
 from services.calibration.corner_window import select_corner_window
 from services.calibration.corners import detect_board
 from services.calibration.determination import poorly_determined
+from services.calibration.frontal import calibrate_with_frontal_refinement
 from services.simulation.boards import random_calibration
 
 Z90 = 1.6448536269514722  # two-sided 90 % normal quantile
@@ -97,8 +100,8 @@ def evaluate(seed: int, thermal16: bool, cache: Path) -> dict | None:
     objects = [np.asarray(o, np.float64) for o in data["objects"]]
     window = select_corner_window(list(data["images"]), [np.asarray(p, np.float64) for p in data["raw"]], objects,
                                   size, "auto")
-    refined = window.image_points
-    result = calibrate_camera(objects, refined, size, "auto")
+    result, refined = calibrate_with_frontal_refinement(list(data["images"]), objects, window.image_points, size, "auto",
+                                                        float(data["square"]), window.fraction)
     names = list(result.std)
     truth = dict(zip(INTRINSIC_NAMES, [K_true[0, 0], K_true[1, 1], K_true[0, 2], K_true[1, 2], *dist_true]))
     estimate = dict(zip(INTRINSIC_NAMES, [result.K[0, 0], result.K[1, 1], result.K[0, 2], result.K[1, 2],
@@ -164,12 +167,18 @@ def summary(rows: list[dict], title: str) -> None:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--seeds", type=seeds, required=True, help="e.g. 100-151")
+    parser.add_argument("--seeds", type=seeds, default=[], help="e.g. 100-149")
+    parser.add_argument("--summarise", type=Path, nargs="+", default=None,
+                        help="only print the tables of saved --rows-out files (runs split over processes)")
     parser.add_argument("--thermal16", action="store_true", help="the 320x256 infrared population with 16 views")
     parser.add_argument("--cache", type=Path, default=Path("/tmp/calibration-random"), help="corner cache")
     parser.add_argument("--render-only", action="store_true", help="only render and detect into the cache")
     parser.add_argument("--rows-out", type=Path, default=None, help="also save the per-camera rows as JSON")
     args = parser.parse_args()
+    if args.summarise:
+        rows = [row for path in args.summarise for row in json.loads(path.read_text())]
+        summary(rows, "320x256 infrared, 16 views" if args.thermal16 else "random cameras")
+        return
     rows = []
     for seed in args.seeds:
         if args.render_only:

@@ -51,7 +51,8 @@ class CameraCalibration:
         Root-mean-square reprojection error over all kept features, in pixels.
     std : dict of str to float
         One standard deviation of each estimated intrinsic parameter: the jackknife over views, never less
-        than the Jacobian's (see ``view_jackknife``).
+        than the Jacobian's (see ``view_jackknife``); when ``distortion="auto"`` chose a model simpler than
+        the standard one, never less than the standard model's jackknife either (the choice is uncertain too).
     views : (V,) int array
         Indices (into the input lists) of the views kept.
     per_view_rms : (V,) array
@@ -129,8 +130,10 @@ def calibrate_camera(
     intrinsics from the homographies h_i of each view through the image of the absolute
     conic, h_1^T K^-T K^-1 h_2 = 0 and h_1^T K^-T K^-1 h_1 = h_2^T K^-T K^-1 h_2, then
     Levenberg-Marquardt minimisation of sum ||m_ij - proj(K, dist, R_i, t_i, M_j)||^2.
-    Standard deviations are sqrt(diag((J^T J)^-1) sigma^2) with sigma^2 the residual
-    variance per coordinate. Outlier views replace the paper's removal of gross errors by
+    Standard deviations: the Jacobian's sqrt(diag((J^T J)^-1) sigma^2), sigma^2 the residual variance
+    per coordinate, assumes independent corner errors; blur and a bent or unevenly lit board make the
+    errors of a view's corners shared, so the delete-one-view jackknife (``view_jackknife``) is reported,
+    never below the Jacobian's. Outlier views replace the paper's removal of gross errors by
     hand: while the worst view's RMS exceeds both median + 4 * 1.4826 * MAD and twice the
     median of the per-view RMS, it is dropped and the calibration repeated, never going
     below three views.
@@ -172,11 +175,12 @@ def calibrate_camera(
             break
         rejected.append((kept[worst], reason))
         del kept[worst]
-    selection = None
+    selection, candidates = None, {}
     if distortion == "auto":
-        selection, result = _select_distortion([objects[i] for i in kept], [images[i] for i in kept], image_size,
-                                               {fitted: result})
+        selection, candidates = _select_distortion([objects[i] for i in kept], [images[i] for i in kept], image_size,
+                                                   {fitted: result})
         fitted = selection.chosen
+        result = candidates[fitted]
     distortion = fitted
     std_jacobian = {name: float(value) for name, value in zip(INTRINSIC_NAMES, result["std_intrinsics"])
                     if name in _ESTIMATED[distortion]}
@@ -186,6 +190,12 @@ def calibrate_camera(
                                     result)
         jackknife = np.sqrt(np.diag(covariance))
         std = {name: max(float(value), std_jacobian[name]) for name, value in zip(_ESTIMATED[distortion], jackknife)}
+        if distortion in ("none", "radial"):  # chosen by "auto": not conditional on the simpler model being right
+            general = view_jackknife([objects[i] for i in kept], [images[i] for i in kept], image_size, "standard",
+                                     candidates["standard"])
+            for name, value in zip(_ESTIMATED["standard"], np.sqrt(np.diag(general))):
+                if name in std:
+                    std[name] = max(std[name], float(value))
         with np.errstate(divide="ignore", invalid="ignore"):
             correlation = np.nan_to_num(covariance / np.outer(jackknife, jackknife))
     return CameraCalibration(
@@ -265,8 +275,8 @@ def view_jackknife(objects: list[np.ndarray], images: list[np.ndarray], image_si
 
 
 def _select_distortion(objects: list[np.ndarray], images: list[np.ndarray], image_size: tuple[int, int],
-                       known: dict[str, dict]) -> tuple[ModelSelection, dict]:
-    """Fit every candidate lens model (reusing those in ``known``) and pick the lowest BIC."""
+                       known: dict[str, dict]) -> tuple[ModelSelection, dict[str, dict]]:
+    """Fit every candidate lens model (reusing those in ``known``) and pick the lowest BIC; every candidate's fit."""
     results = {model: known.get(model) or _calibrate_views(objects, images, image_size, model)
                for model in AUTO_CANDIDATES}
     observations = 2 * sum(len(points) for points in images)
@@ -278,7 +288,7 @@ def _select_distortion(objects: list[np.ndarray], images: list[np.ndarray], imag
                              bic=bayesian_information_criterion(residual_sum, observations, parameters),
                              rms=result["rms"]))
     selection = select_model(fits)
-    return selection, results[selection.chosen]
+    return selection, results
 
 
 def _calibrate_views(objects: list[np.ndarray], images: list[np.ndarray], image_size: tuple[int, int],

@@ -11,7 +11,7 @@ from services.calibration.camera import DistortionModel, calibrate_camera, locat
 from services.calibration.corners import DEFAULT_WINDOW_FRACTION, refine_corners
 from services.geometry.camera import project_points
 
-WINDOW_FRACTIONS = (0.15, 0.2, 0.25, 0.3, 0.35)
+WINDOW_FRACTIONS = (0.15, 0.2, 0.25, 0.3, 0.35, 0.4, 0.45)
 """Candidate half windows, as fractions of the corner spacing (the default rule is 0.25)."""
 MAX_FOLDS = 5
 MIN_VIEWS_TO_CHOOSE = 4  # three views leave two to calibrate each fold: too few to judge a window
