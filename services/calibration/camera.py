@@ -190,7 +190,7 @@ def calibrate_camera(
                                     result)
         jackknife = np.sqrt(np.diag(covariance))
         std = {name: max(float(value), std_jacobian[name]) for name, value in zip(_ESTIMATED[distortion], jackknife)}
-        if distortion in ("none", "radial"):  # chosen by "auto": not conditional on the simpler model being right
+        if candidates and distortion in ("none", "radial"):  # chosen by "auto": not conditional on the simpler model being right
             general = view_jackknife([objects[i] for i in kept], [images[i] for i in kept], image_size, "standard",
                                      candidates["standard"])
             for name, value in zip(_ESTIMATED["standard"], np.sqrt(np.diag(general))):
