@@ -38,7 +38,7 @@ import numpy as np
 from services.calibration.camera import INTRINSIC_NAMES, view_jackknife
 from services.calibration.corner_window import select_corner_window
 from services.calibration.corners import detect_board
-from services.calibration.determination import poorly_determined
+from services.calibration.determination import FOCAL_LIMIT, PRINCIPAL_POINT_LIMIT, poorly_determined
 from services.calibration.frontal import calibrate_with_frontal_refinement
 from services.simulation.boards import random_calibration
 
@@ -159,10 +159,18 @@ def summary(rows: list[dict], title: str) -> None:
         if hits["std"]:
             print(f"| {label} | {100 * np.mean(hits['std']):.1f} % | {100 * np.mean(hits['std_jacobian']):.1f} % "
                   f"| {100 * np.mean(hits['std_jackknife']):.1f} % | {len(hits['std'])} |")
-    warned = [r for r in good if r["warnings"]]
-    print(f"\n{len(warned)} of {len(good)} calibrations say a parameter is poorly determined")
-    for r in warned:
-        print(f"  seed {r['seed']}: f {r['f_error_pct']:.3f} %, c {r['c_error_px']:.2f} px: " + "; ".join(r["warnings"]))
+    flagged = {"focal length": [r for r in good if Z90 * max(r["std"]["fx"] / r["f_true"], r["std"]["fy"] / r["f_true"])
+                                > FOCAL_LIMIT],
+               "principal point": [r for r in good if Z90 * max(r["std"]["cx"], r["std"]["cy"])
+                                   > PRINCIPAL_POINT_LIMIT * r["size"][0]]}
+    print("\n| called poorly determined (from the sigmas) | cameras | their median error | the others' median error |"
+          "\n|---|---|---|---|")
+    for label, key, unit in (("focal length", "f_error_pct", "%"), ("principal point", "c_error_px", "px")):
+        named = [r[key] for r in flagged[label]]
+        others = [r[key] for r in good if r not in flagged[label]]
+        print(f"| {label} | {len(named)} of {len(good)} | "
+              + (f"{np.median(named):.3f} {unit}" if named else "-") + " | "
+              + (f"{np.median(others):.3f} {unit}" if others else "-") + " |")
 
 
 def main() -> None:
