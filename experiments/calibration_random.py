@@ -194,6 +194,8 @@ def main() -> None:
             continue
         row = evaluate(seed, args.thermal16, args.cache)
         rows.append(row)
+        if args.rows_out is not None:
+            args.rows_out.write_text(json.dumps(rows, indent=1))
         if row.get("failed"):
             print(f"seed {seed}: {row['modality']} {row['size']}: board found in {row['found']} of {row['views']} views,"
                   " too few", flush=True)

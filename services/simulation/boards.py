@@ -376,15 +376,21 @@ def random_calibration(
                   [0.0, fy, (height - 1) / 2 + rng.uniform(-0.03, 0.03) * height], [0.0, 0.0, 1.0]])
     dist = np.array([rng.uniform(-0.35, 0.05), rng.uniform(-0.05, 0.2) * (rng.uniform() < 0.5),
                      rng.uniform(-1e-3, 1e-3), rng.uniform(-1e-3, 1e-3), 0.0])
-    cols = int(rng.integers(5, 11))
-    rows = int(rng.integers(4, min(8, cols)))  # fewer rows than columns: the board's orientation is unambiguous
-    square = float(rng.choice([15.0, 20.0, 25.0, 30.0, 40.0]))
-    board = ChessboardSpec(type="chessboard", inner_corners=(cols, rows), square_mm=square)
-    cols, rows = board.pattern_size
-    cover = rng.uniform(0.35, 0.7)
-    middle = fx * (cols + 1) * square / (cover * width)
-    depths = (middle / 1.25, middle * 1.25)
-    poses = _random_poses(rng, board, K, dist, (width, height), views, depths, tilt_axis)
+    for _ in range(10):  # a board no pose fits (too large for a strongly distorted lens) is drawn again
+        cols = int(rng.integers(5, 11))
+        rows = int(rng.integers(4, min(8, cols)))  # fewer rows than columns: the board's orientation is unambiguous
+        square = float(rng.choice([15.0, 20.0, 25.0, 30.0, 40.0]))
+        board = ChessboardSpec(type="chessboard", inner_corners=(cols, rows), square_mm=square)
+        cover = rng.uniform(0.35, 0.7)
+        middle = fx * (cols + 1) * square / (cover * width)
+        try:
+            poses = _random_poses(rng, board, K, dist, (width, height), views, (middle / 1.25, middle * 1.25),
+                                  tilt_axis)
+            break
+        except ValueError:
+            continue
+    else:
+        raise ValueError("No board of those drawn fits this camera's image.")
     images = [render_board(board, K, dist, R, t, (width, height), modality=modality, blur_sigma=blur_sigma,
                            noise_sigma=noise_sigma, supersample=2, rng=rng) for R, t in poses]
     return SimulatedCalibration(modality, (int(width), int(height)), K, dist, board, poses, images, blur_sigma,
