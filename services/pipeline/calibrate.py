@@ -15,9 +15,9 @@ from matplotlib.figure import Figure
 
 from services.calibration.camera import calibrate_camera
 from services.calibration.corner_window import WindowSelection, select_corner_window
+from services.calibration.corners import DEFAULT_WINDOW_FRACTION, BoardDetection, detect_board, refine_corners
 from services.calibration.determination import poorly_determined
 from services.calibration.frontal import calibrate_with_frontal_refinement
-from services.calibration.corners import DEFAULT_WINDOW_FRACTION, BoardDetection, detect_board, refine_corners
 from services.calibration.model_selection import ModelSelection
 from services.calibration.projector import calibrate_projector, projector_corners
 from services.calibration.report import coverage_map, residual_bars, residual_vectors
