@@ -21,7 +21,7 @@ Populations (``services.simulation.boards.random_calibration``):
 
 Each camera is calibrated as ``thermofield calibrate camera --distortion auto`` does (board detection, corner
 window chosen by cross-validation, outlier views, lens model by BIC, corners refined again in the board frame
-and the camera calibrated again, sigmas from the view jackknife); the thermal16 population is also
+and kept if they fit better, sigmas from the view jackknife); the thermal16 population is also
 calibrated by stock OpenCV (``cv2.calibrateCamera``, five coefficients, on the detector's corners).
 A sigma covers its error when |error| <= 1.645 sigma (the two-sided 90 % interval).
 """
