@@ -50,7 +50,9 @@ class CameraCalibration:
     rms : float
         Root-mean-square reprojection error over all kept features, in pixels.
     std : dict of str to float
-        One standard deviation of each estimated intrinsic parameter.
+        One standard deviation of each estimated intrinsic parameter: the jackknife over views, never less
+        than the Jacobian's (see ``view_jackknife``); when ``distortion="auto"`` chose a model simpler than
+        the standard one, never less than the standard model's jackknife either (the choice is uncertain too).
     views : (V,) int array
         Indices (into the input lists) of the views kept.
     per_view_rms : (V,) array
@@ -67,6 +69,11 @@ class CameraCalibration:
     model_selection : ModelSelection or None
         With ``distortion="auto"``: every candidate's fit (RSS, parameters, BIC, RMS) and why the
         chosen one won.
+    std_jacobian : dict of str to float or None
+        The Jacobian's standard deviations sqrt(diag((J^T J)^-1) sigma^2), which assume independent
+        residuals.
+    correlation : (P, P) array or None
+        Correlation matrix of the estimated intrinsics (the order of ``std``) from the jackknife.
     """
 
     image_size: tuple[int, int]
@@ -83,6 +90,8 @@ class CameraCalibration:
     rejected: list[tuple[int, str]]
     distortion_model: str = "standard"
     model_selection: ModelSelection | None = None
+    std_jacobian: dict[str, float] | None = None
+    correlation: np.ndarray | None = None
 
 
 def calibrate_camera(
@@ -91,6 +100,7 @@ def calibrate_camera(
     image_size: tuple[int, int],
     distortion: DistortionModel = "standard",
     reject_outliers: bool = True,
+    jackknife: bool = True,
 ) -> CameraCalibration:
     """Calibrate a camera from views of a planar board, rejecting outlier views automatically.
 
@@ -106,6 +116,9 @@ def calibrate_camera(
         rational model, or "auto": the one of these the data support best (see Notes).
     reject_outliers : bool
         Drop views whose RMS is far above the others (see Notes), one at a time.
+    jackknife : bool
+        Standard deviations from the view jackknife (``view_jackknife``, one more calibration per view);
+        False keeps the Jacobian's (for the many trial calibrations of a cross-validation).
 
     Returns
     -------
@@ -117,8 +130,10 @@ def calibrate_camera(
     intrinsics from the homographies h_i of each view through the image of the absolute
     conic, h_1^T K^-T K^-1 h_2 = 0 and h_1^T K^-T K^-1 h_1 = h_2^T K^-T K^-1 h_2, then
     Levenberg-Marquardt minimisation of sum ||m_ij - proj(K, dist, R_i, t_i, M_j)||^2.
-    Standard deviations are sqrt(diag((J^T J)^-1) sigma^2) with sigma^2 the residual
-    variance per coordinate. Outlier views replace the paper's removal of gross errors by
+    Standard deviations: the Jacobian's sqrt(diag((J^T J)^-1) sigma^2), sigma^2 the residual variance
+    per coordinate, assumes independent corner errors; blur and a bent or unevenly lit board make the
+    errors of a view's corners shared, so the delete-one-view jackknife (``view_jackknife``) is reported,
+    never below the Jacobian's. Outlier views replace the paper's removal of gross errors by
     hand: while the worst view's RMS exceeds both median + 4 * 1.4826 * MAD and twice the
     median of the per-view RMS, it is dropped and the calibration repeated, never going
     below three views.
@@ -160,14 +175,29 @@ def calibrate_camera(
             break
         rejected.append((kept[worst], reason))
         del kept[worst]
-    selection = None
+    selection, candidates = None, {}
     if distortion == "auto":
-        selection, result = _select_distortion([objects[i] for i in kept], [images[i] for i in kept], image_size,
-                                               {fitted: result})
+        selection, candidates = _select_distortion([objects[i] for i in kept], [images[i] for i in kept], image_size,
+                                                   {fitted: result})
         fitted = selection.chosen
+        result = candidates[fitted]
     distortion = fitted
-    std = {name: float(value) for name, value in zip(INTRINSIC_NAMES, result["std_intrinsics"])
-           if name in _ESTIMATED[distortion]}
+    std_jacobian = {name: float(value) for name, value in zip(INTRINSIC_NAMES, result["std_intrinsics"])
+                    if name in _ESTIMATED[distortion]}
+    std, correlation = dict(std_jacobian), None
+    if jackknife and len(kept) > MIN_VIEWS:
+        covariance = view_jackknife([objects[i] for i in kept], [images[i] for i in kept], image_size, distortion,
+                                    result)
+        jackknife = np.sqrt(np.diag(covariance))
+        std = {name: max(float(value), std_jacobian[name]) for name, value in zip(_ESTIMATED[distortion], jackknife)}
+        if candidates and distortion in ("none", "radial"):  # chosen by "auto": not conditional on the simpler model being right
+            general = view_jackknife([objects[i] for i in kept], [images[i] for i in kept], image_size, "standard",
+                                     candidates["standard"])
+            for name, value in zip(_ESTIMATED["standard"], np.sqrt(np.diag(general))):
+                if name in std:
+                    std[name] = max(std[name], float(value))
+        with np.errstate(divide="ignore", invalid="ignore"):
+            correlation = np.nan_to_num(covariance / np.outer(jackknife, jackknife))
     return CameraCalibration(
         image_size=(int(image_size[0]), int(image_size[1])),
         K=result["K"],
@@ -183,12 +213,70 @@ def calibrate_camera(
         rejected=rejected,
         distortion_model=distortion,
         model_selection=selection,
+        std_jacobian=std_jacobian,
+        correlation=correlation,
     )
 
 
+def view_jackknife(objects: list[np.ndarray], images: list[np.ndarray], image_size: tuple[int, int],
+                   distortion: str, full: dict | None = None) -> np.ndarray:
+    """Delete-one-view jackknife covariance of the estimated intrinsics.
+
+    Parameters
+    ----------
+    objects, images : lists of (N_i, 3) and (N_i, 2) arrays
+        The kept views' board points and corners.
+    image_size : (width, height)
+    distortion : {"none", "radial", "standard", "rational"}
+    full : dict, optional
+        The calibration on all views (its intrinsics start every refit).
+
+    Returns
+    -------
+    (P, P) array
+        Covariance of the parameters named by the model (fx, fy, cx, cy, then its distortion terms).
+
+    Notes
+    -----
+    With theta_(i) the estimate without view i of V and theta_(.) their mean, the covariance is
+    ``(V - 1) / V * sum_i (theta_(i) - theta_(.)) (theta_(i) - theta_(.))^T`` [1]_. Unlike the Jacobian's
+    ``(J^T J)^-1 sigma^2`` it does not assume independent corner errors: a blurred corner's error is shared
+    by its neighbours, a view's pose and board errors by all its corners, and resampling whole views keeps
+    those correlations (the views are the independent units) [2]_.
+
+    References
+    ----------
+    .. [1] B. Efron, C. Stein, "The jackknife estimate of variance", Annals of Statistics 9(3), 586-596 (1981).
+    .. [2] B. Efron, "The jackknife, the bootstrap and other resampling plans", SIAM CBMS-NSF 38 (1982), ch. 3.
+    """
+    if len(objects) < MIN_VIEWS + 1:
+        raise ValueError(f"The view jackknife needs at least {MIN_VIEWS + 1} views; got {len(objects)}.")
+    names = _ESTIMATED[distortion]
+    indices = [INTRINSIC_NAMES.index(name) for name in names]
+    objects = [np.asarray(p, np.float32).reshape(-1, 3) for p in objects]
+    images = [np.asarray(p, np.float32).reshape(-1, 2) for p in images]
+    estimates = []
+    for left_out in range(len(objects)):
+        kept = [i for i in range(len(objects)) if i != left_out]
+        flags = _FLAGS[distortion]
+        K0, dist0 = None, None
+        if full is not None:
+            flags |= cv2.CALIB_USE_INTRINSIC_GUESS
+            K0, dist0 = full["K"].copy(), np.asarray(full["dist"], np.float64).copy()
+        _, K, dist, _, _ = cv2.calibrateCamera([objects[i] for i in kept], [images[i] for i in kept],
+                                               tuple(int(s) for s in image_size), K0, dist0, flags=flags,
+                                               criteria=_CRITERIA)
+        values = np.concatenate([[K[0, 0], K[1, 1], K[0, 2], K[1, 2]], np.zeros(14)])
+        values[4:4 + dist.size] = dist.ravel()[:14]
+        estimates.append(values[indices])
+    estimates = np.array(estimates)
+    deviations = estimates - estimates.mean(axis=0)
+    return (len(objects) - 1) / len(objects) * deviations.T @ deviations
+
+
 def _select_distortion(objects: list[np.ndarray], images: list[np.ndarray], image_size: tuple[int, int],
-                       known: dict[str, dict]) -> tuple[ModelSelection, dict]:
-    """Fit every candidate lens model (reusing those in ``known``) and pick the lowest BIC."""
+                       known: dict[str, dict]) -> tuple[ModelSelection, dict[str, dict]]:
+    """Fit every candidate lens model (reusing those in ``known``) and pick the lowest BIC; every candidate's fit."""
     results = {model: known.get(model) or _calibrate_views(objects, images, image_size, model)
                for model in AUTO_CANDIDATES}
     observations = 2 * sum(len(points) for points in images)
@@ -200,7 +288,7 @@ def _select_distortion(objects: list[np.ndarray], images: list[np.ndarray], imag
                              bic=bayesian_information_criterion(residual_sum, observations, parameters),
                              rms=result["rms"]))
     selection = select_model(fits)
-    return selection, results[selection.chosen]
+    return selection, results
 
 
 def _calibrate_views(objects: list[np.ndarray], images: list[np.ndarray], image_size: tuple[int, int],

@@ -11,7 +11,7 @@ from services.calibration.camera import DistortionModel, calibrate_camera, locat
 from services.calibration.corners import DEFAULT_WINDOW_FRACTION, refine_corners
 from services.geometry.camera import project_points
 
-WINDOW_FRACTIONS = (0.15, 0.2, 0.25, 0.3, 0.35)
+WINDOW_FRACTIONS = (0.15, 0.2, 0.25, 0.3, 0.35, 0.4, 0.45)
 """Candidate half windows, as fractions of the corner spacing (the default rule is 0.25)."""
 MAX_FOLDS = 5
 MIN_VIEWS_TO_CHOOSE = 4  # three views leave two to calibrate each fold: too few to judge a window
@@ -92,7 +92,7 @@ def select_corner_window(images: Sequence[np.ndarray], image_points: Sequence[np
     objects = [np.asarray(points, np.float64) for points in object_points]
     if distortion == "auto":
         distortion = calibrate_camera(objects, [np.asarray(p, np.float64) for p in image_points], image_size,
-                                      "auto").distortion_model
+                                      "auto", jackknife=False).distortion_model
     candidates = {fraction: [refine_corners(image, points, fraction) for image, points in zip(images, image_points)]
                   for fraction in fractions}
     held_out = {fraction: _held_out_rms(objects, refined, image_size, distortion)
@@ -113,7 +113,7 @@ def _held_out_rms(objects: list[np.ndarray], images: list[np.ndarray], image_siz
         held = [i for i in range(len(objects)) if i % folds == fold]
         kept = [i for i in range(len(objects)) if i % folds != fold]
         calibration = calibrate_camera([objects[i] for i in kept], [images[i] for i in kept], image_size,
-                                       distortion, reject_outliers=False)
+                                       distortion, reject_outliers=False, jackknife=False)
         for i in held:
             R, t = locate_camera(objects[i], images[i], calibration.K, calibration.dist)
             predicted = project_points(objects[i], calibration.K, calibration.dist, R, t)

@@ -132,6 +132,8 @@ def run_camera(args: argparse.Namespace) -> int:
           f"fy {output.K[1][1]:.2f} +- {output.std['fy']:.2f}, cx {output.K[0][2]:.2f}, cy {output.K[1][2]:.2f}")
     if output.model_selection is not None:
         print(f"{output.name}: lens model {output.distortion_model}: {output.model_selection.reason}")
+    for message in output.poorly_determined:
+        print(f"{output.name}: {message}")
     return 0
 
 

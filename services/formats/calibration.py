@@ -110,6 +110,7 @@ class CameraCalibrationFile(BaseModel):
     rejected: list[RejectedView]
     model_selection: ModelSelectionRecord | None = None
     corner_window: CornerWindowRecord | None = None
+    poorly_determined: list[str] = []
 
     def device(self) -> CameraModel:
         """The calibrated device at the world origin, as a rig entry."""

@@ -16,6 +16,8 @@ from matplotlib.figure import Figure
 from services.calibration.camera import calibrate_camera
 from services.calibration.corner_window import WindowSelection, select_corner_window
 from services.calibration.corners import DEFAULT_WINDOW_FRACTION, BoardDetection, detect_board, refine_corners
+from services.calibration.determination import poorly_determined
+from services.calibration.frontal import calibrate_with_frontal_refinement
 from services.calibration.model_selection import ModelSelection
 from services.calibration.projector import calibrate_projector, projector_corners
 from services.calibration.report import coverage_map, residual_bars, residual_vectors
@@ -120,8 +122,11 @@ def calibrate_camera_views(*, images: Sequence[LabelledImage], board: BoardSpec,
     image_points, window = [d.image_points for d in detections], None
     if board.type != "circles":
         window = select_corner_window([image for _, image in images], image_points, object_points, size, distortion)
-        image_points = window.image_points
-    result = calibrate_camera(object_points, image_points, size, distortion)
+        result, image_points = calibrate_with_frontal_refinement(
+            [image for _, image in images], object_points, window.image_points, size, distortion, board.square_mm,
+            window.fraction)
+    else:
+        result = calibrate_camera(object_points, image_points, size, distortion)
     names = [label for label, _ in images]
     views = [
         CalibratedView(image=names[i], rms_px=float(rms), polarity=detections[i].polarity, R=R.tolist(),
@@ -134,7 +139,7 @@ def calibrate_camera_views(*, images: Sequence[LabelledImage], board: BoardSpec,
         distortion_model=result.distortion_model, rms_px=result.rms, std=result.std, board=board, views=views,
         rejected=[RejectedView(image=names[i], reason=reason) for i, reason in result.rejected],
         model_selection=_model_selection_record(result.model_selection),
-        corner_window=_corner_window_record(window),
+        corner_window=_corner_window_record(window), poorly_determined=poorly_determined(result),
     )
     kept_points = [image_points[i] for i in result.views]
     figures = {

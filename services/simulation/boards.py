@@ -7,6 +7,7 @@ model) and looks up a board texture with ``cv2.remap``; samples are averaged ove
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Literal
 
 import cv2
@@ -283,3 +284,146 @@ def _quantise(radiance: np.ndarray, noise_sigma: float, bit_depth: int, rng: np.
         grey = grey + rng.normal(0.0, noise_sigma, grey.shape)
     dtype = np.uint8 if bit_depth == 8 else np.uint16
     return np.clip(np.round(grey), 0, full_scale).astype(dtype)
+
+
+@dataclass(frozen=True)
+class SimulatedCalibration:
+    """A simulated calibration session: a camera drawn at random, its board and the rendered views.
+
+    Attributes
+    ----------
+    modality : {"visible", "infrared"}
+    image_size : (width, height)
+    K, dist : arrays
+        The true intrinsics and OpenCV distortion (k1, k2, p1, p2, k3).
+    board : ChessboardSpec
+    poses : list of ((3, 3), (3,)) arrays
+        The true board-to-camera pose of every view.
+    images : list of (H, W) uint8 arrays
+    blur_sigma, noise_sigma : float
+        Optical blur (px) and sensor noise (grey levels) of the views.
+    """
+
+    modality: Modality
+    image_size: tuple[int, int]
+    K: np.ndarray
+    dist: np.ndarray
+    board: ChessboardSpec
+    poses: list[tuple[np.ndarray, np.ndarray]]
+    images: list[np.ndarray]
+    blur_sigma: float
+    noise_sigma: float
+
+
+THERMAL_SIZES = ((160, 120), (320, 240), (320, 256), (384, 288), (640, 512))
+VISIBLE_SIZES = ((640, 480), (752, 480), (800, 600), (1024, 768))
+
+
+def random_calibration(
+    rng: np.random.Generator,
+    *,
+    modality: Modality | None = None,
+    image_size: tuple[int, int] | None = None,
+    views: int | None = None,
+    blur_sigma: float | None = None,
+    noise_sigma: float | None = None,
+    tilt_axis: np.ndarray | None = None,
+) -> SimulatedCalibration:
+    """Draw a camera, a chessboard and a set of board views at random, and render them.
+
+    Parameters
+    ----------
+    rng : numpy Generator
+    modality : {"visible", "infrared"}, optional
+        Infrared renders the hollowed heated board; drawn with equal odds when omitted.
+    image_size : (width, height), optional
+        Drawn from ``THERMAL_SIZES`` or ``VISIBLE_SIZES`` when omitted.
+    views : int, optional
+        Number of views, drawn from 8..20 when omitted.
+    blur_sigma, noise_sigma : float, optional
+        Drawn from 0.4..1.5 px and 0.5..3 grey levels when omitted.
+    tilt_axis : (2,) array, optional
+        Tilt every view about this one axis of the board (x, y) instead of axes drawn all around: a
+        degenerate set that leaves the principal point undetermined along the other axis.
+
+    Returns
+    -------
+    SimulatedCalibration
+
+    Notes
+    -----
+    The camera: a horizontal field of view of 25..65 degrees (f = w / (2 tan(fov / 2))), square pixels
+    within 0.3 %, the principal point within 3 % of the size from the centre, k1 in -0.35..0.05,
+    k2 in -0.05..0.2 (half the time zero), p1 and p2 within 0.001, k3 zero. The board: a chessboard of
+    5..10 by 4..7 inner corners (fewer rows than columns) whose width covers 35..70 % of the image at the middle depth, placed at
+    depths spread over a factor 1.6, tilted 10..45 degrees, every corner at least a square inside the
+    image. Views the caller's detector misses are the caller's to count.
+    """
+    modality = modality or ("infrared" if rng.uniform() < 0.5 else "visible")
+    if modality not in ("visible", "infrared"):
+        raise ValueError(f"modality must be 'visible' or 'infrared'; got {modality!r}.")
+    sizes = THERMAL_SIZES if modality == "infrared" else VISIBLE_SIZES
+    width, height = image_size or sizes[rng.integers(len(sizes))]
+    views = int(views if views is not None else rng.integers(8, 21))
+    if views < 1:
+        raise ValueError(f"views must be at least 1; got {views}.")
+    blur_sigma = float(blur_sigma if blur_sigma is not None else rng.uniform(0.4, 1.5))
+    noise_sigma = float(noise_sigma if noise_sigma is not None else rng.uniform(0.5, 3.0))
+    fov = np.radians(rng.uniform(25.0, 65.0))
+    fx = width / (2 * np.tan(fov / 2))
+    fy = fx * (1 + rng.uniform(-0.003, 0.003))
+    K = np.array([[fx, 0.0, (width - 1) / 2 + rng.uniform(-0.03, 0.03) * width],
+                  [0.0, fy, (height - 1) / 2 + rng.uniform(-0.03, 0.03) * height], [0.0, 0.0, 1.0]])
+    dist = np.array([rng.uniform(-0.35, 0.05), rng.uniform(-0.05, 0.2) * (rng.uniform() < 0.5),
+                     rng.uniform(-1e-3, 1e-3), rng.uniform(-1e-3, 1e-3), 0.0])
+    for _ in range(10):  # a board no pose fits (too large for a strongly distorted lens) is drawn again
+        cols = int(rng.integers(5, 11))
+        rows = int(rng.integers(4, min(8, cols)))  # fewer rows than columns: the board's orientation is unambiguous
+        square = float(rng.choice([15.0, 20.0, 25.0, 30.0, 40.0]))
+        board = ChessboardSpec(type="chessboard", inner_corners=(cols, rows), square_mm=square)
+        cover = rng.uniform(0.35, 0.7)
+        middle = fx * (cols + 1) * square / (cover * width)
+        try:
+            poses = _random_poses(rng, board, K, dist, (width, height), views, (middle / 1.25, middle * 1.25),
+                                  tilt_axis)
+            break
+        except ValueError:
+            continue
+    else:
+        raise ValueError("No board of those drawn fits this camera's image.")
+    images = [render_board(board, K, dist, R, t, (width, height), modality=modality, blur_sigma=blur_sigma,
+                           noise_sigma=noise_sigma, supersample=2, rng=rng) for R, t in poses]
+    return SimulatedCalibration(modality, (int(width), int(height)), K, dist, board, poses, images, blur_sigma,
+                                noise_sigma)
+
+
+def _random_poses(rng, board, K, dist, size, views, depths, tilt_axis):
+    """Tilted board poses at spread depths with every corner at least a square inside the image."""
+    points = board.object_points()
+    centre = points.mean(axis=0)
+    square = board.square_mm
+    frame = np.array([[points[:, 0].min() - square, points[:, 1].min() - square, 0.0],
+                      [points[:, 0].max() + square, points[:, 1].min() - square, 0.0],
+                      [points[:, 0].max() + square, points[:, 1].max() + square, 0.0],
+                      [points[:, 0].min() - square, points[:, 1].max() + square, 0.0]])
+    outline = np.concatenate([points, frame])
+    poses, attempts = [], 0
+    while len(poses) < views:
+        attempts += 1
+        if attempts > 200 * views:
+            raise ValueError("No board pose fits the image; the board is too large for this camera.")
+        index = len(poses)
+        if tilt_axis is None:
+            angle = 2 * np.pi * (index + rng.uniform()) / views
+            axis = np.array([np.cos(angle), np.sin(angle)])
+        else:
+            axis = np.asarray(tilt_axis, float) / np.linalg.norm(tilt_axis) * rng.choice([-1.0, 1.0])
+        tilt = np.radians(rng.uniform(10, 45))
+        R = cv2.Rodrigues(np.array([tilt * axis[0], tilt * axis[1], rng.uniform(-0.3, 0.3)]))[0]
+        z = depths[0] + (depths[1] - depths[0]) * (index + rng.uniform()) / views
+        reach = 0.3 * z * np.array(size) / K[0, 0]
+        t = np.array([rng.uniform(-1, 1) * reach[0], rng.uniform(-1, 1) * reach[1], z]) - R @ centre
+        projected = cv2.projectPoints(outline, cv2.Rodrigues(R)[0], t, K, dist)[0].reshape(-1, 2)
+        if projected.min() >= 2 and np.all(projected.max(axis=0) <= np.array(size) - 3):
+            poses.append((R, t))
+    return poses

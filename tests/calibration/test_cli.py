@@ -43,6 +43,9 @@ def test_calibrate_camera_on_opencv_images_writes_the_file_and_its_report(tmp_pa
     assert len(result["views"]) == 13 and result["rejected"] == []
     assert set(result["std"]) == {"fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3"}
     assert all(len(view["pose_std"]) == 6 for view in result["views"])
+    # the image corners hold no feature (docs/calibration.md): the lens is extrapolated there, and the file says so
+    assert len(result["poorly_determined"]) == 1
+    assert result["poorly_determined"][0].startswith("distortion poorly determined")
     for suffix in REPORT_SUFFIXES:
         figure = cv2.imread(str(out.parent / f"left{suffix}"))
         assert figure is not None and figure.shape[0] > 200
@@ -171,3 +174,25 @@ def test_calibrate_camera_chooses_the_lens_model_and_says_why(tmp_path, capsys, 
     assert min(candidates.values(), key=lambda c: c.bic).model == result.distortion_model
     assert result.model_selection.reason.startswith(result.distortion_model)
     assert f"lens model {result.distortion_model}" in capsys.readouterr().out
+
+
+def test_nearly_flat_views_leave_the_focal_length_poorly_determined_in_the_file_and_the_output(tmp_path, capsys, chessboard_9x6):
+    from services.simulation.boards import render_board
+
+    from .simulated_rig import board_poses
+
+    (tmp_path / "board.json").write_text(chessboard_9x6.model_dump_json())
+    images = tmp_path / "thermal"
+    images.mkdir()
+    rng = np.random.default_rng(4)
+    for index, (R, t) in enumerate(board_poses(chessboard_9x6, 6, 370.0, 3.0)):  # tilted 3 degrees: nearly flat
+        write_png(images / f"ir{index:02d}.png", render_board(chessboard_9x6, THERMAL_K, THERMAL_DIST, R, t, THERMAL_SIZE,
+                                                             modality="infrared", blur_sigma=1.0, noise_sigma=2.0,
+                                                             supersample=2, rng=rng))
+    out = tmp_path / "thermal.json"
+    assert main(["calibrate", "camera", "--board", str(tmp_path / "board.json"), "--images", str(images), "--out",
+                 str(out), "--kind", "thermal", "--distortion", "radial"]) == 0
+    messages = load_camera_calibration(out).poorly_determined
+    assert any(m.startswith("focal length poorly determined") for m in messages)
+    printed = capsys.readouterr().out
+    assert all(f"thermal: {m}" in printed for m in messages)

@@ -1,0 +1,214 @@
+"""Calibration over cameras drawn at random: the distribution of the errors of f, the principal point and the
+distortion against the simulator's truth, and how often each reported sigma covers its error.
+
+Run (reporting seeds, both populations; the rendered views and detected corners are cached, so a second run
+only calibrates; a run split over processes is summarised with ``--summarise ROWS.json ...``)::
+
+    nice -n 10 .venv/bin/python experiments/calibration_random.py --seeds 100-149 --cache /tmp/calib-random
+    nice -n 10 .venv/bin/python experiments/calibration_random.py --thermal16 --seeds 1100-1119 --cache /tmp/calib-random
+
+Seeds. TUNING (used to choose the sigma rule and the "poorly determined" limits; never reported):
+random population 0-11, thermal 320x256 population 1000-1005. REPORTING: random population 100-149
+(50 cameras), thermal 320x256 population 1100-1119 (20 cameras).
+
+Populations (``services.simulation.boards.random_calibration``):
+
+- random: infrared (hollow heated board) or visible (printed board) with equal odds, sizes 160x120..640x512
+  (infrared) and 640x480..1024x768 (visible), fields of view 25..65 degrees, random distortion, boards of
+  5..10 x 4..7 corners, 8..20 views, blur 0.4..1.5 px, noise 0.5..3 grey levels;
+- thermal16: the issue's unseen case, 320x256 infrared behind a hollow heated board, 16 views, blur 1 px,
+  noise 2 grey levels, the rest drawn as above.
+
+Each camera is calibrated as ``thermofield calibrate camera --distortion auto`` does (board detection, corner
+window chosen by cross-validation, outlier views, lens model by BIC, corners refined again in the board frame
+and kept if they fit better, sigmas from the view jackknife); the thermal16 population is also
+calibrated by stock OpenCV (``cv2.calibrateCamera``, five coefficients, on the detector's corners).
+A sigma covers its error when |error| <= 1.645 sigma (the two-sided 90 % interval).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from services.calibration.camera import INTRINSIC_NAMES, view_jackknife
+from services.calibration.corner_window import select_corner_window
+from services.calibration.corners import detect_board
+from services.calibration.determination import FOCAL_LIMIT, PRINCIPAL_POINT_LIMIT, poorly_determined
+from services.calibration.frontal import calibrate_with_frontal_refinement
+from services.simulation.boards import random_calibration
+
+Z90 = 1.6448536269514722  # two-sided 90 % normal quantile
+
+
+def seeds(text: str) -> list[int]:
+    values = []
+    for part in text.split(","):
+        low, _, high = part.partition("-")
+        values.extend(range(int(low), int(high or low) + 1))
+    return values
+
+
+def corners(seed: int, thermal16: bool, cache: Path) -> dict:
+    """Render one camera's views and detect the board (cached per seed)."""
+    path = cache / f"{'thermal16' if thermal16 else 'random'}_{seed}.npz"
+    if path.exists():
+        data = np.load(path, allow_pickle=True)
+        return {key: data[key] for key in data.files}
+    rng = np.random.default_rng(seed)
+    extra = dict(modality="infrared", image_size=(320, 256), views=16, blur_sigma=1.0, noise_sigma=2.0) if thermal16 \
+        else {}
+    session = random_calibration(rng, **extra)
+    detections = [detect_board(image, session.board) for image in session.images]
+    found = [i for i, d in enumerate(detections) if d is not None]
+    objects = [session.board.object_points()[detections[i].ids] for i in found]
+    raw = [detections[i].image_points for i in found]
+    record = dict(modality=session.modality, size=np.array(session.image_size), K=session.K, dist=session.dist,
+                  pattern=np.array(session.board.pattern_size), square=session.board.square_mm,
+                  views=len(session.images), blur=session.blur_sigma, noise=session.noise_sigma, found=len(found))
+    if len(found) >= 4:
+        record.update(objects=np.array(objects, dtype=object), raw=np.array(raw, dtype=object),
+                      images=np.array([session.images[i] for i in found]))
+    cache.mkdir(parents=True, exist_ok=True)
+    np.savez(path, **record)
+    return {key: np.asarray(value) for key, value in record.items()}
+
+
+def distortion_error_px(K_true, dist_true, K, dist, size) -> float:
+    """Largest difference of the lens displacement over the image, in pixels of the true focal length."""
+    width, height = size
+    u, v = np.meshgrid(np.linspace(0, width - 1, 17), np.linspace(0, height - 1, 15))
+    pixels = np.column_stack([u.ravel(), v.ravel()]).astype(np.float64)
+    normal = cv2.undistortPoints(pixels.reshape(-1, 1, 2), K_true, dist_true).reshape(-1, 2)
+    rays = np.column_stack([normal, np.ones(len(normal))])
+    true = cv2.projectPoints(rays, np.zeros(3), np.zeros(3), np.eye(3), dist_true)[0].reshape(-1, 2)
+    estimated = cv2.projectPoints(rays, np.zeros(3), np.zeros(3), np.eye(3), np.asarray(dist, float))[0].reshape(-1, 2)
+    return float(np.max(np.linalg.norm(estimated - true, axis=1)) * K_true[0, 0])
+
+
+def evaluate(seed: int, thermal16: bool, cache: Path) -> dict | None:
+    data = corners(seed, thermal16, cache)
+    if "raw" not in data:
+        return {"seed": seed, "modality": str(data["modality"]), "size": data["size"].tolist(), "views": int(data["views"]),
+                "found": int(data["found"]), "failed": True}
+    size = tuple(int(s) for s in data["size"])
+    K_true, dist_true = data["K"], data["dist"]
+    objects = [np.asarray(o, np.float64) for o in data["objects"]]
+    window = select_corner_window(list(data["images"]), [np.asarray(p, np.float64) for p in data["raw"]], objects,
+                                  size, "auto")
+    result, refined = calibrate_with_frontal_refinement(list(data["images"]), objects, window.image_points, size, "auto",
+                                                        float(data["square"]), window.fraction)
+    names = list(result.std)
+    truth = dict(zip(INTRINSIC_NAMES, [K_true[0, 0], K_true[1, 1], K_true[0, 2], K_true[1, 2], *dist_true]))
+    estimate = dict(zip(INTRINSIC_NAMES, [result.K[0, 0], result.K[1, 1], result.K[0, 2], result.K[1, 2],
+                                          *result.dist]))
+    errors = {name: float(estimate[name] - truth.get(name, 0.0)) for name in names}
+    kept = list(result.views)
+    jack = np.sqrt(np.diag(view_jackknife([objects[i] for i in kept], [refined[i] for i in kept], size,
+                                          result.distortion_model)))
+    row = {
+        "seed": seed, "modality": str(data["modality"]), "size": list(size), "views": int(data["views"]),
+        "found": int(data["found"]), "kept": len(kept), "blur": float(data["blur"]), "noise": float(data["noise"]),
+        "f_true": float(K_true[0, 0]), "model": result.distortion_model, "window": window.fraction,
+        "f_error_pct": float(100 * max(abs(errors["fx"]) / truth["fx"], abs(errors["fy"]) / truth["fy"])),
+        "c_error_px": float(np.hypot(errors["cx"], errors["cy"])),
+        "distortion_error_px": distortion_error_px(K_true, dist_true, result.K, result.dist, size),
+        "errors": errors, "std": result.std, "std_jacobian": result.std_jacobian,
+        "std_jackknife": dict(zip(names, map(float, jack))),
+        "warnings": poorly_determined(result),
+    }
+    if thermal16:
+        objects32 = [o.astype(np.float32) for o in objects]
+        raw = [np.asarray(p, np.float32) for p in data["raw"]]
+        _, K_stock, _, _, _ = cv2.calibrateCamera(objects32, raw, size, None, None)
+        row["stock_f_error_pct"] = float(100 * np.max(np.abs(np.diag(K_stock)[:2] / np.diag(K_true)[:2] - 1)))
+        row["stock_c_error_px"] = float(np.hypot(*(K_stock[:2, 2] - K_true[:2, 2])))
+    return row
+
+
+def summary(rows: list[dict], title: str) -> None:
+    good = [r for r in rows if not r.get("failed")]
+    print(f"\n{title}: {len(good)} cameras calibrated of {len(rows)} "
+          f"({sum(r['modality'] == 'infrared' for r in good)} infrared, {sum(r['modality'] == 'visible' for r in good)} "
+          f"visible); views found {sum(r['found'] for r in rows)} of {sum(r['views'] for r in rows)}")
+    print("\n| error | median | 95th percentile | worst |\n|---|---|---|---|")
+    for key, label in (("f_error_pct", "focal length (%)"), ("c_error_px", "principal point (px)"),
+                       ("distortion_error_px", "distortion, largest over the image (px)")):
+        values = np.array([r[key] for r in good])
+        print(f"| {label} | {np.median(values):.3f} | {np.percentile(values, 95):.3f} | {values.max():.3f} |")
+    if good and "stock_f_error_pct" in good[0]:
+        for key, label in (("stock_f_error_pct", "stock OpenCV focal length (%)"),
+                           ("stock_c_error_px", "stock OpenCV principal point (px)")):
+            values = np.array([r[key] for r in good])
+            print(f"| {label} | {np.median(values):.3f} | {np.percentile(values, 95):.3f} | {values.max():.3f} |")
+    groups = {"f (fx, fy)": ("fx", "fy"), "principal point (cx, cy)": ("cx", "cy"),
+              "distortion terms": ("k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6")}
+    print("\n| parameter | sigma covers 1.645 sigma: reported | Jacobian only | jackknife only | estimates |\n"
+          "|---|---|---|---|---|")
+    for label, members in list(groups.items()) + [(n, (n,)) for n in ("fx", "fy", "cx", "cy", "k1", "k2")]:
+        hits = {kind: [] for kind in ("std", "std_jacobian", "std_jackknife")}
+        for r in good:
+            for name in members:
+                if name in r["errors"]:
+                    for kind in hits:
+                        hits[kind].append(abs(r["errors"][name]) <= Z90 * r[kind][name])
+        if hits["std"]:
+            print(f"| {label} | {100 * np.mean(hits['std']):.1f} % | {100 * np.mean(hits['std_jacobian']):.1f} % "
+                  f"| {100 * np.mean(hits['std_jackknife']):.1f} % | {len(hits['std'])} |")
+    flagged = {"focal length": [r for r in good if Z90 * max(r["std"]["fx"] / r["f_true"], r["std"]["fy"] / r["f_true"])
+                                > FOCAL_LIMIT],
+               "principal point": [r for r in good if Z90 * max(r["std"]["cx"], r["std"]["cy"])
+                                   > PRINCIPAL_POINT_LIMIT * r["size"][0]]}
+    print("\n| called poorly determined (from the sigmas) | cameras | their median error | the others' median error |"
+          "\n|---|---|---|---|")
+    for label, key, unit in (("focal length", "f_error_pct", "%"), ("principal point", "c_error_px", "px")):
+        named = [r[key] for r in flagged[label]]
+        others = [r[key] for r in good if r not in flagged[label]]
+        print(f"| {label} | {len(named)} of {len(good)} | "
+              + (f"{np.median(named):.3f} {unit}" if named else "-") + " | "
+              + (f"{np.median(others):.3f} {unit}" if others else "-") + " |")
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--seeds", type=seeds, default=[], help="e.g. 100-149")
+    parser.add_argument("--summarise", type=Path, nargs="+", default=None,
+                        help="only print the tables of saved --rows-out files (runs split over processes)")
+    parser.add_argument("--thermal16", action="store_true", help="the 320x256 infrared population with 16 views")
+    parser.add_argument("--cache", type=Path, default=Path("/tmp/calibration-random"), help="corner cache")
+    parser.add_argument("--render-only", action="store_true", help="only render and detect into the cache")
+    parser.add_argument("--rows-out", type=Path, default=None, help="also save the per-camera rows as JSON")
+    args = parser.parse_args()
+    if args.summarise:
+        rows = [row for path in args.summarise for row in json.loads(path.read_text())]
+        summary(rows, "320x256 infrared, 16 views" if args.thermal16 else "random cameras")
+        return
+    rows = []
+    for seed in args.seeds:
+        if args.render_only:
+            corners(seed, args.thermal16, args.cache)
+            continue
+        row = evaluate(seed, args.thermal16, args.cache)
+        rows.append(row)
+        if args.rows_out is not None:
+            args.rows_out.write_text(json.dumps(rows, indent=1))
+        if row.get("failed"):
+            print(f"seed {seed}: {row['modality']} {row['size']}: board found in {row['found']} of {row['views']} views,"
+                  " too few", flush=True)
+        else:
+            print(f"seed {seed}: {row['modality']} {row['size']} {row['kept']}/{row['views']} views, {row['model']}, "
+                  f"f {row['f_error_pct']:.3f} %, c {row['c_error_px']:.2f} px, "
+                  f"distortion {row['distortion_error_px']:.2f} px", flush=True)
+    if args.render_only:
+        return
+    summary(rows, "320x256 infrared, 16 views" if args.thermal16 else "random cameras")
+    if args.rows_out is not None:
+        args.rows_out.write_text(json.dumps(rows, indent=1))
+
+
+if __name__ == "__main__":
+    main()
