@@ -120,5 +120,5 @@ def test_the_api_serves_opc_ua_on_loopback_with_its_certificates_on_a_volume(com
     assert api["environment"]["THERMOFIELD_MQTT_HOST"]  # the scaled-out API hears the workers' results over MQTT
     # the server's certificate and the trusted clients (DATA_DIR/opcua, the default) survive a new container
     assert "THERMOFIELD_OPCUA_PKI_DIR" not in api["environment"] and "opcua:/data/opcua" in api["volumes"]
-    assert "opcua" in compose["volumes"]
+    assert "opcua" in compose["volumes"] and api["hostname"]  # the certificate's host name, whatever container
     assert "/data/opcua" in (DOCKER / "Dockerfile").read_text()  # owned by the image's user, as the volume then is
