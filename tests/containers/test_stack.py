@@ -270,9 +270,8 @@ def _trust(stack: Stack, certificate: Path) -> None:
     """Trust an MES's certificate as docs/deployment.md says: copied into the trusted/ directory of the API
     container's PKI volume (read by the server at each connection; no restart)."""
     api = stack.containers("api")[0]["Names"][0]
+    certificate.chmod(0o644)  # the copy keeps the mode (and root as owner): readable by the server's user
     stack.podman("cp", str(certificate), f"{api}:/data/opcua/trusted/{certificate.name}")
-    # readable by the server's user whoever copied it
-    stack.podman("exec", "--user", "root", api, "chmod", "a+r", f"/data/opcua/trusted/{certificate.name}")
 
 
 async def _mes_single_job(endpoint: str, api_key: str, certificate: tuple[Path, Path], recipe: str):
