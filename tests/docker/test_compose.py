@@ -110,3 +110,15 @@ def test_docker_compose_accepts_the_files(files):
     result = subprocess.run([binary, *arguments, "config", "--quiet"], capture_output=True, text=True, timeout=60,
                             env=environment)
     assert result.returncode == 0, result.stderr
+
+
+def test_the_api_serves_opc_ua_on_loopback_with_its_certificates_on_a_volume(compose):
+    api = compose["services"]["api"]
+    endpoint = api["environment"]["THERMOFIELD_OPCUA_ENDPOINT"]
+    assert endpoint.startswith("opc.tcp://0.0.0.0:4840/")  # every interface of the container, published below
+    assert "${THERMOFIELD_OPCUA_PUBLISH:-127.0.0.1:4840}:4840" in api["ports"]
+    assert api["environment"]["THERMOFIELD_MQTT_HOST"]  # the scaled-out API hears the workers' results over MQTT
+    # the server's certificate and the trusted clients (DATA_DIR/opcua, the default) survive a new container
+    assert "THERMOFIELD_OPCUA_PKI_DIR" not in api["environment"] and "opcua:/data/opcua" in api["volumes"]
+    assert "opcua" in compose["volumes"] and api["hostname"]  # the certificate's host name, whatever container
+    assert "/data/opcua" in (DOCKER / "Dockerfile").read_text()  # owned by the image's user, as the volume then is

@@ -2,7 +2,8 @@
 `thermofield gateway` as separate processes on PostgreSQL, RabbitMQ and Mosquitto, a shared artifact
 directory, as in docker/ (configured only by environment variables). A worker SIGKILLed in the middle of
 a scan: the scan is finished exactly once by a restarted worker, its artifacts whole, its MQTT states in
-order. The API's OPC UA server hears of the workers' results over MQTT."""
+order. The API's OPC UA server hears of the workers' results over MQTT, and an MES (asyncua, signed and
+encrypted) prepares a recipe, starts a scan a worker inspects, and reads the verdict HTTP gives."""
 
 import asyncio
 import hashlib
@@ -13,10 +14,13 @@ import time
 
 import httpx
 import numpy as np
+import psutil
 import pytest
 from services.formats.ply import read_cloud
 from services.formats.rig import rig_to_json
 from services.simulation.presets import forging_rig
+from asyncua import ua
+from services.simulation.hot_part import write_forging_part
 from tests.opcua.mes import Mes, client_certificate, value
 
 
@@ -61,7 +65,7 @@ def test_scaled_out_scans_with_two_workers_and_survive_a_worker_crash(e2e, deplo
         accepted = client.post("/v1/scans", headers={"Idempotency-Key": "crash-1"}).json()
         _wait_for_stage(client, accepted["job_id"], lambda state: state["status"] == "running")
         e2e.processes.stop(worker, signal.SIGKILL)
-        e2e.processes.start("worker-restarted", ["worker"], env)
+        restarted = e2e.processes.start("worker-restarted", ["worker"], env)
         final = e2e.follow_events(client, accepted["job_id"])[-1][1]
         assert final["status"] == "succeeded" and final["attempts"] == 2, final
         assert client.post("/v1/scans", headers={"Idempotency-Key": "crash-1"}).json() == accepted
@@ -81,6 +85,28 @@ def test_scaled_out_scans_with_two_workers_and_survive_a_worker_crash(e2e, deplo
         _assert_in_order(states)
         assert [state["status"] for state in states].count("succeeded") == 1, states
         assert {state["attempts"] for state in states} == {0, 1, 2}, states  # queued, the killed run, the rerun
+
+        # The MES: a part type uploaded over HTTP is its recipe; prepared and started over OPC UA, the scan runs in
+        # a worker process, is inspected, and its ResultReady and GetResultById give the verdict HTTP gives.
+        part_file = write_forging_part(tmp_path / "part")
+        part_type = client.post("/v1/part-types", files={
+            "part": ("part.json", part_file.read_bytes()),
+            "mesh": ("forging.stl", (part_file.parent / "forging.stl").read_bytes())})
+        assert part_type.status_code == 201, part_type.text
+        job_id, event, result, state = asyncio.run(_mes_single_job(opcua, admin, tmp_path, "forging-station-billet"))
+        scan_id = result.ResultId.Id
+        assert value(event, "JobId").Id == job_id and value(event, "ResultId").Id == scan_id
+        assert (result.ResultState, result.PartId.Id, result.MeasId.Id) == (1, "forging-8", "shift-4")  # Completed
+        assert state == ("Operational", "Ready")
+        job = client.get(f"/v1/jobs/{job_id}").json()
+        assert job["status"] == "succeeded", job
+        worker_pids = {child.pid for child in psutil.Process(restarted.pid).children(recursive=True)}
+        assert int(job["worker"].rsplit(":", 1)[1]) in worker_pids, (job, worker_pids)  # a worker, not the API
+        inspected = client.get(f"/v1/scans/{scan_id}").json()
+        assert (inspected["job_id"], inspected["part_id"]) == (job_id, "forging-8")
+        assert inspected["part_type_id"] == part_type.json()["part_type_id"]
+        assert client.get(inspected["links"]["report.json"]).json()["verdict"] == inspected["verdict"] == "OK"
+        assert [v.Value for v in value(event, "ResultContent")][0] == result.ResultContent[0].Value == "OK"
 
     # Every port is on loopback unless configured otherwise; no secret in any log of the full scans.
     for name, process in e2e.processes.running:
@@ -132,6 +158,26 @@ class _ResultReadyListener:
                                   "ResultState": value(event, "ResultState")}
                                  for event in mes.of_type("ResultReadyEventType")]
                 await asyncio.sleep(0.1)
+
+
+async def _mes_single_job(endpoint: str, api_key: str, directory, recipe: str):
+    """An MES's single job: PrepareRecipe, StartSingleJob, its ResultReady and GetResultById; the job's id, the
+    event, the result and the state the VisionSystem is left in."""
+    certificate = await client_certificate(directory / "mes", directory / "opcua" / "trusted")
+    # a generous request timeout: on a loaded machine a reply from the API can take longer than asyncua's 4 s
+    async with Mes(endpoint, api_key, certificate, timeout_s=60) as mes:
+        await mes.subscribe("ResultReadyEventType")
+        internal, _, error = await mes.call("PrepareRecipe", ua.RecipeIdExternalDataType(Id=recipe), None)
+        assert error == 0 and await mes.state() == ("Operational", "Ready"), internal
+        job, error = await mes.call("StartSingleJob", ua.MeasIdDataType(Id="shift-4"),
+                                    ua.PartIdDataType(Id="forging-8"), ua.RecipeIdExternalDataType(Id=recipe), None,
+                                    ua.Variant([], ua.VariantType.Variant))
+        assert error == 0
+        assert await mes.wait_for(lambda: mes.of_type("ResultReadyEventType"), timeout_s=300), mes.events
+        (event,) = mes.of_type("ResultReadyEventType")
+        _, result, error = await mes.call("GetResultById", value(event, "ResultId"), ua.Variant(0, ua.VariantType.Int32))
+        assert error == 0
+        return job.Id, event, result, await mes.state()
 
 
 def _wait_for_stage(client: httpx.Client, job_id: str, reached, timeout_s: float = 120.0) -> None:
