@@ -79,30 +79,14 @@ def _no_web_viewer_by_default():
         os.environ["THERMOFIELD_RERUN_WEB_PORT"] = previous
 
 
-# The integration tier: test files that start processes or servers, and those that render full-size
-# simulated scans or run whole calibrations and registrations (seconds per test).
-_INTEGRATION_FILES = (
-    "integration/", "reliability/", "containers/", "cli/", "docker/", "device_gateway/test_app.py", "workers/test_calibrate.py",
-    "streaming/test_recording.py", "test_cli.py", "_cli.py", "test_cli_simulate.py", "api/test_schemathesis.py",
-    "structured_light/test_reconstruct.py", "structured_light/test_gray_subpixel.py", "structured_light/test_glow.py",
-    "simulation/test_render.py", "simulation/test_glow.py", "fusion/test_field.py", "fusion/test_fuse.py",
-    "calibration/test_projector.py", "calibration/test_camera.py", "calibration/test_real_slstudio.py",
-    "calibration/test_model_selection.py", "registration/test_register.py", "registration/test_gradient_fields.py",
-    "inspection/", "pipeline/test_reconstruct.py", "formats/test_parser_properties.py",
-)
-
-
 def pytest_collection_modifyitems(config, items):
-    """Every test gets one tier, unit or integration, and ``postgres`` too when it uses the PostgreSQL server
-    (the ``engine`` fixture's postgresql case, and the scaled-out mode)."""
+    """Every test gets one tier. A test file that starts processes or servers, or renders full-size simulated
+    scans or runs whole calibrations and registrations (seconds per test), says so itself:
+    ``pytestmark = pytest.mark.integration``; every other test is ``unit``. The PostgreSQL cases of the ``engine``
+    fixture are marked ``postgres`` too (files that need the server throughout mark themselves)."""
     for item in items:
-        path = item.path.as_posix().split("/tests/", 1)[-1]
         callspec = getattr(item, "callspec", None)
-        if (callspec is not None and callspec.params.get("engine") == "postgresql") or "test_scaled_out" in path \
-                or "test_station_faults" in path:
+        if callspec is not None and callspec.params.get("engine") == "postgresql":
             item.add_marker(pytest.mark.postgres)
         if not item.get_closest_marker("integration"):
-            if any(part in path for part in _INTEGRATION_FILES):
-                item.add_marker(pytest.mark.integration)
-            else:
-                item.add_marker(pytest.mark.unit)
+            item.add_marker(pytest.mark.unit)

@@ -30,6 +30,8 @@ import schemathesis
 from hypothesis import HealthCheck, given, settings
 from schemathesis import GenerationMode
 
+pytestmark = pytest.mark.integration
+
 # A schema-valid request may still be refused with 422 for what a schema cannot say (a rig file's
 # contents, a calibration set of another station): that check is left out; all others run.
 SEMANTIC_CHECKS = [schemathesis.checks.positive_data_acceptance]

@@ -10,6 +10,8 @@ from services.simulation.boards import render_board
 
 from .simulated_rig import THERMAL_DIST, THERMAL_K, THERMAL_SIZE, board_poses, project
 
+pytestmark = pytest.mark.integration
+
 OPENCV_PUBLISHED_RMS = 0.196
 
 

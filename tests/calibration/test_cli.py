@@ -14,6 +14,8 @@ from services.geometry.camera_model import CameraModel
 
 from .simulated_rig import CAMERA_DIST, CAMERA_K, CAMERA_SIZE, THERMAL_DIST, THERMAL_FROM_CAMERA, THERMAL_K, THERMAL_SIZE
 
+pytestmark = pytest.mark.integration
+
 REPORT_SUFFIXES = ("_residual_bars.png", "_residual_vectors.png", "_coverage.png")
 
 

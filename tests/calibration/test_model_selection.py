@@ -12,6 +12,8 @@ from services.calibration.model_selection import ModelFit, bayesian_information_
 from services.formats.board import parse_board
 from services.simulation.boards import render_board
 
+pytestmark = pytest.mark.integration
+
 THERMAL_BOARD = parse_board('{"type": "chessboard", "inner_corners": [7, 5], "square_mm": 30.0}')
 THERMAL_K = np.array([[400.0, 0.0, 161.3], [0.0, 400.0, 127.6], [0.0, 0.0, 1.0]])
 THERMAL_DIST = np.array([-0.2, 0.1, 0.0, 0.0, 0.0])

@@ -16,6 +16,8 @@ from services.structured_light.decode import decode
 
 from .simulated_rig import PROJECTOR_CAMERA_DIST, PROJECTOR_CAMERA_K, PROJECTOR_CAMERA_SIZE, projector_beside_camera
 
+pytestmark = pytest.mark.integration
+
 
 def _corners_of(capture, board):
     sequence, frames, _ = capture

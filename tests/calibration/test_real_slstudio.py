@@ -14,6 +14,8 @@ from services.calibration.camera import OUTLIER_MADS, OUTLIER_RATIO
 from services.cli.main import main as thermofield
 from services.cli.reconstruct import reconstruct_from_files
 
+pytestmark = pytest.mark.integration
+
 REPO = Path(__file__).resolve().parents[2]
 DATA = REPO.parent / "shared" / "data" / "slstudio"  # shared/ beside the clone
 CALIBRATION_MANIFEST = REPO / "experiments" / "slstudio" / "calibration_sequence.json"

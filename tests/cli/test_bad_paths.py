@@ -25,6 +25,8 @@ from services.simulation.hot_part import HotPart, billet_pose, cylinder_mesh, si
 from services.simulation.presets import forging_rig
 from services.simulation.thermal import SurfaceTemperature
 
+pytestmark = pytest.mark.integration
+
 DATA = Path(__file__).resolve().parents[2].parent / "shared" / "data"  # shared/ beside the clone
 BAD_INPUT = 2  # the exit code of usage errors and bad input, bad paths included (README, "The command line")
 

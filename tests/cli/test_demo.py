@@ -11,8 +11,11 @@ import time
 import cv2
 import httpx
 import numpy as np
+import pytest
 
 from services.formats.ply import read_cloud
+
+pytestmark = pytest.mark.integration
 
 
 def _free_port() -> int:

@@ -9,6 +9,8 @@ from services.structured_light.patterns import generate_sequence
 from services.pipeline.reconstruct import reconstruct_capture
 from services.simulation.presets import paper_rig
 
+pytestmark = pytest.mark.integration
+
 
 def test_the_use_case_names_its_parameter_not_a_flag():
     rig = paper_rig()

@@ -17,6 +17,8 @@ from services.formats.rig import Rig, save_rig
 from services.formats.thermal import RadiometricOverrides, read_thermal_frame
 from services.simulation.presets import forging_rig
 
+pytestmark = pytest.mark.integration
+
 DATA = Path(__file__).resolve().parents[2].parent / "shared" / "data" / "flir-rjpeg"  # shared/ beside the clone
 FILES = sorted(DATA.glob("*.jpg"))
 E60 = DATA / "10-ir_fussbodenheizung.jpg"

@@ -33,7 +33,7 @@ from services.simulation.hot_part import write_forging_part
 from services.simulation.presets import forging_rig
 from tests.opcua.mes import Mes, client_certificate, value
 
-pytestmark = [pytest.mark.containers, pytest.mark.timeout(1800)]
+pytestmark = [pytest.mark.integration, pytest.mark.containers, pytest.mark.timeout(1800)]
 
 ROOT = Path(__file__).resolve().parents[2]
 DOCKER = ROOT / "docker"

@@ -18,6 +18,8 @@ from device_gateway.client import GatewayClient, GatewayError
 from device_gateway.station import Station
 from device_gateway.transfer import MEDIA_TYPE
 
+pytestmark = pytest.mark.integration
+
 
 @contextmanager
 def _serving(app, port: int) -> Iterator[str]:

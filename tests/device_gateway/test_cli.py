@@ -12,6 +12,8 @@ import pytest
 
 from services.cli.main import main
 
+pytestmark = pytest.mark.integration
+
 
 def test_gateway_without_hardware_reports_degraded_health_and_refuses_captures(free_port):
     port = free_port

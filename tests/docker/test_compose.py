@@ -16,6 +16,8 @@ import yaml
 from services.cli.main import build_parser
 from services.settings import Settings
 
+pytestmark = pytest.mark.integration
+
 DOCKER = Path(__file__).resolve().parents[2] / "docker"
 COMPOSE = DOCKER / "compose.yaml"
 OAK_OVERRIDE = DOCKER / "compose.oak.yaml"

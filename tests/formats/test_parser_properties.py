@@ -12,6 +12,7 @@ from pathlib import Path
 import numpy as np
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
+import pytest
 
 from services.errors import InputError
 from services.formats.board import parse_board
@@ -23,6 +24,8 @@ from services.formats.thermal import read_thermal_frame
 from services.simulation.hot_part import write_billet_part
 from services.simulation.presets import forging_rig
 from services.structured_light.patterns import generate_sequence
+
+pytestmark = pytest.mark.integration
 
 PROPERTY_SETTINGS = settings(max_examples=150, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 

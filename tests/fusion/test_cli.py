@@ -6,6 +6,8 @@ from services.formats.ply import read_cloud, write_cloud
 from services.formats.rig import save_rig
 from services.formats.thermal import write_thermal_frame
 
+pytestmark = pytest.mark.integration
+
 
 def _score(field, capture):
     """Median |error| over points the thermal camera truly sees, and the NaN fraction of hidden ones."""

@@ -4,6 +4,8 @@ import pytest
 from services.fusion.field import temperature_field
 from services.fusion.fuse import ThermalView
 
+pytestmark = pytest.mark.integration
+
 
 def _cloud(hot_scene, with_normals: bool) -> dict:
     cloud = {"x": hot_scene.points[:, 0].astype(np.float32), "y": hot_scene.points[:, 1].astype(np.float32),

@@ -4,6 +4,8 @@ import pytest
 from services.fusion.fuse import ThermalView, fuse_temperature, view_angles
 from services.geometry.camera import project_points
 
+pytestmark = pytest.mark.integration
+
 
 def test_seen_points_get_their_true_temperature(hot_scene):
     field = fuse_temperature(hot_scene.points, hot_scene.normals, [ThermalView(hot_scene.thermal, hot_scene.image)])

@@ -3,9 +3,12 @@
 import json
 
 import numpy as np
+import pytest
 
 from services.cli.main import main
 from services.formats.ply import read_cloud, write_cloud
+
+pytestmark = pytest.mark.integration
 
 
 def test_inspect_command_writes_report_and_clouds(station, tmp_path, capsys):

@@ -8,6 +8,8 @@ from services.inspection.materials import builtin_material
 from services.simulation.hot_part import HotPart, cylinder_mesh
 from services.simulation.thermal import Spot, SurfaceTemperature
 
+pytestmark = pytest.mark.integration
+
 STEEL = builtin_material("carbon-steel")
 
 

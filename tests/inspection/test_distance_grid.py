@@ -8,6 +8,8 @@ from services.inspection.nominal import GRID_BAND_MM, NominalSurface
 from services.open3d_loader import open3d
 from services.simulation.hot_part import cylinder_mesh
 
+pytestmark = pytest.mark.integration
+
 
 def _box():
     box = open3d().geometry.TriangleMesh.create_box(60.0, 30.0, 20.0)

@@ -8,6 +8,8 @@ from services.inspection.distance import feature_distance
 from services.inspection.plane import fit_plane
 from services.inspection.sphere import fit_sphere
 
+pytestmark = pytest.mark.integration
+
 rng = np.random.default_rng(3)
 
 

@@ -7,6 +7,8 @@ from services.inspection.inspect import inspect_field
 from services.simulation.hot_part import Bump, billet_pose
 from services.simulation.thermal import Spot, SurfaceTemperature
 
+pytestmark = pytest.mark.integration
+
 
 def _feature(report, name):
     return next(feature for feature in report["features"] if feature["name"] == name)

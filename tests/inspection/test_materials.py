@@ -5,6 +5,8 @@ import pytest
 
 from services.inspection.materials import BUILTIN_MATERIALS, Material, builtin_material
 
+pytestmark = pytest.mark.integration
+
 
 def test_carbon_steel_follows_en_1993_1_2():
     steel = builtin_material("carbon-steel")

@@ -20,6 +20,8 @@ from services.simulation.hot_part import (Backdrop, Bump, HotPart, billet_pose, 
 from services.simulation.presets import forging_rig
 from services.simulation.thermal import SurfaceTemperature
 
+pytestmark = pytest.mark.integration
+
 SEGMENTS = 180
 WALL = Backdrop(centre=(0.0, 20.0, 760.0), temperature_c=60.0)
 TOLERANCE = (-0.5, 0.5)

@@ -13,6 +13,8 @@ from services.pipeline.inspect import inspect_part, inspection_artifacts, prepar
 from services.simulation.hot_part import HotPart, simulated_field, write_forging_part
 from services.simulation.thermal import SurfaceTemperature
 
+pytestmark = pytest.mark.integration
+
 
 def test_the_outcome_and_the_files_a_scan_keeps(station):
     field, _ = station.scan(seed=3)

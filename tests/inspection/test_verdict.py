@@ -4,6 +4,8 @@ import pytest
 
 from services.inspection.verdict import decide, overall
 
+pytestmark = pytest.mark.integration
+
 
 @pytest.mark.parametrize("deviation, uncertainty, verdict", [
     (0.0, 0.1, "OK"), (0.19, 0.1, "OK"), (-0.19, 0.1, "OK"),

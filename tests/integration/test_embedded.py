@@ -11,6 +11,7 @@ import uuid
 import cv2
 import httpx
 import numpy as np
+import pytest
 import tifffile
 from asyncua import ua
 
@@ -19,6 +20,8 @@ from services.formats.rig import rig_to_json
 from services.simulation.hot_part import write_forging_part
 from services.simulation.presets import forging_rig
 from tests.opcua.mes import Mes, client_certificate, value
+
+pytestmark = pytest.mark.integration
 
 
 def test_embedded_scan_from_http_to_an_accurate_field(e2e, tmp_path):

@@ -15,10 +15,13 @@ import time
 
 import httpx
 import numpy as np
+import pytest
 
 from services.formats.rig import rig_to_json
 from services.simulation.presets import forging_rig
 from tests.device_gateway.conftest import FakeGigEVisionCamera, _aravis_fake_ramp
+
+pytestmark = pytest.mark.integration
 
 
 def _finished(client: httpx.Client, job_id: str, timeout_s: float = 300.0) -> dict:

@@ -8,11 +8,14 @@ import uuid
 
 import httpx
 import numpy as np
+import pytest
 
 from services.formats.ply import read_cloud
 from services.geometry.camera import pixel_rays
 from services.simulation.presets import forging_rig, hot_optics, hot_part_scene
 from services.simulation.raycast import cast_rays
+
+pytestmark = pytest.mark.integration
 
 PART_SURFACES = (0, 1)  # billet and dome; 2 is the cool fixture plate
 

@@ -14,6 +14,8 @@ from pathlib import Path
 
 import pytest
 
+pytestmark = pytest.mark.integration
+
 _SPEC = importlib.util.spec_from_file_location("hot_parts", Path(__file__).parents[2] / "experiments" / "hot_parts.py")
 hot_parts = sys.modules.setdefault("hot_parts", importlib.util.module_from_spec(_SPEC))
 _SPEC.loader.exec_module(hot_parts)

@@ -26,7 +26,7 @@ from services.formats.rig import rig_to_json
 from services.simulation.presets import forging_rig
 
 ROOT = Path(__file__).resolve().parents[2]
-pytestmark = pytest.mark.reliability
+pytestmark = [pytest.mark.integration, pytest.mark.reliability]
 
 
 def _record(name: str, figures: dict) -> None:

@@ -23,6 +23,8 @@ from asyncua import ua
 from services.simulation.hot_part import write_forging_part
 from tests.opcua.mes import Mes, client_certificate, value
 
+pytestmark = [pytest.mark.integration, pytest.mark.postgres]
+
 
 @pytest.mark.reliability  # 1.5 min: in make test-reliability (also in .ci/run), not make test
 def test_scaled_out_scans_with_two_workers_and_survive_a_worker_crash(e2e, deployment, tmp_path):

@@ -24,6 +24,8 @@ from services.formats.ply import read_cloud
 from services.formats.rig import rig_to_json
 from services.simulation.presets import forging_rig
 
+pytestmark = [pytest.mark.integration, pytest.mark.postgres]
+
 POSTGRES_URL = "postgresql+psycopg://postgres@127.0.0.1:5432/test"
 SCAN_ARTIFACTS = ("cloud.ply", "field.ply", "field.rrd", "frames.npy", "thermal.npy")
 

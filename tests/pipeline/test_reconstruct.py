@@ -5,6 +5,8 @@ from services.errors import InputError
 from services.pipeline.reconstruct import reconstruct_capture
 from services.pipeline.tables import TriangulationTables, table_key
 
+pytestmark = pytest.mark.integration
+
 
 def test_a_capture_becomes_a_cloud_on_the_plane(small_capture):
     cloud = reconstruct_capture(frames=small_capture.frames, sequence=small_capture.sequence,

@@ -9,6 +9,8 @@ from services.cli.main import main
 from services.registration.models import corner_error
 from tests.registration.conftest import INFRARED_SIZE, scene_pair
 
+pytestmark = pytest.mark.integration
+
 
 @pytest.fixture(scope="module")
 def pair_files(tmp_path_factory):

@@ -11,6 +11,8 @@ from services.registration.gradient_fields import (
     tensor_similarity_map,
 )
 
+pytestmark = pytest.mark.integration
+
 
 def _texture(shape: tuple[int, int], seed: int) -> np.ndarray:
     rng = np.random.default_rng(seed)

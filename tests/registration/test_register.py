@@ -15,6 +15,8 @@ from services.registration.register import objective_value, register
 from services.registration.synthetic_pairs import moved_image, render_scene_pair
 from tests.registration.conftest import INFRARED_SIZE, chessboard_pair, scene_pair
 
+pytestmark = pytest.mark.integration
+
 
 @pytest.mark.parametrize(("seed", "index"), [(11, 1), (12, 6)])
 def test_similarity_on_real_photographs_is_subpixel(seed, index):

@@ -31,6 +31,8 @@ from services.jobs.queue import JobQueue, job_broker
 from services.runtime import Runtime
 from tests.reliability.conftest import free_port
 
+pytestmark = pytest.mark.integration
+
 PROBLEM = "application/problem+json"
 POSTGRES_URL = "postgresql+psycopg://postgres@127.0.0.1:5432/test"
 

@@ -35,7 +35,7 @@ import pytest
 
 from tests.reliability.conftest import free_port
 
-pytestmark = pytest.mark.reliability
+pytestmark = [pytest.mark.integration, pytest.mark.reliability]
 MB = 1 << 20
 PART = {"version": 1, "name": "hostile", "material": "carbon-steel", "nominal": "nominal.ply",
         "surface_tolerance": [-1, 1]}

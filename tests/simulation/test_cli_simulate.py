@@ -10,6 +10,8 @@ from services.formats.sequence import load_sequence
 from services.simulation.render import render_view
 from services.simulation.scene import load_scene
 
+pytestmark = pytest.mark.integration
+
 PLANE_SCENE = {"ambient": 0.05, "surfaces": [
     {"type": "plane", "center": [0, 0, 400], "normal": [0, 0, -1], "u_axis": [1, 0, 0], "size": [400, 300],
      "albedo": {"base": 0.7, "texture_amplitude": 0.1, "feature_size": 30, "seed": 4}}]}

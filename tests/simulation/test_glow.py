@@ -12,6 +12,8 @@ from services.simulation.render import render_view
 from services.simulation.scene import Plane, Scene, parse_scene
 from services.simulation.temperature import SurfaceTemperature, TemperatureScene
 
+pytestmark = pytest.mark.integration
+
 PROJECTOR = CameraModel(kind="projector", width=64, height=48, K=[[60, 0, 31.5], [0, 60, 23.5], [0, 0, 1]])
 CAMERA = CameraModel(kind="camera", width=32, height=24, K=[[30, 0, 15.5], [0, 30, 11.5], [0, 0, 1]],
                 R=np.eye(3).tolist(), t=[-20.0, 0.0, 0.0])

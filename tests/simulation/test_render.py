@@ -7,6 +7,8 @@ from services.simulation.raycast import cast_rays
 from services.simulation.render import CameraEffects, ProjectorEffects, expose, render_frames, render_view
 from services.simulation.scene import Albedo, Mesh, Plane, Scene, Sphere
 
+pytestmark = pytest.mark.integration
+
 NOISELESS_16 = CameraEffects(bit_depth=16)
 
 

@@ -23,7 +23,7 @@ from services.streaming.field import field_scene, verdict_markdown
 from services.streaming.recording import StationView, scan_recording
 
 # A file a viewer is still saving has no footer yet; reading it is the point of the live tests.
-pytestmark = pytest.mark.filterwarnings("ignore:RRD file has no footer")
+pytestmark = [pytest.mark.integration, pytest.mark.filterwarnings("ignore:RRD file has no footer")]
 
 
 def _rotation_about_y(degrees: float) -> list[list[float]]:

@@ -5,6 +5,8 @@ from services.structured_light.decode import Rejection
 from services.structured_light.glow import decode_glowing, glow_offset, pixel_noise
 from services.structured_light.patterns import generate_sequence
 
+pytestmark = pytest.mark.integration
+
 WIDTH, HEIGHT = 256, 8  # projector; the "camera" sees projector column c at pixel column c
 SATURATION = 4095.0
 

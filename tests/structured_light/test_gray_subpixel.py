@@ -19,6 +19,8 @@ from services.structured_light.gray_subpixel import gray_subpixel
 from services.structured_light.patterns import generate_sequence, render_patterns
 from services.structured_light.reconstruct import reconstruct_points
 
+pytestmark = pytest.mark.integration
+
 REPO = Path(__file__).resolve().parents[2]
 SLSTUDIO = REPO.parent / "shared" / "data" / "slstudio"  # shared/ beside the clone
 SKULL_MANIFEST = REPO / "experiments" / "slstudio" / "skull_sequence.json"

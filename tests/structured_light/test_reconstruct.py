@@ -11,6 +11,8 @@ from services.simulation.scene import Albedo
 from services.structured_light.patterns import generate_sequence
 from services.structured_light.reconstruct import _speckles_in_bands, reconstruct_points, remove_speckles, surface_normals
 
+pytestmark = pytest.mark.integration
+
 NOISY_CAMERA = CameraEffects(noise_sigma=1.5, blur_sigma=0.7)
 BLURRY_PROJECTOR = ProjectorEffects(gamma=2.2, blur_sigma=0.8, black_level=0.02)
 TEXTURE = Albedo(base=0.7, texture_amplitude=0.15, feature_size=30.0, seed=3)

@@ -10,6 +10,8 @@ import pytest
 
 from services.formats.ply import read_cloud
 
+pytestmark = pytest.mark.integration
+
 
 def _thermofield(*args, cwd=None):
     return subprocess.run([sys.executable, "-m", "services.cli.main", *map(str, args)], capture_output=True,

@@ -14,6 +14,8 @@ from services.simulation.boards import render_board
 from services.simulation.presets import forging_rig
 from services.runtime import current_runtime
 
+pytestmark = pytest.mark.integration
+
 BOARD = parse_board('{"type": "chessboard", "inner_corners": [9, 6], "square_mm": 25.0}')
 
 
