@@ -75,9 +75,9 @@ def parse_seeds(text: str) -> list[int]:
         try:
             low, high = int(first), int(last or first)
         except ValueError:
-            raise SystemExit(f"--seeds: {piece!r} is not a seed or a range such as 1000-1199") from None
+            raise ValueError(f"--seeds: {piece!r} is not a seed or a range such as 1000-1199") from None
         if low < 0 or high < low:
-            raise SystemExit(f"--seeds: {piece!r} is not a range of non-negative seeds, low to high")
+            raise ValueError(f"--seeds: {piece!r} is not a range of non-negative seeds, low to high")
         seeds.extend(range(low, high + 1))
     return sorted(set(seeds))
 
@@ -460,7 +460,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--summarise", action="store_true",
                         help="run nothing: read the per-scene results of --json (those of --seeds) and write the tables")
     args = parser.parse_args(argv)
-    seeds = parse_seeds(args.seeds)
+    try:
+        seeds = parse_seeds(args.seeds)
+    except ValueError as error:
+        parser.error(str(error))
     if not seeds:
         parser.error("--seeds names no seed")
     if args.jobs < 1:
