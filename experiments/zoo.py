@@ -44,6 +44,7 @@ for _variable in ("NUMBA_NUM_THREADS", "OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS"
 import argparse  # noqa: E402
 import hashlib  # noqa: E402
 import json  # noqa: E402
+import multiprocessing  # noqa: E402
 import sys  # noqa: E402
 import tempfile  # noqa: E402
 import time  # noqa: E402
@@ -497,7 +498,8 @@ def main(argv: list[str] | None = None) -> int:
             for seed in seeds:
                 keep(_cached_run(seed, args.cache, digest))
         else:
-            with ProcessPoolExecutor(max_workers=args.jobs) as pool:
+            # spawned, not forked: a process that has used OpenMP (numba, Open3D) cannot fork safely
+            with ProcessPoolExecutor(max_workers=args.jobs, mp_context=multiprocessing.get_context("spawn")) as pool:
                 futures = [pool.submit(_cached_run, seed, args.cache, digest) for seed in seeds]
                 for future in as_completed(futures):
                     keep(future.result())
