@@ -44,6 +44,7 @@ for _variable in ("NUMBA_NUM_THREADS", "OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS"
 import argparse  # noqa: E402
 import hashlib  # noqa: E402
 import json  # noqa: E402
+import multiprocessing  # noqa: E402
 import sys  # noqa: E402
 import tempfile  # noqa: E402
 import time  # noqa: E402
@@ -75,9 +76,9 @@ def parse_seeds(text: str) -> list[int]:
         try:
             low, high = int(first), int(last or first)
         except ValueError:
-            raise SystemExit(f"--seeds: {piece!r} is not a seed or a range such as 1000-1199") from None
+            raise ValueError(f"--seeds: {piece!r} is not a seed or a range such as 1000-1199") from None
         if low < 0 or high < low:
-            raise SystemExit(f"--seeds: {piece!r} is not a range of non-negative seeds, low to high")
+            raise ValueError(f"--seeds: {piece!r} is not a range of non-negative seeds, low to high")
         seeds.extend(range(low, high + 1))
     return sorted(set(seeds))
 
@@ -460,7 +461,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--summarise", action="store_true",
                         help="run nothing: read the per-scene results of --json (those of --seeds) and write the tables")
     args = parser.parse_args(argv)
-    seeds = parse_seeds(args.seeds)
+    try:
+        seeds = parse_seeds(args.seeds)
+    except ValueError as error:
+        parser.error(str(error))
     if not seeds:
         parser.error("--seeds names no seed")
     if args.jobs < 1:
@@ -494,7 +498,8 @@ def main(argv: list[str] | None = None) -> int:
             for seed in seeds:
                 keep(_cached_run(seed, args.cache, digest))
         else:
-            with ProcessPoolExecutor(max_workers=args.jobs) as pool:
+            # spawned, not forked: a process that has used OpenMP (numba, Open3D) cannot fork safely
+            with ProcessPoolExecutor(max_workers=args.jobs, mp_context=multiprocessing.get_context("spawn")) as pool:
                 futures = [pool.submit(_cached_run, seed, args.cache, digest) for seed in seeds]
                 for future in as_completed(futures):
                     keep(future.result())

@@ -146,3 +146,16 @@ def test_short_zoo_through_the_real_commands(tmp_path):
     assert main(["--seeds", f"{SHORT_ZOO.start}-{SHORT_ZOO.stop - 1}", "--json", str(output),
                  "--cache", str(tmp_path / "cache")]) == 0
     assert json.loads(output.read_text()) == results
+
+
+def test_the_zoo_command_refuses_bad_seeds_and_reporting_tuning_seeds(tmp_path, capsys):
+    sys.path.insert(0, str(ROOT))
+    from experiments.zoo import main, parse_seeds
+
+    assert parse_seeds("1000-1002,1005,1001") == [1000, 1001, 1002, 1005]
+    for argv in (["--seeds", "12x"], ["--seeds", "9-3"], ["--seeds", "5-6", "--markdown", str(tmp_path / "z.md")]):
+        with pytest.raises(SystemExit) as exit_:
+            main([*argv, "--json", str(tmp_path / "z.json")])
+        assert exit_.value.code == 2
+    assert "never reported" in capsys.readouterr().err
+    assert not (tmp_path / "z.md").exists()
