@@ -79,6 +79,10 @@ def _budget(part: Part) -> TemperatureBudget:
                              calibration_min_k=budget.calibration_min_k, netd_k=budget.netd_k)
 
 
+MIN_PART_POINTS = 20
+"""Fewer measured points on the aligned nominal surface than this are no part: no verdict from them."""
+
+
 def inspect_field(*, field: dict[str, np.ndarray], part: Part | PreparedPart) -> Inspection:
     """Inspect one measured part: cold-equivalent geometry, alignment, features, surface deviation, verdicts.
 
@@ -145,6 +149,10 @@ def inspect_field(*, field: dict[str, np.ndarray], part: Part | PreparedPart) ->
     cold_part_frame = alignment.to_part(cold.points)
     deviation = surface_deviation(cold_part_frame, prepared.nominal)
     member = np.abs(deviation) <= max_distance
+    if np.count_nonzero(member) < MIN_PART_POINTS:
+        raise ValueError(f"only {np.count_nonzero(member)} measured points lie within {max_distance:g} mm of the "
+                         f"nominal surface once aligned (at least {MIN_PART_POINTS} needed): the part is not in the "
+                         "field (hidden, lost to the glow, or not this part type)")
 
     n = len(points)
     cold_points = np.full((n, 3), np.nan)

@@ -84,3 +84,17 @@ def test_bad_fields(station):
     cold = dict(field, temperature=np.full(len(field["x"]), 25.0, dtype=np.float32))
     with pytest.raises(ValueError, match="no hot part"):
         inspect_field(field=cold, part=station.prepared)
+
+
+def test_hot_points_that_are_no_such_part_get_no_verdict(station):
+    """Hot points that the nominal cannot be laid onto (here a shell 300 mm round, far larger than the billet):
+    an error the scan turns into NotDecidable, never a verdict from the few points that happen to touch it."""
+    field, _ = station.scan(seed=6)
+    rng = np.random.default_rng(0)
+    hot = field["temperature"] > 300
+    centre = np.array([field[axis][hot].mean() for axis in "xyz"])
+    directions = rng.normal(size=(2000, 3))
+    shell = centre + 300.0 * directions / np.linalg.norm(directions, axis=1, keepdims=True)
+    stranger = {"x": shell[:, 0], "y": shell[:, 1], "z": shell[:, 2], "temperature": np.full(2000, 1000.0)}
+    with pytest.raises(ValueError, match="the part is not in the field"):
+        inspect_field(field=stranger, part=station.prepared)
