@@ -12,6 +12,7 @@ station closes and re-opens it.
 from __future__ import annotations
 
 import abc
+import ipaddress
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -131,3 +132,12 @@ class ProjectorDriver(DeviceDriver):
     @abc.abstractmethod
     def show(self, pattern: np.ndarray) -> None:
         """Put a (height, width) uint8 pattern on the projector."""
+
+
+def is_ip_address(text: str) -> bool:
+    """Whether a device id is an IP address (a network camera opened directly, without a discovery search)."""
+    try:
+        ipaddress.ip_address(text)
+    except ValueError:
+        return False
+    return True

@@ -120,22 +120,15 @@ def zoo_points(seed: int) -> dict:
     """Reconstruction alone of zoo scene ``seed`` (services/simulation/zoo.py), scored as experiments/zoo.py
     scores it: wrong points (> 1 mm from the truth at the pixel centre) and the coverage of the pixels lit and
     seen whose 8-neighbours are lit and see the same surface."""
-    from device_gateway.drivers.simulated import SimulatedStation, SimulationOptions
-    from device_gateway.station import ExposureControl, Station
     from services.errors import InputError
+    from zoo import film_zoo_scene
     from services.pipeline.reconstruct import reconstruct_capture
     from services.pipeline.tables import TriangulationTables
     from services.simulation.zoo import zoo_scene
 
     zoo = zoo_scene(seed)
     rig = zoo.rig
-    projector = rig.devices["projector"]
-    sequence, patterns = generate_sequence(projector.width, projector.height, closing_black=True)
-    options = SimulationOptions(camera_effects=zoo.camera_effects, projector_effects=zoo.projector_effects,
-                                thermal_effects=zoo.thermal_effects, camera_supersample=1, seed=seed)
-    simulated = SimulatedStation(rig, zoo.scene, zoo.temperatures, options)
-    station = Station(simulated.camera, simulated.thermal, simulated.projector, settle_s=0.0)
-    capture = station.capture(sequence, patterns, thermal_frames=1, exposure=ExposureControl(mode="auto"))
+    sequence, capture, simulated = film_zoo_scene(zoo, seed)  # experiments/zoo.py, beside this script
     truth = simulated.view().truth
     result = {"seed": seed, "kind": zoo.kind}
     try:

@@ -134,10 +134,25 @@ def _best_similarity(source: np.ndarray, target: np.ndarray) -> np.ndarray:
     return matrix
 
 
-def run_scene(seed: int) -> dict:
-    """Film scene ``seed``, run the commands' use cases and score them against the truth."""
+def film_zoo_scene(zoo, seed: int):
+    """Film a zoo scene through the simulated station as the gateway does (auto exposure, one thermal frame):
+    the sequence, the capture and the simulated station (its ``view().truth``)."""
     from device_gateway.drivers.simulated import SimulatedStation, SimulationOptions
     from device_gateway.station import ExposureControl, Station
+    from services.structured_light.patterns import generate_sequence
+
+    projector = zoo.rig.devices["projector"]
+    sequence, patterns = generate_sequence(projector.width, projector.height, closing_black=True)
+    options = SimulationOptions(camera_effects=zoo.camera_effects, projector_effects=zoo.projector_effects,
+                                thermal_effects=zoo.thermal_effects, camera_supersample=1, seed=seed)
+    simulated = SimulatedStation(zoo.rig, zoo.scene, zoo.temperatures, options)
+    station = Station(simulated.camera, simulated.thermal, simulated.projector, settle_s=0.0)
+    capture = station.capture(sequence, patterns, thermal_frames=1, exposure=ExposureControl(mode="auto"))
+    return sequence, capture, simulated
+
+
+def run_scene(seed: int) -> dict:
+    """Film scene ``seed``, run the commands' use cases and score them against the truth."""
     from services.errors import InputError
     from services.formats.part import load_part
     from services.geometry.camera import project_points
@@ -147,7 +162,6 @@ def run_scene(seed: int) -> dict:
     from services.pipeline.register import register_pair, white_frame
     from services.pipeline.tables import TriangulationTables
     from services.simulation.thermal import seen_by
-    from services.structured_light.patterns import generate_sequence
 
     started = time.perf_counter()
     zoo = zoo_scene(seed)
@@ -155,12 +169,7 @@ def run_scene(seed: int) -> dict:
                     "truth": zoo.truth.deviation, "scene": zoo.description}
     rig = zoo.rig
     camera, projector, thermal = (rig.devices[name] for name in ("camera", "projector", "thermal"))
-    sequence, patterns = generate_sequence(projector.width, projector.height, closing_black=True)
-    options = SimulationOptions(camera_effects=zoo.camera_effects, projector_effects=zoo.projector_effects,
-                                thermal_effects=zoo.thermal_effects, camera_supersample=1, seed=seed)
-    simulated = SimulatedStation(rig, zoo.scene, zoo.temperatures, options)
-    station = Station(simulated.camera, simulated.thermal, simulated.projector, settle_s=0.0)
-    capture = station.capture(sequence, patterns, thermal_frames=1, exposure=ExposureControl(mode="auto"))
+    sequence, capture, simulated = film_zoo_scene(zoo, seed)
     truth = simulated.view().truth
     interior = _interior(truth.surface, truth.lit)
     on_part = truth.surface == 0

@@ -27,7 +27,6 @@ the driver closes it and the station re-opens it for the next capture.
 
 from __future__ import annotations
 
-import ipaddress
 import threading
 import time
 from dataclasses import dataclass
@@ -40,7 +39,7 @@ gi.require_version("Aravis", "0.8")
 from gi.repository import Aravis, GLib  # noqa: E402  (after the version it must load is chosen)
 
 from device_gateway.devices import (  # noqa: E402
-    CameraDriver, DeviceInfo, DeviceLost, DeviceUnavailable, Frame, ThermalDriver,
+    CameraDriver, DeviceInfo, DeviceLost, DeviceUnavailable, Frame, ThermalDriver, is_ip_address,
 )
 
 ZERO_CELSIUS_K = 273.15
@@ -130,14 +129,6 @@ class CameraClock:
         return (camera_ns + self.offset_ns) / 1e9
 
 
-def _is_ip_address(text: str) -> bool:
-    try:
-        ipaddress.ip_address(text)
-    except ValueError:
-        return False
-    return True
-
-
 def _found_devices() -> list[str]:
     Aravis.update_device_list()
     return [Aravis.get_device_id(index) for index in range(Aravis.get_n_devices())]
@@ -225,7 +216,7 @@ class _GenicamDevice:
     def _connect(self) -> Any:
         if self.device_id.startswith("Fake_"):  # Aravis' in-process fake camera, opened first among interfaces
             Aravis.enable_interface("Fake")
-        elif not _is_ip_address(self.device_id):
+        elif not is_ip_address(self.device_id):
             found = _found_devices()
             if self.device_id not in found:
                 raise DeviceUnavailable(f"{self.label} is not connected (found: {', '.join(found) or 'none'})")

@@ -12,14 +12,14 @@ from __future__ import annotations
 
 import abc
 import datetime
-import ipaddress
 import time
 from typing import Any, Literal
 
 import depthai as dai
 import numpy as np
 
-from device_gateway.devices import CameraDriver, DeviceInfo, DeviceLost, DeviceUnavailable, Frame, ThermalDriver
+from device_gateway.devices import (CameraDriver, DeviceInfo, DeviceLost, DeviceUnavailable, Frame, ThermalDriver,
+                                    is_ip_address)
 
 
 def find_device(device_id: str | None, role: str) -> dai.DeviceInfo:
@@ -30,7 +30,7 @@ def find_device(device_id: str | None, role: str) -> dai.DeviceInfo:
     DeviceUnavailable
         When no device, not that device, or several devices (and no id) are found.
     """
-    if device_id and _is_ip_address(device_id):
+    if device_id and is_ip_address(device_id):
         return dai.DeviceInfo(device_id)
     found = dai.Device.getAllAvailableDevices()
     described = ", ".join(f"{info.getDeviceId()} ({info.name})" for info in found) or "none"
@@ -43,14 +43,6 @@ def find_device(device_id: str | None, role: str) -> dai.DeviceInfo:
         problem = "no OAK device is connected" if not found else f"several OAK devices are connected ({described})"
         raise DeviceUnavailable(f"{role}: {problem}; set its device id in the gateway configuration")
     return found[0]
-
-
-def _is_ip_address(text: str) -> bool:
-    try:
-        ipaddress.ip_address(text)
-    except ValueError:
-        return False
-    return True
 
 
 def configure_camera(control: dai.CameraControl, exposure_us: int, iso: int, lens_position: int) -> None:

@@ -17,6 +17,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from services.errors import InputError
+from services.formats.limits import check_declared
 from services.fusion.radiometry import KELVIN_OFFSET, AtmosphereConstants, PlanckConstants, counts_to_temperature
 
 JPEG_SUFFIXES = (".jpg", ".jpeg")
@@ -27,16 +28,11 @@ MAX_THERMAL_PIXELS = 4 * 1024 * 1024
 
 
 def check_declared_size(width: int, height: int, source: str) -> None:
-    """Refuse a thermal image whose header declares a nonsense size, before decoding it.
-
-    The one place of the R-JPEG reader's size limit (to be served by the shared header-first limits of
-    ``services/formats/limits.py`` when they exist).
-    """
+    """Refuse a thermal image whose header declares a nonsense size, before decoding it (the limit itself is
+    checked where every decoder's is: :func:`services.formats.limits.check_declared`)."""
     if width < 1 or height < 1:
         raise InputError(f"{source}: FLIR raw thermal image declares a {width}x{height} size (corrupt file)")
-    if width * height > MAX_THERMAL_PIXELS:
-        raise InputError(f"{source}: FLIR raw thermal image declares {width}x{height} pixels, more than the "
-                         f"{MAX_THERMAL_PIXELS} a thermal camera gives (corrupt file)")
+    check_declared(width * height, MAX_THERMAL_PIXELS, f"{source}: FLIR raw thermal image", "pixels")
 
 
 @dataclass(frozen=True)

@@ -240,7 +240,7 @@ def test_an_absurd_declared_size_is_refused_before_decoding(monkeypatch):
     decoded = []
     monkeypatch.setattr("flyr.thermal.parse_raw_data", lambda *args: decoded.append(args))
     message = _refusal(_patched(content, raw + 2, struct.pack("<HH", 60000, 60000)))
-    assert "declares 60000x60000 pixels, more than" in message
+    assert "FLIR raw thermal image: declares 3,600,000,000 pixels, more than the limit" in message
     assert not decoded
     assert "declares a 0x240 size" in _refusal(_patched(content, raw + 2, struct.pack("<H", 0)))
 
@@ -253,7 +253,7 @@ def test_a_size_that_does_not_match_the_raw_image():
 
 def test_the_declared_size_check_is_one_function():
     flir.check_declared_size(1280, 1024, "x")
-    with pytest.raises(InputError, match="^x: FLIR raw thermal image declares 4097x1024 pixels"):
+    with pytest.raises(InputError, match="^x: FLIR raw thermal image: declares 4,195,328 pixels, more than the limit"):
         flir.check_declared_size(4097, 1024, "x")
 
 
