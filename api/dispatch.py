@@ -49,10 +49,11 @@ def start_job(runtime: Runtime, queue: Outbox, session: Session, kind: str, para
     return Outcome(202, accepted.model_dump(mode="json"), links["job"], dispatch)
 
 
-_REFUSED_STATUS = {"invalid-input": 422, "no-active-calibration": 409, "queue-full": 503}
-
-
 def refused_problem(refused: JobRefused) -> Problem:
-    """The problem answering a job the station refused (503s say when to retry)."""
-    headers = {"Retry-After": str(RETRY_AFTER_S)} if refused.kind == "queue-full" else None
-    return Problem(_REFUSED_STATUS[refused.kind], refused.kind, str(refused), headers)
+    """The problem answering a job the station refused (503s say when to retry). The statuses are literals, so
+    that tests/api/test_declared_statuses.py reads them from the code."""
+    if refused.kind == "queue-full":
+        return Problem(503, refused.kind, str(refused), {"Retry-After": str(RETRY_AFTER_S)})
+    if refused.kind == "no-active-calibration":
+        return Problem(409, refused.kind, str(refused))
+    return Problem(422, refused.kind, str(refused))

@@ -38,8 +38,9 @@ from __future__ import annotations
 
 import os
 
-for _variable in ("NUMBA_NUM_THREADS", "OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
-    os.environ.setdefault(_variable, "1")  # one thread per job: --jobs sets the parallelism
+if __name__ == "__main__":  # run as the command (not imported by a test): before numpy and numba are imported
+    for _variable in ("NUMBA_NUM_THREADS", "OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+        os.environ.setdefault(_variable, "1")  # one thread per job: --jobs sets the parallelism
 
 import argparse  # noqa: E402
 import hashlib  # noqa: E402

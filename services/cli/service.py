@@ -190,10 +190,9 @@ class _GatewayProcess:
         self.port = port
 
     def __enter__(self) -> _GatewayProcess:
-        # In a session of its own, so that a Ctrl-C in the terminal reaches only the service, which stops it.
+        # In the service's process group: whatever stops the group (a kill -9 of it too) stops the gateway.
         self.process = subprocess.Popen([sys.executable, "-m", "services.cli.main", "gateway", "--driver", "simulated",
-                                         "--host", "127.0.0.1", "--port", str(self.port)], stdin=subprocess.DEVNULL,
-                                        start_new_session=True)
+                                         "--host", "127.0.0.1", "--port", str(self.port)], stdin=subprocess.DEVNULL)
         return self
 
     def wait_until_healthy(self) -> None:

@@ -60,7 +60,6 @@ class RerunProxy:
              "--server-memory-limit", memory_limit],
             stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=self._log,
             env={"RUST_LOG": "warn", **os.environ},  # its log is kept only to explain a failed start
-            start_new_session=True,  # a Ctrl-C in the terminal reaches only its owner, which stops it
         )
         deadline = time.monotonic() + start_timeout_s
         while not all(accepts_connections(host, listening) for listening in (port, web_port) if listening is not None):
