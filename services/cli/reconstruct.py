@@ -5,6 +5,8 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from services.structured_light import defaults
+
 
 def register(subparsers: argparse._SubParsersAction) -> None:
     parser = subparsers.add_parser(
@@ -17,13 +19,13 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--out", required=True, type=Path, help="output point cloud (.ply)")
     parser.add_argument("--manifest", type=Path, default=None,
                         help="sequence manifest to use instead of DIR/sequence.json (captures of other software)")
-    parser.add_argument("--max-indirect", type=float, default=float("inf"), metavar="RATIO",
+    parser.add_argument("--max-indirect", type=float, default=defaults.MAX_INDIRECT, metavar="RATIO",
                         help="reject pixels whose inter-reflected light exceeds RATIO times their direct light, "
                              "from the fringe visibility (e.g. 0.33; default off: ambient light and glow lower the "
                              "visibility too)")
-    parser.add_argument("--consistency", type=float, default=0.25, metavar="FRACTION",
+    parser.add_argument("--consistency", type=float, default=defaults.CONSISTENCY, metavar="FRACTION",
                         help="tolerance of the Gray code or coarser period against the unwrapped phase, as a fraction "
-                             "of the unwrapping margin (default 0.25; 0.5 for noisy coarse periods, e.g. 3 steps)")
+                             f"of the unwrapping margin (default {defaults.CONSISTENCY}; 0.5 for noisy coarse periods, e.g. 3 steps)")
     parser.add_argument("--camera", help="camera device name (default: the rig's only camera)")
     parser.add_argument("--projector", help="projector device name (default: the rig's only projector)")
     parser.add_argument("--saturation-level", type=float, default=None, metavar="GREY",
@@ -34,8 +36,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 def reconstruct_from_files(rig_path: Path, captures: Path, camera: str | None = None,
                            projector: str | None = None, manifest: Path | None = None,
-                           saturation_level: float | None = None, max_indirect: float = float("inf"),
-                           consistency: float = 0.25):
+                           saturation_level: float | None = None, max_indirect: float = defaults.MAX_INDIRECT,
+                           consistency: float = defaults.CONSISTENCY):
     """Read a rig and a capture directory (or another program's, described by ``manifest``) and reconstruct;
     every error names the file at fault.
 

@@ -10,12 +10,13 @@ from services.formats.sequence import Sequence
 from services.pipeline.tables import TriangulationTables
 from services.structured_light.decode import decode
 from services.structured_light.reconstruct import Reconstruction, coded_axis, reconstruct_scan
+from services.structured_light import defaults
 
 
 def reconstruct_capture(*, frames: np.ndarray, sequence: Sequence, rig: Rig, tables: TriangulationTables,
                         camera: str | None = None, projector: str | None = None,
-                        saturation_level: float | None = None, max_indirect: float = float("inf"),
-                        consistency: float = 0.25, source: str = "the capture") -> Reconstruction:
+                        saturation_level: float | None = None, max_indirect: float = defaults.MAX_INDIRECT,
+                        consistency: float = defaults.CONSISTENCY, source: str = "the capture") -> Reconstruction:
     """Decode and triangulate a capture with the rig's camera and projector.
 
     Parameters

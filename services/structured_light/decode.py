@@ -21,6 +21,7 @@ import numpy as np
 
 from services.formats.sequence import AXES, Sequence
 from services.structured_light.row_bands import map_row_bands
+from services.structured_light import defaults
 
 
 class Rejection(enum.IntEnum):
@@ -419,11 +420,11 @@ def decode(
     min_intensity: float | None = None,
     min_modulation: float | None = None,
     min_quality: float = 0.5,
-    consistency: float = 0.25,
+    consistency: float = defaults.CONSISTENCY,
     edge_margin: int = 3,
     max_jump: float = np.inf,
     gray_boundaries: bool = True,
-    max_indirect: float = np.inf,
+    max_indirect: float = defaults.MAX_INDIRECT,
 ) -> DecodedCapture:
     """Decode camera frames of a structured-light sequence into projector coordinates.
 

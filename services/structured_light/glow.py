@@ -19,6 +19,7 @@ import numpy as np
 from services.formats.sequence import AXES, Sequence
 from services.structured_light.decode import DecodedCapture, Rejection, decode
 from services.structured_light.windowed_phase import windowed_frames
+from services.structured_light import defaults
 
 # A pixel's phase must be measurable to this standard deviation (radians): with N = 12 steps the
 # modulation must then be at least 2.0 sigma, where a Gray plane and its inverse are misread once in 500.
@@ -193,7 +194,7 @@ def decode_glowing(
     *,
     saturation_level: float | None = None,
     min_quality: float = 0.5,
-    consistency: float = 0.25,
+    consistency: float = defaults.CONSISTENCY,
     max_phase_noise: float = MAX_PHASE_NOISE_RAD,
     window_sigma_px: float = WINDOW_SIGMA_PX,
 ) -> tuple[DecodedCapture, np.ndarray, GlowReport]:

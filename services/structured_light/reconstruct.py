@@ -17,6 +17,7 @@ from services.structured_light.low_snr import estimate_camera_noise, phase_noise
 from services.structured_light.outline import ASSUMED_CAMERA_BLUR_PX, estimate_camera_blur, outline_corrected
 from services.structured_light.row_bands import map_bands, thread_count
 from services.structured_light.triangulate import TriangulationTable, triangulate_map, triangulation_table
+from services.structured_light import defaults
 
 
 def coded_axis(coded_axes: tuple[str, ...], camera: CameraModel, projector: CameraModel) -> str:
@@ -263,7 +264,7 @@ def reconstruct_scan(
     gray_boundaries: bool = True,
     saturation_level: float | None = None,
     max_indirect: float = np.inf,
-    consistency: float = 0.25,
+    consistency: float = defaults.CONSISTENCY,
     glow_window_px: float = GLOW_WINDOW_SIGMA_PX,
 ) -> Reconstruction:
     """Decode a capture and triangulate every valid camera pixel, reporting what a hot part's glow did.
@@ -344,7 +345,7 @@ def reconstruct_points(
     gray_boundaries: bool = True,
     saturation_level: float | None = None,
     max_indirect: float = np.inf,
-    consistency: float = 0.25,
+    consistency: float = defaults.CONSISTENCY,
 ) -> PointCloud:
     """Decode a capture and triangulate every valid camera pixel.
 
