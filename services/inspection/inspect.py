@@ -11,7 +11,7 @@ from scipy.spatial import cKDTree
 from services.formats.part import Feature, Part
 from services.inspection.alignment import Alignment, align_nominal
 
-from services.inspection.cold_equivalent import NEIGHBOURHOOD_MM, NEIGHBOURHOOD_SAMPLES, cold_equivalent
+from services.inspection.cold_equivalent import NEIGHBOURHOOD_MM, NEIGHBOURHOOD_SAMPLES, ColdGeometry, cold_equivalent
 from services.inspection.deviation import (MIN_DEFECT_CELLS, MIN_DEFECT_POINTS, cell_means, find_defects,
                                           summarize_deviation, surface_deviation, surface_verdict)
 from services.inspection.distance import feature_distance
@@ -119,6 +119,33 @@ def inspect_field(*, field: dict[str, np.ndarray], part: Part | PreparedPart) ->
     prepared = part if isinstance(part, PreparedPart) else prepare_part(part)
     part = prepared.part
     definition = part.definition
+    points, temperature, finite, hot = _field_points(field, definition.segmentation.min_temperature_c)
+    located = _locate_part(points, temperature, finite, hot, prepared)
+    member, candidates = located.member, located.candidates
+
+    n = len(points)
+    cold_points = np.full((n, 3), np.nan)
+    cold_points[candidates[member]] = located.cold.points[member]
+    deviation_out = np.full(n, np.nan, dtype=np.float32)
+    deviation_out[candidates[member]] = located.deviation[member]
+    fallback = np.zeros(n, dtype=bool)
+    fallback[candidates[member]] = located.cold.fallback[member]
+
+    budget = _budget(part)
+    material_fraction = definition.uncertainty.material_fraction
+    if material_fraction is None:
+        material_fraction = part.material.relative_uncertainty
+    results = _measure_features(prepared, located, points, budget, material_fraction)
+    surface = _surface_result(located.in_part, located.deviation[member], located.used_temperature,
+                              located.used_fallback, part, budget, material_fraction)
+    report = _report(part, results, surface, located, material_fraction)
+    return Inspection(report=report, cold_points=cold_points, deviation=deviation_out, fallback=fallback,
+                      alignment=located.alignment)
+
+
+def _field_points(field: dict[str, np.ndarray], min_temperature_c: float):
+    """The field's points and temperatures, the finite points and the hot ones (at least ``min_temperature_c``);
+    a field without temperatures or without a hot part is refused."""
     missing = [name for name in ("x", "y", "z", "temperature") if name not in field]
     if missing:
         raise ValueError(f"The field lacks the properties {missing}; inspect a temperature field "
@@ -126,12 +153,48 @@ def inspect_field(*, field: dict[str, np.ndarray], part: Part | PreparedPart) ->
     points = np.column_stack([field["x"], field["y"], field["z"]]).astype(np.float64)
     temperature = np.asarray(field["temperature"], dtype=np.float64)
     finite = finite_rows(points)
-    hot = finite & (temperature >= definition.segmentation.min_temperature_c)
+    hot = finite & (temperature >= min_temperature_c)
     if hot.sum() < 100:
-        raise ValueError(f"Only {int(hot.sum())} points are at least {definition.segmentation.min_temperature_c:g} "
+        raise ValueError(f"Only {int(hot.sum())} points are at least {min_temperature_c:g} "
                          "degC hot; the field shows no hot part (segmentation.min_temperature_c in the part file).")
-    max_distance = definition.segmentation.max_distance_mm
+    return points, temperature, finite, hot
 
+
+@dataclass(frozen=True)
+class _LocatedPart:
+    """The part found in a field: the candidate points (indices into the field), their cold equivalents, the
+    alignment to the nominal, each candidate's deviation and which are the part's (``member``)."""
+
+    candidates: np.ndarray
+    cold: ColdGeometry
+    alignment: Alignment
+    cold_part_frame: np.ndarray
+    deviation: np.ndarray
+    member: np.ndarray
+
+    @property
+    def in_part(self) -> np.ndarray:
+        return self.cold_part_frame[self.member]
+
+    @property
+    def part_points(self) -> np.ndarray:
+        return self.candidates[self.member]
+
+    @property
+    def used_temperature(self) -> np.ndarray:
+        return self.cold.temperature[self.member]
+
+    @property
+    def used_fallback(self) -> np.ndarray:
+        return self.cold.fallback[self.member]
+
+
+def _locate_part(points: np.ndarray, temperature: np.ndarray, finite: np.ndarray, hot: np.ndarray,
+                 prepared: PreparedPart) -> _LocatedPart:
+    """Steps 1 and 2 of :func:`inspect_field`: seed, make cold-equivalent, align, and keep the points near the
+    nominal surface; too few of them is no part."""
+    part = prepared.part
+    max_distance = part.definition.segmentation.max_distance_mm
     # the part: its hot points and the points without a temperature beside them (the fusion's mixed edge
     # pixels, the thermal camera's blind spots), which a one-sided view of a thin part may need to pin its pose
     seed = even_subset(np.flatnonzero(hot | _beside(points, hot, finite & ~np.isfinite(temperature))), _SEED_POINTS)
@@ -153,24 +216,16 @@ def inspect_field(*, field: dict[str, np.ndarray], part: Part | PreparedPart) ->
         raise ValueError(f"only {np.count_nonzero(member)} measured points lie within {max_distance:g} mm of the "
                          f"nominal surface once aligned (at least {MIN_PART_POINTS} needed): the part is not in the "
                          "field (hidden, lost to the glow, or not this part type)")
+    return _LocatedPart(candidates, cold, alignment, cold_part_frame, deviation, member)
 
-    n = len(points)
-    cold_points = np.full((n, 3), np.nan)
-    cold_points[candidates[member]] = cold.points[member]
-    deviation_out = np.full(n, np.nan, dtype=np.float32)
-    deviation_out[candidates[member]] = deviation[member]
-    fallback = np.zeros(n, dtype=bool)
-    fallback[candidates[member]] = cold.fallback[member]
 
-    budget = _budget(part)
-    material_fraction = definition.uncertainty.material_fraction
-    if material_fraction is None:
-        material_fraction = part.material.relative_uncertainty
-    in_part = cold_part_frame[member]
-    part_points = candidates[member]
-    used_temperature = cold.temperature[member]
-    used_fallback = cold.fallback[member]
-
+def _measure_features(prepared: PreparedPart, located: _LocatedPart, points: np.ndarray,
+                      budget: TemperatureBudget, material_fraction: float) -> list[dict[str, Any]]:
+    """Step 3 of :func:`inspect_field`: each feature fitted cold and hot, then the distances between them."""
+    part = prepared.part
+    definition = part.definition
+    in_part, part_points, alignment = located.in_part, located.part_points, located.alignment
+    used_temperature, used_fallback = located.used_temperature, located.used_fallback
     fits: dict[str, tuple[Any, Any, float, float]] = {}
     results = []
     for feature in definition.features:
@@ -208,28 +263,31 @@ def inspect_field(*, field: dict[str, np.ndarray], part: Part | PreparedPart) ->
         results.append(_feature_result(feature, hot_value, cold_value, fit_std,
                                        a[0].count + b[0].count, (a[2] + b[2]) / 2, max(a[3], b[3]), part,
                                        material_fraction))
+    return results
 
-    surface = _surface_result(in_part, deviation[member], used_temperature, used_fallback, part, budget,
-                              material_fraction)
-    verdict = overall([result["verdict"] for result in results] + [surface["verdict"]])
-    report = {
+
+def _report(part: Part, results: list[dict[str, Any]], surface: dict[str, Any], located: _LocatedPart,
+            material_fraction: float) -> dict[str, Any]:
+    """Step 4's report (docs/inspection.md, REPORT.json): the overall verdict, features, surface, alignment,
+    temperatures and the budget."""
+    definition = part.definition
+    used_temperature, alignment = located.used_temperature, located.alignment
+    return {
         "version": REPORT_VERSION,
         "part": definition.name,
-        "verdict": verdict,
+        "verdict": overall([result["verdict"] for result in results] + [surface["verdict"]]),
         "features": results,
         "surface": surface,
         "alignment": {"rms_mm": alignment.rms_mm, "inlier_fraction": alignment.inlier_fraction,
                       "matrix": alignment.matrix.tolist()},
-        "temperature": {"points": int(member.sum()), "fallback_points": int(used_fallback.sum()),
+        "temperature": {"points": int(located.member.sum()), "fallback_points": int(located.used_fallback.sum()),
                         "mean_c": float(np.mean(used_temperature)), "min_c": float(np.min(used_temperature)),
                         "max_c": float(np.max(used_temperature)),
-                        "trend_c": cold.trend.tolist(), "material": part.material.name,
+                        "trend_c": located.cold.trend.tolist(), "material": part.material.name,
                         "material_source": part.material.source},
         "budget": {**definition.uncertainty.model_dump(), "material_fraction": material_fraction,
                    "coverage_factor": COVERAGE_FACTOR},
     }
-    return Inspection(report=report, cold_points=cold_points, deviation=deviation_out, fallback=fallback,
-                      alignment=alignment)
 
 
 def _beside(points: np.ndarray, hot: np.ndarray, unknown: np.ndarray) -> np.ndarray:
