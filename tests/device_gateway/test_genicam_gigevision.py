@@ -130,6 +130,7 @@ def test_the_gateway_captures_a_sequence_with_the_genicam_cameras(fake_gv_camera
     assert metadata["units"] == "degC" and capture.thermal_timestamps[0] >= stamps[-1]
 
 
+@pytest.mark.reliability  # a fault test (about 20 s): in make test-reliability, as the service's other faults are
 def test_a_camera_killed_mid_sequence_fails_that_capture_naming_it_and_comes_back(fake_gv_camera, free_port):
     # 100 ms per pattern: a sequence takes seconds, the camera is killed a second into it.
     process = _start_gateway(free_port, {"THERMOFIELD_PROJECTOR_SETTLE_MS": "100",
@@ -163,6 +164,7 @@ def test_a_camera_killed_mid_sequence_fails_that_capture_naming_it_and_comes_bac
         _stop(process)
 
 
+@pytest.mark.reliability  # a fault test (about 14 s): in make test-reliability
 def test_a_camera_that_vanishes_between_captures_is_seen_closed_and_its_next_grab_lost(fake_gv_camera):
     camera = GenicamCamera(device_id=fake_gv_camera.address, region=(0, 0, 64, 48))
     camera.open()
