@@ -29,8 +29,8 @@ def test_the_readme_tour_runs_from_patterns_to_a_verdict(tmp_path):
         assert "Traceback" not in done.stderr
     assert (tmp_path / "capture" / "thermal.tiff").is_file()
     report = json.loads((tmp_path / "report.json").read_text())
-    assert report["part"] == "simulated-forging" and report["verdict"] in ("OK", "NotOK", "NotDecidable")
+    assert report["part"] == "forging-station-billet" and report["verdict"] in ("OK", "NotOK", "NotDecidable")
     diameters = {feature["name"]: feature for feature in report["features"]}
     # the simulated forging is its nominal, hot: each diameter comes back within its expanded uncertainty
-    for name in ("billet_diameter", "flange_diameter"):
+    for name in ("body_diameter",):
         assert abs(diameters[name]["deviation"]) <= diameters[name]["uncertainty"], diameters[name]
