@@ -294,9 +294,20 @@ class _GenicamDevice:
             except GLib.Error as error:
                 raise self._lose(f"cannot trigger it: {error.message}") from None
         deadline = time.monotonic() + timeout_s
+        # The first software trigger after the stream starts can come before the camera's acquisition runs (seen
+        # with arv-fake-gv-camera: no frame, "after 0 frames"); it is fired once more halfway through the wait.
+        retrigger_at = time.monotonic() + timeout_s / 2 if self.trigger == "Software" and self._frames == 0 else None
         while (remaining := deadline - time.monotonic()) > 0:
-            buffer = self._stream.timeout_pop_buffer(max(1, int(remaining * 1e6)))
+            wait = remaining if retrigger_at is None else max(0.0, min(remaining, retrigger_at - time.monotonic()))
+            buffer = self._stream.timeout_pop_buffer(max(1, int(wait * 1e6)))
             if buffer is None:
+                if retrigger_at is not None:
+                    retrigger_at = None
+                    try:
+                        self._camera.software_trigger()
+                    except GLib.Error as error:
+                        raise self._lose(f"cannot trigger it: {error.message}") from None
+                    continue
                 break
             status = buffer.get_status()
             if status == Aravis.BufferStatus.CLEARED:
