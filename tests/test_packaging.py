@@ -134,9 +134,3 @@ def _wait_ready(url: str, process: subprocess.Popen, timeout_s: float = 120.0) -
         time.sleep(0.25)
     raise AssertionError(f"`thermofield api` was not ready at {url} within {timeout_s} s")
 
-
-def test_the_wheel_carries_the_demo_s_part_type(wheel):
-    """``thermofield demo`` uploads the simulated forging's part file and cold mesh from the package."""
-    names = set(zipfile.ZipFile(wheel).namelist())
-    assert {"services/simulation/examples/forging/part.json", "services/simulation/examples/forging/forging.stl"} \
-        <= names

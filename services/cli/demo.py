@@ -27,7 +27,6 @@ from services.cli.service import serve_ports
 from services.errors import InputError
 from services.formats.files import atomic_output
 from services.settings import Settings
-from services.simulation.forging_part import PART_FILE
 from services.streaming.proxy import web_viewer_url
 
 _STARTUP_TIMEOUT_S = 180.0
@@ -121,17 +120,17 @@ def _print_verdict(client: httpx.Client, scan: dict) -> None:
               f"{len(surface.get('defects', []))} dents or bulges reported: {surface['verdict']}")
 
 
-def _part_type(client: httpx.Client) -> str:
+def _part_type(client: httpx.Client, part_file: Path) -> str:
     """The simulated forging's part type, uploaded once per data directory and selected for the station."""
-    name = json.loads(PART_FILE.read_text())["name"]
+    name = json.loads(part_file.read_text())["name"]
     existing = [part for part in client.get("/v1/part-types").json() if part["name"] == name]
     if existing:
         part_type_id = existing[0]["part_type_id"]
         client.post(f"/v1/part-types/{part_type_id}/select").raise_for_status()
         return part_type_id
-    mesh = PART_FILE.with_name(json.loads(PART_FILE.read_text())["nominal"])
+    mesh = part_file.with_name(json.loads(part_file.read_text())["nominal"])
     created = client.post("/v1/part-types", data={"select": "true"},
-                          files={"part": (PART_FILE.name, PART_FILE.read_bytes(), "application/json"),
+                          files={"part": (part_file.name, part_file.read_bytes(), "application/json"),
                                  "mesh": (mesh.name, mesh.read_bytes(), "model/stl")})
     if created.status_code != 201:
         raise InputError(f"POST /v1/part-types answered {created.status_code}: {created.text}")
@@ -195,8 +194,12 @@ def _run(args: argparse.Namespace) -> int:
             _wait_until_ready(client, server)
             print(f"\nAPI key for this demo (scopes {', '.join(_SCOPES)}; more with `thermofield apikey create "
                   f"--scopes read operate --data-dir {args.data_dir}`):\n  {secret}")
-            part_type_id = _part_type(client)
-            print(f"\nPart type {part_type_id}: the simulated forging, cold ({PART_FILE}), selected for the station")
+            # the simulated forging's cold nominal and part file, made as the tests make them
+            from services.simulation.hot_part import write_forging_part
+
+            part_file = write_forging_part(args.data_dir / "forging-part")
+            part_type_id = _part_type(client, part_file)
+            print(f"\nPart type {part_type_id}: the simulated forging, cold ({part_file}), selected for the station")
             print(f"\nPOST {base_url}/v1/scans (empty body: the simulated hot part, the active calibration and the "
                   "selected part type)")
             started = time.monotonic()

@@ -39,7 +39,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                     "scene.json and the ground truth (depth.npy, points.npy, projector_pixels.npy, "
                     "lit_mask.png); when the rig has one thermal camera and the scene's temperatures are known (the forging "
                     "preset, or a scene file with 'temperature'), also thermal.tiff, what that camera reads in "
-                    "degrees C. See docs/simulator.md.",
+                    "degrees C; for the forging preset also part/part.json and its cold nominal mesh. See docs/simulator.md.",
     )
     parser.add_argument("--scene", required=True, metavar="SCENE",
                         help="scene JSON file, or a preset: paper-plane:DEPTH_MM, paper-sphere:RADIUS_MM, forging")
@@ -147,6 +147,11 @@ def _run(args: argparse.Namespace) -> int:
     if thermal is not None:
         write_thermal_frame(args.out / THERMAL_FILE, thermal)
         print(f"wrote what the rig's thermal camera sees, in degrees C, to {args.out / THERMAL_FILE}")
+    if args.scene == "forging":
+        from services.simulation.hot_part import write_forging_part
+
+        part_file = write_forging_part(args.out / "part")
+        print(f"wrote the forging's part file and cold nominal mesh (for thermofield inspect) to {part_file}")
     return 0
 
 
