@@ -101,6 +101,7 @@ def test_embedded_scan_from_http_to_an_accurate_field(e2e, tmp_path):
     errors = e2e.field_errors(tmp_path / "field.ply")
     assert errors["median_distance_mm"] < 0.5, errors
     assert errors["median_temperature_error_k"] < 1.0, errors
+    assert errors["temperature_coverage"] > 0.8 and errors["p99_temperature_error_k"] < 1.0, errors
     assert errors["hidden_points_nan"] > 0.95, errors
 
     scan_states = events.states(f"{site}/station1/scans/{scan_id}")

@@ -117,6 +117,7 @@ def test_scaled_out_scans_with_two_workers_and_survive_a_worker_crash(e2e, deplo
     errors = e2e.field_errors(tmp_path / "field.ply")
     assert errors["median_distance_mm"] < 0.5, errors
     assert errors["median_temperature_error_k"] < 1.0, errors
+    assert errors["temperature_coverage"] > 0.8 and errors["p99_temperature_error_k"] < 1.0, errors
     assert events.states(f"{env['THERMOFIELD_SITE']}/station1/scans/{jobs[1]['scan_id']}")[-1]["status"] == "succeeded"
 
 
