@@ -54,6 +54,6 @@ def refused_problem(refused: JobRefused) -> Problem:
     that tests/api/test_declared_statuses.py reads them from the code."""
     if refused.kind == "queue-full":
         return Problem(503, refused.kind, str(refused), {"Retry-After": str(RETRY_AFTER_S)})
-    if refused.kind == "no-active-calibration":
+    if refused.kind in ("no-active-calibration", "not-ready"):
         return Problem(409, refused.kind, str(refused))
     return Problem(422, refused.kind, str(refused))

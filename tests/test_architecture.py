@@ -49,7 +49,7 @@ def test_importing_the_api_app_loads_no_numba_rerun_or_science():
 
 @pytest.mark.parametrize("package, forbidden", [
     ("api", ("workers", "services.cli", "services.pipeline") + SCIENCE),
-    ("workers", ("api", "services.cli")),
+    ("workers", ("api", "services.cli", "services.db")),
     ("services/cli", ("workers.actors", "workers.middleware")),
     ("device_gateway", ("api", "workers", "services.pipeline", "services.cli")),
     *((science.replace(".", "/"), SHELLS + ("services.pipeline",)) for science in SCIENCE[:7]),
@@ -63,6 +63,54 @@ def test_layers_import_only_what_they_may(package, forbidden):
     offending = {path: sorted(name for name in names - ALLOWED.get(path, set()) if _within(name, forbidden))
                  for path, names in _modules_importing(package).items()}
     assert {path: names for path, names in offending.items() if names} == {}
+
+
+# What a session does to rows: a router or an actor calls none of these itself, services/db does.
+_ROW_METHODS = {"add", "add_all", "delete", "execute", "scalar", "scalars", "get", "flush", "merge", "query",
+                "begin", "refresh"}
+
+
+def _row_access(path: Path) -> list[str]:
+    """What in a file reads or writes rows itself: an SQLAlchemy import, a model constructed from
+    ``services.db.models`` (a row), a session's query or write (``session.get``, ``sessions.begin``...)."""
+    tree = ast.parse(path.read_text())
+    models = {alias.asname or alias.name for node in ast.walk(tree) if isinstance(node, ast.ImportFrom)
+              and node.module == "services.db.models" for alias in node.names}
+    found = [f"imports {name}" for name in sorted(_imports(path)) if _within(name, ("sqlalchemy",))]
+    for node in ast.walk(tree):
+        if not isinstance(node, ast.Call):
+            continue
+        function = node.func
+        if isinstance(function, ast.Name) and function.id in models and function.id[:1].isupper():
+            found.append(f"line {node.lineno}: constructs a {function.id} row")
+        elif isinstance(function, ast.Attribute) and function.attr in _ROW_METHODS \
+                and isinstance(function.value, (ast.Name, ast.Attribute)) \
+                and ast.unparse(function.value).split(".")[-1] in ("session", "sessions"):
+            found.append(f"line {node.lineno}: {ast.unparse(function)}")
+        elif isinstance(function, ast.Attribute) and function.attr == "sessions":
+            found.append(f"line {node.lineno}: opens a session ({ast.unparse(function)})")
+    return found
+
+
+def test_no_router_or_actor_queries_or_writes_rows_itself():
+    """Routers and actors only translate (docs/architecture.md): the rows are read and written through
+    services/db, by services/jobs (starting a job) and the pipeline's job use cases (running one). A router
+    may commit its request's session (the request is the transaction) and name models as types."""
+    files = [*sorted((ROOT / "api" / "routers").glob("*.py")), *sorted((ROOT / "workers").glob("*.py"))]
+    assert len(files) > 10
+    offending = {str(path.relative_to(ROOT)): found for path in files if (found := _row_access(path))}
+    assert offending == {}
+
+
+def test_the_row_check_finds_a_query_a_write_and_a_row(tmp_path):
+    router = tmp_path / "router.py"
+    router.write_text("from sqlalchemy import select\nfrom services.db.models import Job, Scan\n"
+                      "def list_jobs(session):\n    return session.scalars(select(Job))\n"
+                      "def add(runtime):\n    with runtime.sessions.begin() as session:\n"
+                      "        session.add(Scan(id='x'))\n")
+    assert sorted(_row_access(router)) == ["imports sqlalchemy", "line 4: session.scalars",
+                                           "line 6: runtime.sessions.begin", "line 7: constructs a Scan row",
+                                           "line 7: session.add"]
 
 
 def test_the_register_command_loads_neither_numba_nor_scipy_nor_pydantic(tmp_path):

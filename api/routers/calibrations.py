@@ -10,7 +10,6 @@ from typing import Annotated
 from fastapi import APIRouter, Depends, File, Form, Request, UploadFile
 from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import Response
-from sqlalchemy import select
 
 from api.deps import AdminKey, JobQueueDep, ReaderKey, RuntimeDep, SessionDep
 from api.dispatch import start_job
@@ -19,7 +18,8 @@ from api.artifacts import stored_bytes
 from api.problems import Problem, problem_responses
 from api.uploads import read_limited
 from api.schemas import Accepted, CalibrationSetOut, StereoCaptureRequest
-from services.db.calibrations import activate_calibration
+from services.db.calibrations import (activate_calibration, add_calibration_set, calibration_set,
+                                      station_calibration_sets)
 from services.db.models import CalibrationSet
 from services.formats.board import MIN_VIEWS, parse_board
 from services.formats.images import FRAME_SUFFIXES, decode_image
@@ -39,7 +39,7 @@ def calibration_out(calibration: CalibrationSet) -> CalibrationSetOut:
 
 
 def _existing_calibration(calibration_set_id: str, session: SessionDep, _: ReaderKey) -> CalibrationSet:
-    calibration = session.get(CalibrationSet, calibration_set_id)
+    calibration = calibration_set(session, calibration_set_id)
     if calibration is None:
         raise Problem(404, "not-found", f"There is no calibration set {calibration_set_id!r}.")
     return calibration
@@ -61,12 +61,8 @@ async def create_calibration_set(request: Request, session: SessionDep, runtime:
     rig_digest = runtime.store.put_bytes(rig_to_json(parsed).encode())
 
     def create() -> Outcome:
-        calibration = CalibrationSet(name=name, station=runtime.settings.station, rig_sha256=rig_digest,
-                                     source="upload")
-        session.add(calibration)
-        session.flush()
-        if activate:
-            activate_calibration(session, calibration)
+        calibration = add_calibration_set(session, name=name, station=runtime.settings.station,
+                                          rig_sha256=rig_digest, source="upload", activate=activate)
         out = calibration_out(calibration)
         return Outcome(201, out.model_dump(mode="json"), out.links["self"])
 
@@ -196,9 +192,7 @@ def _require_thermal_device(rig: Rig, calibration: CalibrationSet, device: str) 
 @router.get("", name="list_calibration_sets")
 def list_calibration_sets(session: SessionDep, runtime: RuntimeDep, _: ReaderKey) -> list[CalibrationSetOut]:
     """This station's calibration sets, newest first."""
-    rows = session.scalars(select(CalibrationSet).where(CalibrationSet.station == runtime.settings.station)
-                           .order_by(CalibrationSet.created_at.desc()))
-    return [calibration_out(calibration) for calibration in rows]
+    return [calibration_out(calibration) for calibration in station_calibration_sets(session, runtime.settings.station)]
 
 
 @router.get("/{calibration_set_id}", name="get_calibration_set", responses=problem_responses(404))

@@ -5,11 +5,11 @@ from __future__ import annotations
 from fastapi import APIRouter, Request
 from fastapi.responses import Response
 from prometheus_client import CONTENT_TYPE_LATEST, generate_latest
-from sqlalchemy import text
 
 from api.deps import RuntimeDep
 from api.problems import RETRY_AFTER_S, Problem, problem_responses
 from api.schemas import Health, Readiness
+from services.db.engine import schema_revision
 
 router = APIRouter(tags=["health"])
 
@@ -29,8 +29,7 @@ def get_readiness(runtime: RuntimeDep) -> Readiness:
         raise Problem(503, "not-ready", "The service is warming up (compiling kernels, building the active "
                                         "calibration's tables); try again in a few seconds.", retry)
     try:
-        with runtime.engine.connect() as connection:
-            revision = connection.execute(text("SELECT version_num FROM alembic_version")).scalar_one()
+        revision = schema_revision(runtime.engine)
     except Exception as error:  # any driver error means not ready
         raise Problem(503, "not-ready", f"The database is not ready: {type(error).__name__}.", retry)
     free = runtime.store.free_bytes()

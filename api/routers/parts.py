@@ -10,7 +10,6 @@ from typing import Annotated
 from fastapi import APIRouter, Depends, File, Form, Request, UploadFile
 from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import Response
-from sqlalchemy import select
 
 from api.deps import AdminKey, ReaderKey, RuntimeDep, SessionDep
 from api.idempotency import IdempotencyKeyHeader, Outcome, request_digest, respond_once
@@ -19,7 +18,7 @@ from api.problems import Problem, problem_responses
 from api.schemas import PartTypeOut
 from api.uploads import read_limited
 from services.db.models import PartType
-from services.db.parts import select_part_type
+from services.db import parts
 from services.errors import InputError
 from services.formats.part import MESH_SUFFIXES, parse_part_with_mesh
 
@@ -37,7 +36,7 @@ def part_type_out(part_type: PartType) -> PartTypeOut:
 
 
 def _existing_part_type(part_type_id: str, session: SessionDep, _: ReaderKey) -> PartType:
-    part_type = session.get(PartType, part_type_id)
+    part_type = parts.part_type(session, part_type_id)
     if part_type is None:
         raise Problem(404, "not-found", f"There is no part type {part_type_id!r}.")
     return part_type
@@ -88,12 +87,8 @@ async def create_part_type(request: Request, session: SessionDep, runtime: Runti
     part_digest, mesh_digest = runtime.store.put_bytes(text), runtime.store.put_bytes(mesh_bytes)
 
     def create() -> Outcome:
-        part_type = PartType(name=name, station=runtime.settings.station, material=material,
-                             part_sha256=part_digest, mesh_sha256=mesh_digest)
-        session.add(part_type)
-        session.flush()
-        if select_:
-            select_part_type(session, part_type)
+        part_type = parts.add_part_type(session, name=name, station=runtime.settings.station, material=material,
+                                        part_sha256=part_digest, mesh_sha256=mesh_digest, select_=select_)
         out = part_type_out(part_type)
         return Outcome(201, out.model_dump(mode="json"), out.links["self"])
 
@@ -105,9 +100,7 @@ async def create_part_type(request: Request, session: SessionDep, runtime: Runti
 @router.get("", name="list_part_types")
 def list_part_types(session: SessionDep, runtime: RuntimeDep, _: ReaderKey) -> list[PartTypeOut]:
     """This station's part types, newest first."""
-    rows = session.scalars(select(PartType).where(PartType.station == runtime.settings.station)
-                           .order_by(PartType.created_at.desc()))
-    return [part_type_out(part_type) for part_type in rows]
+    return [part_type_out(part_type) for part_type in parts.station_part_types(session, runtime.settings.station)]
 
 
 @router.get("/{part_type_id}", name="get_part_type", responses=problem_responses(404))
@@ -138,6 +131,6 @@ def download_part_mesh(part_type: ExistingPartType, runtime: RuntimeDep) -> Resp
 @router.post("/{part_type_id}/select", name="select_part_type", responses=problem_responses(404))
 def select_station_part_type(_: AdminKey, part_type: ExistingPartType, session: SessionDep) -> PartTypeOut:
     """Make this the station's selected part type: scans that name none are inspected against it."""
-    select_part_type(session, part_type)
+    parts.select_part_type(session, part_type)
     session.commit()
     return part_type_out(part_type)

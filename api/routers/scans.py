@@ -9,7 +9,6 @@ import numpy as np
 from fastapi import APIRouter, Depends, Path, Query, Request
 from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import FileResponse, Response
-from sqlalchemy import select
 
 from api.deps import JobQueueDep, OperatorKey, ReaderKey, RuntimeDep, SessionDep
 from api.dispatch import refused_problem, start_job
@@ -17,10 +16,11 @@ from api.idempotency import IdempotencyKeyHeader, Outcome, request_digest, respo
 from api.artifacts import stored_path
 from api.problems import Problem, problem_responses
 from api.schemas import Accepted, ScanJobRequest, ScanOut, ScanRequest
-from services.db.models import TERMINAL_STATUSES, CalibrationSet, Job, Scan, new_id
+from services.db import scans
+from services.db.models import TERMINAL_STATUSES, Job, Scan
 from services.formats.images import encode_frame
-from services.formats.stored_scan import CLOUD, FRAMES, SERVED, THERMAL
-from services.jobs.scans import JobRefused, scan_inputs, scan_job_params
+from services.formats.stored_scan import FRAMES, SERVED, THERMAL
+from services.jobs.scans import JobRefused, new_scan, scan_inputs, scan_job_params, stored_scan_job_params
 
 router = APIRouter(prefix="/scans", tags=["scans"])
 
@@ -44,7 +44,7 @@ def scan_links(scan: Scan) -> dict[str, str]:
 
 
 def _existing_scan(scan_id: str, session: SessionDep, _: ReaderKey) -> Scan:
-    scan = session.get(Scan, scan_id)
+    scan = scans.scan(session, scan_id)
     if scan is None:
         raise Problem(404, "not-found", f"There is no scan {scan_id!r}.")
     return scan
@@ -75,20 +75,12 @@ async def create_scan(request: Request, session: SessionDep, runtime: RuntimeDep
                                  part_type_id=body.part_type_id)
         except JobRefused as refused:
             raise refused_problem(refused) from None
-        scan = Scan(id=new_id(), station=station, calibration_set_id=inputs.calibration.id, part_id=body.part_id,
-                    part_type_id=None if inputs.part_type is None else inputs.part_type.id)
+        scan = new_scan(station, inputs, part_id=body.part_id)
         return start_job(runtime, queue, session, "scan", scan_job_params(scan.id, inputs), scan)
 
     digest = request_digest(request, await request.body())
     return await run_in_threadpool(respond_once, session, key, idempotency_key, digest, start,
                                    runtime.settings.idempotency_ttl_s)
-
-
-def _calibration_for(session, station: str, calibration_set_id: str) -> CalibrationSet:
-    try:
-        return scan_inputs(session, station, calibration_set_id=calibration_set_id).calibration
-    except JobRefused as refused:
-        raise refused_problem(refused) from None
 
 
 @router.post("/{scan_id}/jobs", name="create_scan_job", status_code=202, response_model=Accepted,
@@ -101,28 +93,15 @@ async def create_scan_job(request: Request, key: OperatorKey, scan: ExistingScan
     digest = request_digest(request, await request.body())
 
     def start() -> Outcome:
-        if scan.artifacts.get(FRAMES.name) is None:
-            raise Problem(409, "not-ready", f"Scan {scan.id} has no stored capture yet; wait for its job.")
-        params = {"scan_id": scan.id, "calibration_set_id": scan.calibration_set_id}
-        if body.calibration_set_id is not None:
-            params["calibration_set_id"] = _calibration_for(session, scan.station, body.calibration_set_id).id
-        if body.kind == "register":
-            params["model"] = body.model
-        if body.cloud_job_id is not None:
-            params["cloud_sha256"] = _reconstructed_cloud(session, scan, body)
+        try:
+            params = stored_scan_job_params(session, scan, kind=body.kind, calibration_set_id=body.calibration_set_id,
+                                            model=body.model, cloud_job_id=body.cloud_job_id)
+        except JobRefused as refused:
+            raise refused_problem(refused) from None
         return start_job(runtime, queue, session, body.kind, params)
 
     return await run_in_threadpool(respond_once, session, key, idempotency_key, digest, start,
                                    runtime.settings.idempotency_ttl_s)
-
-
-def _reconstructed_cloud(session, scan: Scan, body: ScanJobRequest) -> str:
-    job = session.get(Job, body.cloud_job_id)
-    if body.kind != "fuse" or job is None or job.kind != "reconstruct" or job.params.get("scan_id") != scan.id \
-            or job.status != "succeeded":
-        raise Problem(422, "invalid-input", f"cloud_job_id: {body.cloud_job_id!r} is not a succeeded reconstruct job "
-                                            f"of scan {scan.id} (and only a fuse job takes one).")
-    return job.result["artifacts"][CLOUD.name]
 
 
 @router.get("", name="list_scans")
@@ -134,12 +113,8 @@ def list_scans(session: SessionDep, runtime: RuntimeDep, _: ReaderKey,
                                                                                     "against this part type.")] = None,
                ) -> list[ScanOut]:
     """The station's most recent scans, newest first, optionally only those of one part or part type."""
-    query = select(Scan, Job).join(Job, Scan.job_id == Job.id).where(Scan.station == runtime.settings.station)
-    if part_id is not None:
-        query = query.where(Scan.part_id == part_id)
-    if part_type_id is not None:
-        query = query.where(Scan.part_type_id == part_type_id)
-    rows = session.execute(query.order_by(Scan.created_at.desc(), Scan.id.desc()).limit(limit))
+    rows = scans.station_scans(session, runtime.settings.station, limit=limit, part_id=part_id,
+                               part_type_id=part_type_id)
     return [scan_out(scan, job) for scan, job in rows]
 
 
@@ -147,7 +122,7 @@ def list_scans(session: SessionDep, runtime: RuntimeDep, _: ReaderKey,
 def get_scan(scan: ExistingScan, session: SessionDep) -> ScanOut:
     """Metadata, links to the artifacts, the field's summary (point count, bounding box, temperatures) and,
     when inspected, the verdict and the features."""
-    return scan_out(scan, session.get(Job, scan.job_id))
+    return scan_out(scan, scans.scan_job(session, scan))
 
 
 @router.get("/{scan_id}/{artifact}", name="download_scan_artifact",
@@ -160,7 +135,7 @@ def download_scan_artifact(scan: ExistingScan, runtime: RuntimeDep, session: Ses
     the per-point ``deviation`` (``deviation.ply``)."""
     digest = scan.artifacts.get(artifact)
     if digest is None:
-        _never_or_not_yet(scan, session.get(Job, scan.job_id), artifact)
+        _never_or_not_yet(scan, scans.scan_job(session, scan), artifact)
     return _artifact_file(runtime, scan, digest, f"{scan.id}-{artifact}", SERVED[artifact].media_type)
 
 

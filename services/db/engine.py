@@ -81,6 +81,12 @@ def migrate(engine: Engine) -> None:
     run_alembic(engine, "upgrade", "head")
 
 
+def schema_revision(engine: Engine) -> str:
+    """The database's Alembic revision (raises the driver's error when it does not answer or is not migrated)."""
+    with engine.connect() as connection:
+        return connection.execute(text("SELECT version_num FROM alembic_version")).scalar_one()
+
+
 def run_alembic(engine: Engine, action: str, revision: str) -> None:
     """``alembic upgrade|downgrade <revision>`` on ``engine`` in one transaction.
 

@@ -12,6 +12,9 @@ translate to and from it).
 - :func:`register_pair`, :func:`register_scan`: infrared-to-visible registration.
 - :func:`field_summary`: what the scan endpoint and MQTT report of a field.
 - :class:`TriangulationTables`: the per-calibration precomputation, in memory and on disk.
+- :mod:`services.pipeline.jobs`: the service's jobs as the workers run them (:func:`scan_job`,
+  :func:`reconstruct_job`, :func:`fuse_job`, :func:`register_job`, :func:`calibrate_job`): each reads and writes
+  its job's rows through ``services/db`` and its files in the store.
 
 Import the submodules (``services.pipeline.scan``...): this package does not import them itself, so that
 a command pays only for what it uses.

@@ -3,7 +3,7 @@ on SQLite and PostgreSQL."""
 
 from datetime import UTC, datetime, timedelta
 
-from api.routers.jobs import JobRow, load_job
+from services.db.jobs import JobRow, load_job
 from services.db.models import Job
 from services.jobs.tracker import job_state
 
