@@ -11,9 +11,11 @@ from services.fusion.fuse import DEFAULT_MAX_VIEW_ANGLE_DEG
 
 
 def _add_thermal_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--thermal", required=True, nargs="+", type=Path, metavar="FRAME",
+    parser.add_argument("--thermal", required=True, nargs="+", action="extend", metavar="[NAME=]FRAME",
                         help="thermal frame(s): FLIR radiometric JPEG, float TIFF/.npy in degrees C, 16-bit "
-                             "PNG/TIFF in centikelvin, or counts with a sidecar JSON (see docs/thermal-formats.md)")
+                             "PNG/TIFF in centikelvin, or counts with a sidecar JSON (see docs/thermal-formats.md); "
+                             "NAME=FRAME names the rig's thermal device that took it (repeatable: one frame per "
+                             "thermal camera of a station)")
     parser.add_argument("--thermal-device", nargs="+", metavar="NAME",
                         help="thermal device of the rig: one name for all frames or one per frame "
                              "(default: the rig's only thermal device)")
@@ -38,22 +40,43 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     field = subparsers.add_parser(
         "field",
         description="Reconstruct a capture directory (as `thermofield reconstruct`) and fuse the thermal "
-                    "frames onto the cloud (as `thermofield fuse`), in one step.",
+                    "frames onto the cloud (as `thermofield fuse`), in one step. A station's capture (one "
+                    "sub-directory per head of the rig) is reconstructed head by head and merged first; give "
+                    "one frame per thermal camera, --thermal NAME=FRAME (see docs/station.md).",
     )
     field.add_argument("--rig", required=True, type=Path, help="rig file (JSON)")
     field.add_argument("--captures", required=True, type=Path,
-                       help="directory with sequence.json and the camera frames")
+                       help="directory with sequence.json and the camera frames, or a station's with one such "
+                            "sub-directory per head")
     field.add_argument("--camera", help="camera device name (default: the rig's only camera)")
     field.add_argument("--projector", help="projector device name (default: the rig's only projector)")
     _add_thermal_arguments(field)
     field.set_defaults(handler=_run_field)
 
 
-def _read_thermal(rig, frames: list[Path], device_names: list[str] | None, overrides):
+def _named_frames(rig, values: list[str]) -> tuple[list[Path], list[str] | None]:
+    """``--thermal`` values as paths, and their device names when every value is ``NAME=FRAME`` with NAME a
+    thermal device of the rig (None when none is); a mix is refused."""
+    thermal = {name for name, device in rig.devices.items() if device.kind == "thermal"}
+    named = [value.partition("=") for value in values]
+    is_named = [separator == "=" and name in thermal for name, separator, _ in named]
+    if not any(is_named):
+        return [Path(value) for value in values], None
+    if not all(is_named):
+        plain = [value for value, flag in zip(values, is_named) if not flag]
+        raise InputError(f"--thermal: name the thermal device of every frame or of none (NAME=FRAME, NAME one of "
+                         f"{sorted(thermal)}); {plain} name none")
+    return [Path(path) for _, _, path in named], [name for name, _, _ in named]
+
+
+def _read_thermal(rig, values: list[str], device_names: list[str] | None, overrides):
     """The thermal frames, each with the name of the rig's thermal device that took it."""
     from services.formats.thermal import read_thermal_frame
 
-    names = device_names or [None]
+    frames, named = _named_frames(rig, values)
+    if named is not None and device_names:
+        raise InputError("--thermal-device: the frames name their devices already (NAME=FRAME)")
+    names = named or device_names or [None]
     if len(names) not in (1, len(frames)):
         raise InputError(
             f"--thermal-device takes one name or one per frame; got {len(names)} names for {len(frames)} frames"
@@ -94,7 +117,13 @@ def _run_fuse(args: argparse.Namespace) -> int:
 
 
 def _run_field(args: argparse.Namespace) -> int:
-    from services.cli.reconstruct import reconstruct_from_files
+    from services.cli.reconstruct import (merge_summary, reconstruct_from_files, station_capture_of,
+                                          station_from_files)
 
+    rig, station = station_capture_of(args)
+    if station:
+        merged = station_from_files(rig, args.captures)
+        print(f"merged {len(merged.cloud)} points from {len(rig.heads)} heads\n{merge_summary(merged.report)}")
+        return _fuse_and_write(rig, merged.cloud, args, args.captures.name)
     rig, cloud = reconstruct_from_files(args.rig, args.captures, args.camera, args.projector)
     return _fuse_and_write(rig, cloud, args, args.captures.name)

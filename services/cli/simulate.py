@@ -42,10 +42,15 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                     "degrees C; for the forging preset also part/part.json and its cold nominal mesh. See docs/simulator.md.",
     )
     parser.add_argument("--scene", required=True, metavar="SCENE",
-                        help="scene JSON file, or a preset: paper-plane:DEPTH_MM, paper-sphere:RADIUS_MM, forging")
-    parser.add_argument("--rig", required=True, metavar="RIG", help="rig JSON file, or a preset: paper, forging")
-    parser.add_argument("--patterns", required=True, type=Path, metavar="DIR",
+                        help="scene JSON file, or a preset: paper-plane:DEPTH_MM, paper-sphere:RADIUS_MM, forging, "
+                             "station[:DENT_MM] (the four-head station around a hot shaft, with a dent of DENT_MM "
+                             "on the side away from the first head: its own rig, sequence and thermal cameras, so "
+                             "--rig and --patterns are not given; see docs/station.md)")
+    parser.add_argument("--rig", metavar="RIG", help="rig JSON file, or a preset: paper, forging")
+    parser.add_argument("--patterns", type=Path, metavar="DIR",
                         help="directory with sequence.json and the projector pattern images")
+    parser.add_argument("--scale", type=float, default=1.0,
+                        help="station scene only: shrink the heads' images and focal lengths (default 1)")
     parser.add_argument("--out", required=True, type=Path, metavar="DIR", help="output directory (created if needed)")
     parser.add_argument("--camera", help="camera device name (default: the rig's only camera)")
     parser.add_argument("--projector", help="projector device name (default: the rig's only projector)")
@@ -105,7 +110,40 @@ def _write_array(path: Path, array: np.ndarray) -> None:
         np.save(stream, array)
 
 
+_STATION_PRESET = re.compile(r"station(?::(.*))?")
+
+
+def _run_station(args: argparse.Namespace, dent: str | None) -> int:
+    from services.simulation.station import film_station, station_scene
+
+    given = [option for option, value in (("--rig", args.rig), ("--patterns", args.patterns)) if value is not None]
+    if given:
+        raise InputError(f"--scene station brings its own rig and sequence; {', '.join(given)} {'does' if len(given) == 1 else 'do'} not apply")
+    try:
+        depth = 0.0 if dent is None else float(dent)
+    except ValueError:
+        raise InputError(f"--scene: the dent depth in {args.scene!r} is not a number (e.g. station:0.3)") from None
+    if not math.isfinite(depth) or depth < 0 or depth > 5:
+        raise InputError(f"--scene: the dent depth in {args.scene!r} must be 0 to 5 mm")
+    if not 0.1 <= args.scale <= 1.0:
+        raise InputError(f"--scale must be in [0.1, 1]; got {args.scale}")
+    output_directory(args.out)
+    station = station_scene(scale=args.scale, dent_depth_mm=depth)
+    capture = film_station(station, seed=args.seed)  # one sample per pixel, as the gateway's simulated camera
+    capture.save(args.out)
+    save_rig(station.rig, args.out / "rig.json")
+    print(f"wrote the capture of {len(capture.heads)} heads ({', '.join(h.capture.head for h in capture.heads)}) and "
+          f"{len(capture.thermal)} thermal frames to {args.out}, the station's rig to {args.out / 'rig.json'}")
+    return 0
+
+
 def _run(args: argparse.Namespace) -> int:
+    station = _STATION_PRESET.fullmatch(args.scene)
+    if station is not None:
+        return _run_station(args, station[1])
+    missing = [option for option, value in (("--rig", args.rig), ("--patterns", args.patterns)) if value is None]
+    if missing:
+        raise InputError(f"the scene {args.scene!r} needs {' and '.join(missing)}")
     if args.supersample < 1 or args.supersample % 2 == 0:
         raise InputError(f"--supersample must be a positive odd number; got {args.supersample}")
     camera_effects, projector_effects = _effects(args)

@@ -34,14 +34,41 @@ def thermal_views(rig: Rig, thermal: ThermalFrames) -> list[ThermalView]:
 
 
 def measuring_viewpoint(rig: Rig, views: Sequence[ThermalView]) -> np.ndarray:
-    """Where the cloud was measured from: the rig's only camera's centre, else the first thermal camera's."""
+    """Where the cloud was measured from: the rig's only camera's centre, else the first thermal camera's.
+
+    A station's merged cloud was measured from several heads: :func:`station_normals` orients its normals
+    toward each point's own head first, so that this viewpoint orients none of them."""
     cameras = [device for device in rig.devices.values() if device.kind == "camera"]
     return (cameras[0] if len(cameras) == 1 else views[0].device).centre
+
+
+def station_normals(cloud: PointCloud, rig: Rig) -> PointCloud:
+    """A merged station cloud (with ``head``, the index in ``rig.heads``) with every normal facing the camera of
+    the head that measured the point: given normals kept, missing ones estimated (PCA) from that head's points
+    and turned toward its camera. Other clouds are returned as they are."""
+    from services.fusion.field import cloud_normals
+
+    if "head" not in cloud or len(rig.heads) < 2:
+        return cloud
+    head = np.asarray(cloud["head"])
+    if len(head) and (head.min() < 0 or head.max() >= len(rig.heads)):
+        raise InputError(f"the cloud's head property runs from {head.min()} to {head.max()} but the rig has "
+                         f"{len(rig.heads)} heads")
+    normals = np.full((len(cloud), 3), np.nan, dtype=np.float32)
+    for index, station_head in enumerate(rig.heads):
+        rows = np.flatnonzero(head == index)
+        if len(rows):
+            part = PointCloud({name: np.asarray(values)[rows] for name, values in cloud.items()})
+            normals[rows] = cloud_normals(part, rig.devices[station_head.camera].centre)
+    return cloud.with_properties(nx=normals[:, 0], ny=normals[:, 1], nz=normals[:, 2])
 
 
 def fuse_field(*, cloud: PointCloud, rig: Rig, thermal: ThermalFrames,
                max_view_angle_deg: float = DEFAULT_MAX_VIEW_ANGLE_DEG, source: str = "the cloud") -> PointCloud:
     """Give every point of ``cloud`` its temperature from the rig's thermal camera(s).
+
+    A station's merged cloud (``head`` property) takes its temperature from every thermal camera that sees a
+    point, whichever head measured it; its normals face each point's own head (:func:`station_normals`).
 
     Returns the field: the cloud with ``temperature`` (degrees C, NaN unseen), ``view_angle`` (degrees)
     and ``red, green, blue`` (see :func:`services.fusion.field.temperature_field`).
@@ -57,4 +84,4 @@ def fuse_field(*, cloud: PointCloud, rig: Rig, thermal: ThermalFrames,
     if not 0.0 < max_view_angle_deg < 90.0:
         raise InputError(f"the maximum view angle must be in (0, 90) degrees; got {max_view_angle_deg}")
     views = thermal_views(rig, thermal)
-    return temperature_field(cloud, views, measuring_viewpoint(rig, views), max_view_angle_deg)
+    return temperature_field(station_normals(cloud, rig), views, measuring_viewpoint(rig, views), max_view_angle_deg)

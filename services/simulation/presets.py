@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from services.formats.rig import Rig
+from services.formats.rig import Head, Rig
 from services.geometry.camera_model import CameraModel
 from services.simulation.optics import BandPassFilter, Optics, ProjectorOptics
 from services.simulation.scene import Albedo, Cylinder, Plane, Scene, Sphere
@@ -222,3 +222,76 @@ def shadow_scene(peak_c: float | None = None, projector: str = "white",
         SurfaceTemperature(base=40.0),
     ])
     return Scene(ambient=0.1, temperature=temperature, optics=hot_optics(projector, band_pass), surfaces=surfaces)
+
+
+STATION_SHAFT_RADIUS_MM = 45.0
+STATION_SHAFT_LENGTH_MM = 300.0
+STATION_HEAD_DISTANCE_MM = 450.0
+STATION_HEAD_OFFSET_MM = 350.0
+STATION_BASELINE_MM = 150.0
+STATION_THERMAL_DISTANCE_MM = 550.0
+_STATION_DISTORTION = [-0.08, 0.12, 0.0005, -0.0003, -0.02]
+_STATION_THERMAL_DISTORTION = [-0.15, 0.08, 0.001, 0.0005, 0.0]
+
+
+def _axis_aligned_rotation(centre: np.ndarray, target: np.ndarray, along: np.ndarray) -> np.ndarray:
+    """Rotation aiming the device z axis from ``centre`` at ``target``, its x axis as near ``along`` as it can be."""
+    forward = np.subtract(target, centre, dtype=np.float64)
+    forward /= np.linalg.norm(forward)
+    right = along - np.dot(along, forward) * forward
+    right /= np.linalg.norm(right)
+    return np.stack([right, np.cross(forward, right), forward])
+
+
+def station_head_meridian(index: int, heads: int) -> np.ndarray:
+    """The unit direction (world, in the y-z plane) from the shaft's axis toward head ``index`` of ``heads``: the
+    first head straight above the shaft (-y, world y points down), the others evenly around it."""
+    angle = -np.pi / 2 + 2 * np.pi * index / heads
+    return np.array([0.0, np.sin(angle), np.cos(angle)])
+
+
+def station_rig(scale: float = 1.0, heads: int = 4) -> Rig:
+    """A station of ``heads`` sensor heads around a horizontal shaft (world x along its axis, centred at the
+    origin, y down), and two thermal cameras: a version-2 rig whose heads are ``head-1`` ... ``head-N``.
+
+    Head k (camera ``camera-k``, projector ``projector-k``, each 1280x800 with mild distortion, focal
+    lengths 1200 and 1260 px) lies 450 mm from the axis on its meridian (the first straight above), its
+    camera and projector 150 mm apart across the meridian (the coded projector axis is y, the images' long
+    side along the shaft), both aimed at the shaft's centre. The heads are offset 350 mm along the axis,
+    odd heads toward +x, even heads toward -x, so that every end face is seen by two opposite heads at
+    about 60 degrees (a head straight over the shaft would see neither end face): the 300 mm shaft's lateral
+    surface is then seen by every head from 50 to 70 degrees along it, and both end faces, which the
+    length between them needs. Neighbouring heads overlap on the lateral surface between their meridians,
+    opposite heads on their end face: the overlaps the merge registers the heads on.
+
+    Thermal cameras ``thermal-1`` and ``thermal-2`` (320x256, f 380 px) lie 550 mm from the axis halfway
+    between the first two heads' meridians and opposite, aimed at the centre: each sees about 150 degrees
+    of the circumference along the whole length. ``scale`` shrinks the cameras' and projectors' images and
+    focal lengths alike (the thermal cameras keep theirs), for fast tests.
+    """
+    if heads < 2:
+        raise ValueError(f"A station has at least two heads; got {heads}.")
+
+    def size(width: int, height: int) -> tuple[int, int]:
+        return round(width * scale), round(height * scale)
+
+    devices: dict[str, CameraModel] = {}
+    station_heads = []
+    axis = np.array([1.0, 0.0, 0.0])
+    for index in range(heads):
+        radial = station_head_meridian(index, heads)
+        across = np.cross(axis, radial)
+        centre = STATION_HEAD_DISTANCE_MM * radial + (1 if index % 2 == 0 else -1) * STATION_HEAD_OFFSET_MM * axis
+        name = f"{index + 1}"
+        for kind, side, focal in (("projector", -0.5, 1260.0), ("camera", 0.5, 1200.0)):
+            position = centre + side * STATION_BASELINE_MM * across
+            devices[f"{kind}-{name}"] = _device(kind, size(1280, 800), focal * scale, _STATION_DISTORTION,
+                                                _axis_aligned_rotation(position, np.zeros(3), axis),
+                                                tuple(position))
+        station_heads.append(Head(f"head-{name}", f"camera-{name}", f"projector-{name}"))
+    for number, angle in ((1, np.pi / heads), (2, np.pi / heads + np.pi)):
+        radial = np.array([0.0, np.sin(-np.pi / 2 + angle), np.cos(-np.pi / 2 + angle)])
+        position = STATION_THERMAL_DISTANCE_MM * radial
+        devices[f"thermal-{number}"] = _device("thermal", (320, 256), 380.0, _STATION_THERMAL_DISTORTION,
+                                               _axis_aligned_rotation(position, np.zeros(3), axis), tuple(position))
+    return Rig(devices=devices, station_heads=tuple(station_heads))
