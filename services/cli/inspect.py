@@ -55,6 +55,9 @@ def _run(args: argparse.Namespace) -> int:
         print(f"  {feature['name']}: hot {feature['hot']:.3f}, cold {feature['cold']:.3f} (nominal "
               f"{feature['nominal']:g}, deviation {feature['deviation']:+.3f} +- {feature['uncertainty']:.3f}) "
               f"{feature['verdict']}")
+    if inspection.heads:
+        print("  heads: " + ", ".join(f"{head.head}: {head.part_points} of {head.points} points on the part"
+                                      for head in inspection.heads))
     surface = report["surface"]
     print(f"  surface: deviation {surface['mean']:+.3f} +- {surface['std']:.3f} mm, "
           f"{100 * surface['fraction_outside']:.2f} % outside, {len(surface['defects'])} defects "

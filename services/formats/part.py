@@ -37,9 +37,11 @@ MESH_SUFFIXES = (".stl", ".ply", ".obj")
 Vector3 = Annotated[list[float], Field(min_length=3, max_length=3)]
 Tolerance = Annotated[list[float], Field(min_length=2, max_length=2)]
 FeatureType = Literal["plane", "cylinder", "sphere", "distance"]
+FORM_MEASURES = ("flatness", "cylindricity", "sphericity", "ovality")
+"""Measures of form: never negative, nominal 0, so only their upper tolerance limit can be passed."""
 MEASURES: dict[str, tuple[str, ...]] = {
     "plane": ("flatness",),
-    "cylinder": ("diameter", "cylindricity"),
+    "cylinder": ("diameter", "cylindricity", "ovality"),
     "sphere": ("diameter", "sphericity"),
     "distance": ("distance",),
 }

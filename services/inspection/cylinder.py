@@ -23,7 +23,7 @@ class CylinderFit:
     count: int
 
 
-def _frame(axis: np.ndarray) -> np.ndarray:
+def axis_frame(axis: np.ndarray) -> np.ndarray:
     """Rows u, v, axis: an orthonormal frame whose third row is the axis."""
     axis = axis / np.linalg.norm(axis)
     helper = np.eye(3)[np.argmin(np.abs(axis))]
@@ -69,7 +69,7 @@ def fit_cylinder(points: np.ndarray, axis_point: np.ndarray, axis: np.ndarray, r
     points = even_subset(np.asarray(points, dtype=np.float64))
     if len(points) < 5:
         raise ValueError(f"A cylinder needs at least 5 points; got {len(points)}.")
-    frame = _frame(np.asarray(axis, dtype=np.float64))
+    frame = axis_frame(np.asarray(axis, dtype=np.float64))
     origin = np.asarray(axis_point, dtype=np.float64)
     local = (points - origin) @ frame.T
 

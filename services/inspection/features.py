@@ -11,6 +11,7 @@ from services.inspection.cylinder import fit_cylinder
 from services.inspection.distance import Element
 from services.inspection.nominal import NominalSurface
 from services.inspection.plane import PlaneFit, fit_plane
+from services.inspection.roundness import fit_ovality
 from services.inspection.sphere import SphereFit, fit_sphere
 
 MIN_FEATURE_POINTS = 20
@@ -66,18 +67,27 @@ def fit_measured(nominal: NominalFeature, points: np.ndarray, stretch: float = 1
     return fit_cylinder(points, element.point, element.axis, element.radius * stretch)
 
 
-def measure_value(feature: Feature, element: Element) -> float:
-    """The measure a feature names, from its fitted element."""
-    if feature.measure == "diameter":
-        return 2 * element.radius
-    return float(getattr(element, feature.measure))  # flatness, cylindricity, sphericity
+@dataclass(frozen=True)
+class Measured:
+    """A feature's measure from its fitted element: the value and its own standard deviation (the points'
+    random noise through the fit), mm."""
+
+    value: float
+    std: float
 
 
-def measure_std(feature: Feature, element: Element) -> float:
-    """The fit's own standard deviation of the measure (random structured-light noise)."""
+def measure(feature: Feature, element: Element, points: np.ndarray) -> Measured:
+    """The measure a feature names, from its fitted element and the points it was fitted to (part frame).
+
+    ``ovality`` fits the cross-sections' profiles about the element's axis (``fit_ovality``; a
+    ``ValueError`` when the points do not go all round); the other measures read the element.
+    """
     if feature.measure == "diameter":
-        return 2 * element.radius_std
-    return element.noise
+        return Measured(2 * element.radius, 2 * element.radius_std)
+    if feature.measure == "ovality":
+        roundness = fit_ovality(points, element.point, element.axis)
+        return Measured(roundness.ovality, roundness.std)
+    return Measured(float(getattr(element, feature.measure)), element.noise)  # flatness, cylindricity, sphericity
 
 
 def element_position_std(element: Element) -> float:

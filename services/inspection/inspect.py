@@ -2,13 +2,13 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass
 from typing import Any
 
 import numpy as np
 from scipy.spatial import cKDTree
 
-from services.formats.part import Feature, Part
+from services.formats.part import FORM_MEASURES, Feature, Part
 from services.inspection.alignment import Alignment, align_nominal
 
 from services.inspection.cold_equivalent import NEIGHBOURHOOD_MM, NEIGHBOURHOOD_SAMPLES, ColdGeometry, cold_equivalent
@@ -16,7 +16,7 @@ from services.inspection.deviation import (MIN_DEFECT_CELLS, MIN_DEFECT_POINTS, 
                                           summarize_deviation, surface_deviation, surface_verdict)
 from services.inspection.distance import feature_distance
 from services.inspection.features import (NominalFeature, element_position_std, fit_measured, fit_nominal_feature,
-                                          measure_std, measure_value)
+                                          measure)
 from services.inspection.nominal import NominalSurface
 from services.inspection.point_rows import column_mean, finite_rows
 from services.inspection.robust import even_subset
@@ -26,7 +26,8 @@ from services.inspection.verdict import decide, overall
 
 REPORT_VERSION = 1
 _SEED_POINTS = 30000
-_SYSTEMATIC_FACTOR = {"diameter": 2.0, "distance": np.sqrt(2.0)}
+# a diameter and an ovality (a difference of two-point diameters) see the systematic error of two opposite sides
+_SYSTEMATIC_FACTOR = {"diameter": 2.0, "ovality": 2.0, "distance": np.sqrt(2.0)}
 
 
 @dataclass(frozen=True)
@@ -63,6 +64,8 @@ class Inspection:
         Part points whose temperature came from their neighbourhood (or the part's trend), not their own.
     alignment : Alignment
         Part frame to world.
+    heads : tuple of HeadPoints
+        Points per head of a station's merged field (its ``head`` property); empty without one.
     """
 
     report: dict[str, Any]
@@ -70,6 +73,29 @@ class Inspection:
     deviation: np.ndarray
     fallback: np.ndarray
     alignment: Alignment
+    heads: tuple[HeadPoints, ...] = ()
+
+
+@dataclass(frozen=True)
+class HeadPoints:
+    """What one head of a station contributed to the inspected field: its points and, of them, the part's."""
+
+    head: int
+    points: int
+    part_points: int
+
+
+def head_points(head: np.ndarray, part: np.ndarray) -> tuple[HeadPoints, ...]:
+    """Points per head (``head``: the field's per-point head index) and the part's among them (``part``: bool)."""
+    head = np.asarray(head)
+    if not (np.issubdtype(head.dtype, np.integer)
+            or (np.issubdtype(head.dtype, np.floating) and np.all(np.isfinite(head)) and np.all(head == np.round(head)))):
+        raise ValueError(f"the field's 'head' property must hold head indices (integers); got {head.dtype} values")
+    if len(head) and head.min() < 0:
+        raise ValueError(f"the field's 'head' property must hold head indices (0 or more); got {head.min():g}")
+    heads, inverse, counts = np.unique(head.astype(np.int64), return_inverse=True, return_counts=True)
+    on_part = np.bincount(inverse.ravel(), weights=part, minlength=len(heads)).astype(np.int64)
+    return tuple(HeadPoints(int(h), int(n), int(m)) for h, n, m in zip(heads, counts, on_part))
 
 
 def _budget(part: Part) -> TemperatureBudget:
@@ -138,9 +164,12 @@ def inspect_field(*, field: dict[str, np.ndarray], part: Part | PreparedPart) ->
     results = _measure_features(prepared, located, points, budget, material_fraction)
     surface = _surface_result(located.in_part, located.deviation[member], located.used_temperature,
                               located.used_fallback, part, budget, material_fraction)
+    heads = head_points(field["head"], np.isfinite(deviation_out)) if "head" in field else ()
     report = _report(part, results, surface, located, material_fraction)
+    if heads:
+        report["heads"] = [asdict(head) for head in heads]
     return Inspection(report=report, cold_points=cold_points, deviation=deviation_out, fallback=fallback,
-                      alignment=located.alignment)
+                      alignment=located.alignment, heads=heads)
 
 
 def _field_points(field: dict[str, np.ndarray], min_temperature_c: float):
@@ -219,6 +248,20 @@ def _locate_part(points: np.ndarray, temperature: np.ndarray, finite: np.ndarray
     return _LocatedPart(candidates, cold, alignment, cold_part_frame, deviation, member)
 
 
+@dataclass(frozen=True)
+class _ElementFit:
+    """A plane, cylinder or sphere fitted to a region's points cold (judged) and hot, with the points, their mean
+    temperature, its uncertainty and how many points the region held."""
+
+    cold: Any
+    hot: Any
+    cold_points: np.ndarray
+    hot_points: np.ndarray
+    mean_t: float
+    u_t: float
+    count: int
+
+
 def _measure_features(prepared: PreparedPart, located: _LocatedPart, points: np.ndarray,
                       budget: TemperatureBudget, material_fraction: float) -> list[dict[str, Any]]:
     """Step 3 of :func:`inspect_field`: each feature fitted cold and hot, then the distances between them."""
@@ -226,30 +269,40 @@ def _measure_features(prepared: PreparedPart, located: _LocatedPart, points: np.
     definition = part.definition
     in_part, part_points, alignment = located.in_part, located.part_points, located.alignment
     used_temperature, used_fallback = located.used_temperature, located.used_fallback
-    fits: dict[str, tuple[Any, Any, float, float]] = {}
+    fits: dict[str, _ElementFit] = {}
+    by_region: dict[tuple, _ElementFit] = {}
     results = []
     for feature in definition.features:
         if feature.type == "distance":
             continue
-        inside = np.flatnonzero(feature.region.contains(in_part))
-        fitted = even_subset(inside)  # the points the fits keep, drawn before their positions are gathered
-        nominal_feature = prepared.features[feature.name]
-        try:
-            cold_element = fit_measured(nominal_feature, in_part[fitted])
-        except ValueError as error:  # the view may not show every feature: say so, decide nothing
-            if feature.measure is not None:
-                results.append(_unmeasured(feature, str(error)))
+        key = (feature.type, tuple(feature.region.min), tuple(feature.region.max))
+        if key not in by_region:  # features of one element (a cylinder's diameter and ovality) share its fits
+            inside = np.flatnonzero(feature.region.contains(in_part))
+            fitted = even_subset(inside)  # the points the fits keep, drawn before their positions are gathered
+            try:
+                cold_element = fit_measured(prepared.features[feature.name], in_part[fitted])
+            except ValueError as error:  # the view may not show every feature: say so, decide nothing
+                if feature.measure is not None:
+                    results.append(_unmeasured(feature, str(error)))
+                continue
+            stretch = float(np.mean(1 + part.material.strain(used_temperature[inside])))
+            hot_points = alignment.to_part(points[part_points[fitted]])
+            mean_t = float(np.mean(used_temperature[inside]))
+            by_region[key] = _ElementFit(
+                cold_element, fit_measured(prepared.features[feature.name], hot_points, stretch), in_part[fitted],
+                hot_points, mean_t, _temperature_std(mean_t, budget, float(np.mean(used_fallback[inside])),
+                                                     definition.uncertainty.fallback_temperature_k), len(inside))
+        fit = fits[feature.name] = by_region[key]
+        if feature.measure is None:
             continue
-        stretch = float(np.mean(1 + part.material.strain(used_temperature[inside])))
-        hot_element = fit_measured(nominal_feature, alignment.to_part(points[part_points[fitted]]), stretch)
-        mean_t = float(np.mean(used_temperature[inside]))
-        u_t = _temperature_std(mean_t, budget, float(np.mean(used_fallback[inside])),
-                               definition.uncertainty.fallback_temperature_k)
-        fits[feature.name] = (cold_element, hot_element, mean_t, u_t)
-        if feature.measure is not None:
-            results.append(_feature_result(
-                feature, measure_value(feature, hot_element), measure_value(feature, cold_element),
-                measure_std(feature, cold_element), len(inside), mean_t, u_t, part, material_fraction))
+        try:
+            cold = measure(feature, fit.cold, fit.cold_points)
+            hot = measure(feature, fit.hot, fit.hot_points)
+        except ValueError as error:  # ovality from a view that does not go all round
+            results.append(_unmeasured(feature, str(error)))
+            continue
+        results.append(_feature_result(feature, hot.value, cold.value, cold.std, fit.count, fit.mean_t, fit.u_t,
+                                       part, material_fraction))
     for feature in definition.features:
         if feature.type != "distance":
             continue
@@ -257,12 +310,11 @@ def _measure_features(prepared: PreparedPart, located: _LocatedPart, points: np.
             results.append(_unmeasured(feature, f"{' or '.join(feature.between)} could not be fitted"))
             continue
         a, b = (fits[name] for name in feature.between)
-        cold_value = feature_distance(a[0], b[0])
-        hot_value = feature_distance(a[1], b[1])
-        fit_std = float(np.hypot(element_position_std(a[0]), element_position_std(b[0])))
-        results.append(_feature_result(feature, hot_value, cold_value, fit_std,
-                                       a[0].count + b[0].count, (a[2] + b[2]) / 2, max(a[3], b[3]), part,
-                                       material_fraction))
+        cold_value = feature_distance(a.cold, b.cold)
+        hot_value = feature_distance(a.hot, b.hot)
+        fit_std = float(np.hypot(element_position_std(a.cold), element_position_std(b.cold)))
+        results.append(_feature_result(feature, hot_value, cold_value, fit_std, a.cold.count + b.cold.count,
+                                       (a.mean_t + b.mean_t) / 2, max(a.u_t, b.u_t), part, material_fraction))
     return results
 
 
@@ -319,9 +371,14 @@ def _feature_result(feature: Feature, hot: float, cold: float, fit_std: float, c
                   * _SYSTEMATIC_FACTOR.get(feature.measure, 1.0))
     terms = size_uncertainty(cold, mean_t, u_t, part.material, material_fraction, fit_std, systematic)
     deviation = cold - feature.nominal
+    lower, upper = feature.tolerance
+    # a form error is never negative: a lower limit admitting every value down to 0 is no limit (the usual
+    # one-sided form tolerance of ISO 1101, [0, t]), and an interval reaching below it must not be NotDecidable
+    one_sided = feature.measure in FORM_MEASURES and feature.nominal + lower <= 0
+    limits = (-np.inf if one_sided else lower, upper)
     return {"name": feature.name, "type": feature.type, "measure": feature.measure, "hot": hot, "cold": cold,
             "nominal": feature.nominal, "deviation": deviation, "tolerance": list(feature.tolerance),
-            "uncertainty": terms["expanded"], "verdict": decide(deviation, tuple(feature.tolerance), terms["expanded"]),
+            "uncertainty": terms["expanded"], "verdict": decide(deviation, limits, terms["expanded"]),
             "points": count, "temperature_c": mean_t, "temperature_uncertainty_k": u_t,
             "standard_uncertainties": {key: terms[key] for key in ("fit", "structured_light", "temperature",
                                                                    "material", "combined")}}
@@ -387,7 +444,7 @@ def deviation_cloud(field: dict[str, np.ndarray], inspection: Inspection, part: 
 
 def cold_cloud(field: dict[str, np.ndarray], inspection: Inspection, part: Part) -> dict[str, np.ndarray]:
     """The part's points at their cold-equivalent positions (world frame) with temperature, fallback flag,
-    deviation and deviation colours."""
+    deviation and deviation colours, and the head that measured each where the field says (``head``)."""
     from services.inspection.deviation import deviation_colors
 
     member = np.isfinite(inspection.deviation)
@@ -396,7 +453,8 @@ def cold_cloud(field: dict[str, np.ndarray], inspection: Inspection, part: Part)
     return {"x": cold[:, 0].astype(np.float32), "y": cold[:, 1].astype(np.float32), "z": cold[:, 2].astype(np.float32),
             "temperature": np.asarray(field["temperature"], dtype=np.float32)[member],
             "temperature_fallback": inspection.fallback[member].astype(np.uint8),
-            "deviation": inspection.deviation[member], "red": rgb[:, 0], "green": rgb[:, 1], "blue": rgb[:, 2]}
+            "deviation": inspection.deviation[member], "red": rgb[:, 0], "green": rgb[:, 1], "blue": rgb[:, 2],
+            **({"head": np.asarray(field["head"])[member]} if "head" in field else {})}
 
 
 def _json_safe(value: Any) -> Any:

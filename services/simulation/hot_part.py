@@ -618,3 +618,154 @@ def box_mesh(size: tuple[float, float, float], max_edge_mm: float = 5.0) -> tupl
     unique, inverse = np.unique(np.round(vertices, 9), axis=0, return_inverse=True)
     triangles = inverse.reshape(-1)[np.concatenate(triangles)].astype(np.int32)
     return unique, triangles
+
+
+def shaft_mesh(diameter: float, length: float, ovality: float = 0.0, segments: int = 360) -> tuple[np.ndarray, np.ndarray]:
+    """A closed shaft along x centred at the origin whose cross-section is an ellipse: diameters
+    ``diameter + ovality / 2`` along y and ``diameter - ovality / 2`` along z (their difference, Dmax - Dmin,
+    is ``ovality``); ``cylinder_mesh`` scaled across its axis, outward triangles."""
+    if not 0 <= ovality < diameter:
+        raise ValueError(f"a shaft's ovality lies in [0, diameter); got {ovality} for a diameter of {diameter}")
+    vertices, triangles = cylinder_mesh(diameter / 2, length, segments)
+    vertices[:, 1] *= (diameter + ovality / 2) / diameter
+    vertices[:, 2] *= (diameter - ovality / 2) / diameter
+    return vertices, triangles
+
+
+def write_shaft_part(directory, diameter: float = 90.0, length: float = 300.0, material: str = "carbon-steel",
+                     diameter_tolerance=(-0.3, 0.3), ovality_tolerance=(0.0, 0.3), length_tolerance=(-1.0, 1.0),
+                     surface_tolerance=(-1.0, 1.0), segments: int = 360) -> Path:
+    """Write a shaft's nominal mesh (``shaft.stl``, a round ``shaft_mesh``) and part file (``part.json``) into
+    ``directory``: the part a station of heads all round it inspects (docs/inspection.md, "All round").
+
+    Features: ``body_diameter`` and ``body_ovality`` (the cylinder over the middle 80 % of the length),
+    ``face_a`` and ``face_b`` (the end faces, planes inside 0.65 of the radius so that no point of the side
+    falls in their regions) and ``length`` (the distance between the faces). A view from one side shows
+    one end face at most; a station all round the part shows both. The length's default tolerance, +-1 mm,
+    is about three times its expanded uncertainty at 1000 degC (0.34 mm, mostly the temperature's over
+    300 mm): at +-0.5 mm few good parts could be proven OK.
+    """
+    o3d = open3d()
+    directory = Path(directory)
+    directory.mkdir(parents=True, exist_ok=True)
+    vertices, triangles = shaft_mesh(diameter, length, 0.0, segments)
+    mesh = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(vertices), o3d.utility.Vector3iVector(triangles))
+    mesh.compute_triangle_normals()
+    o3d.io.write_triangle_mesh(str(directory / "shaft.stl"), mesh)
+    half, r = length / 2, diameter / 2
+    body = {"min": [-0.8 * half, -r - 5, -r - 5], "max": [0.8 * half, r + 5, r + 5]}
+    face = 0.65 * r
+
+    def end(x: float) -> dict:
+        return {"min": [x - 1.5, -face, -face], "max": [x + 1.5, face, face]}
+
+    part = {"version": 1, "name": f"shaft-{diameter:g}x{length:g}", "material": material, "nominal": "shaft.stl",
+            "features": [
+                {"name": "body_diameter", "type": "cylinder", "measure": "diameter", "region": body,
+                 "nominal": diameter, "tolerance": list(diameter_tolerance)},
+                {"name": "body_ovality", "type": "cylinder", "measure": "ovality", "region": body,
+                 "nominal": 0.0, "tolerance": list(ovality_tolerance)},
+                {"name": "face_a", "type": "plane", "region": end(-half)},
+                {"name": "face_b", "type": "plane", "region": end(half)},
+                {"name": "length", "type": "distance", "between": ["face_a", "face_b"], "nominal": length,
+                 "tolerance": list(length_tolerance)}],
+            "surface_tolerance": list(surface_tolerance)}
+    path = directory / "part.json"
+    path.write_text(json.dumps(part, indent=2))
+    return path
+
+
+def hot_shaft(diameter: float = 90.0, length: float = 300.0, ovality: float = 0.0,
+              temperature: SurfaceTemperature | None = None, bumps: tuple[Bump, ...] = (),
+              material: str = "carbon-steel", pose: np.ndarray | None = None, segments: int = 360) -> HotPart:
+    """A shaft of true cold ``diameter``, ``length`` and ``ovality`` (``shaft_mesh``) with its dents or bulges,
+    hot as ``temperature`` (default a uniform 1000 degC), lying along world x at the origin unless ``pose``."""
+    from services.inspection.materials import builtin_material
+
+    vertices, triangles = shaft_mesh(diameter, length, ovality, segments)
+    return HotPart(vertices, triangles, builtin_material(material),
+                   SurfaceTemperature(base=1000.0) if temperature is None else temperature,
+                   pose=np.eye(4) if pose is None else pose, bumps=tuple(bumps))
+
+
+def station_heads(count: int = 4, distance_mm: float = 700.0, tilt_deg: float = 30.0) -> np.ndarray:
+    """Positions (count, 3) of a station's heads around a part lying along x at the origin, part frame.
+
+    Head k looks at the centre from the azimuth 45 + k 360 / count degrees about x, tilted ``tilt_deg``
+    toward +x for even k and toward -x for odd k, so that both end faces are seen (by different heads).
+    """
+    azimuth = np.radians(45.0 + np.arange(count) * 360.0 / count)
+    tilt = np.radians(tilt_deg)
+    side = np.where(np.arange(count) % 2 == 0, 1.0, -1.0)
+    return distance_mm * np.column_stack([side * np.sin(tilt), np.cos(tilt) * np.cos(azimuth),
+                                          np.cos(tilt) * np.sin(azimuth)])
+
+
+def all_round_field(part: HotPart, rng: np.random.Generator, noise: ScanNoise = ScanNoise(),
+                    heads: np.ndarray | None = None, points_per_mm2: float = 4.0,
+                    max_view_deg: float = 75.0) -> tuple[dict[str, np.ndarray], np.ndarray]:
+    """A merged temperature field of a hot part measured all round by a station of heads: points sampled
+    on the hot surface, each with the head that saw it, its temperature and the station's noise.
+
+    Parameters
+    ----------
+    part : HotPart
+        The part (convex but for shallow dents and bulges: nothing hides it from a head it faces).
+    rng : numpy.random.Generator
+        Source of the sample and the noise.
+    noise : ScanNoise
+        Structured-light noise along each point's line of sight, NETD and temperature bias.
+    heads : (H, 3) array, optional
+        The heads' positions, part frame (default ``station_heads()``, four heads).
+    points_per_mm2 : float
+        Density of the sample on the hot surface (4: a 0.5 mm spacing).
+    max_view_deg : float
+        A head measures a point whose normal is at most this far from its line of sight.
+
+    Returns
+    -------
+    field : dict of 1-D arrays
+        ``x, y, z`` (world mm, float32), float32 ``temperature`` and uint8 ``head`` (the index of the
+        head that measured the point), as a merged station field holds them; points no head sees are
+        left out.
+    truth : (N, 3) array
+        The exact hot surface point of each field point, world frame.
+
+    Notes
+    -----
+    A point-level model of the merged field, not the station end to end: no patterns, decoding,
+    calibration error or merge. The surface is sampled uniformly by area (the triangles drawn with
+    probability proportional to their area, barycentric coordinates uniform; numpy rather than Open3D's
+    sampler so that the caller's ``rng`` decides the sample). Each point is measured by the head seeing
+    it at the smallest angle between its normal and its line of sight (an overlap thinned to its best
+    view, not doubled), moved along that line of sight by N(0, sigma_SL^2); its temperature is the true
+    surface temperature plus the bias and N(0, NETD^2).
+    """
+    heads = station_heads() if heads is None else np.asarray(heads, dtype=np.float64)
+    vertices = part.hot_vertices_part()
+    corners = vertices[part.triangles]
+    cross = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
+    area = np.linalg.norm(cross, axis=1) / 2
+    count = int(round(points_per_mm2 * area.sum()))
+    chosen = rng.choice(len(area), size=count, p=area / area.sum())
+    a, b = rng.random(count), rng.random(count)
+    flip = a + b > 1
+    a, b = np.where(flip, 1 - a, a), np.where(flip, 1 - b, b)
+    picked = corners[chosen]
+    points = picked[:, 0] + a[:, None] * (picked[:, 1] - picked[:, 0]) + b[:, None] * (picked[:, 2] - picked[:, 0])
+    normals = cross[chosen] / np.maximum(2 * area[chosen], 1e-300)[:, None]
+    toward = heads[None, :, :] - points[:, None, :]  # (N, H, 3)
+    toward /= np.linalg.norm(toward, axis=2, keepdims=True)
+    cosine = np.einsum("nhk,nk->nh", toward, normals)
+    best = np.argmax(cosine, axis=1)
+    seen = cosine[np.arange(count), best] >= np.cos(np.radians(max_view_deg))
+    points, best = points[seen], best[seen]
+    sight = toward[np.flatnonzero(seen), best]
+    truth = part.to_world(points)
+    temperature = (part.surface_temperature(truth) + noise.temperature_bias_k
+                   + rng.normal(0.0, noise.netd_k, len(points)))
+    noisy = part.to_world(points + sight * rng.normal(0.0, noise.structured_light_mm, len(points))[:, None])
+    field = {"x": noisy[:, 0].astype(np.float32), "y": noisy[:, 1].astype(np.float32),
+             "z": noisy[:, 2].astype(np.float32), "temperature": temperature.astype(np.float32),
+             "head": best.astype(np.uint8)}
+    return field, truth

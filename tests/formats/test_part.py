@@ -35,6 +35,18 @@ def test_valid_part_loads_material_and_mesh(billet):
     assert part.definition.uncertainty.emissivity == 0.85
 
 
+def test_ovality_is_a_cylinder_measure_of_version_1(billet, tmp_path):
+    """Added to version 1: a cylinder may measure its ovality; the files valid before stay valid."""
+    definition = json.loads(billet.read_text())
+    body = definition["features"][0]
+    ovality = {**body, "name": "body_ovality", "measure": "ovality", "nominal": 0.0, "tolerance": [0.0, 0.3]}
+    path = _variant(billet, tmp_path, features=[body, ovality])
+    features = load_part(path).definition.features
+    assert [(feature.name, feature.measure) for feature in features] == [("body_diameter", "diameter"),
+                                                                         ("body_ovality", "ovality")]
+    assert load_part(billet).definition.version == 1
+
+
 def test_custom_material_table(billet, tmp_path):
     path = _variant(billet, tmp_path, material={"name": "c45", "elongation": [[0, -2e-4], [20, 0], [1100, 0.015]]})
     material = load_part(path).material
@@ -56,6 +68,9 @@ def test_custom_material_table(billet, tmp_path):
     ({"features": [{"name": "d", "type": "sphere", "measure": "flatness", "region": {"min": [0, 0, 0],
                                                                                    "max": [1, 1, 1]},
                     "nominal": 1, "tolerance": [-1, 1]}]}, "measures one of"),
+    ({"features": [{"name": "d", "type": "plane", "measure": "ovality", "region": {"min": [0, 0, 0],
+                                                                                  "max": [1, 1, 1]},
+                    "nominal": 0, "tolerance": [0, 0.3]}]}, "a plane measures one of \\['flatness'\\]"),
     ({"features": [{"name": "l", "type": "distance", "between": ["a", "b"], "nominal": 1, "tolerance": [-1, 1]}]},
      "refers to 'a'"),
     ({"features": [{"name": "p", "type": "plane", "region": {"min": [1, 0, 0], "max": [0, 1, 1]}}]},
