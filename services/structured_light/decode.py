@@ -76,7 +76,7 @@ class DecodedCapture:
 
 @dataclass(frozen=True)
 class _Tables:
-    """Per-sequence lookup tables of the kernel, indexed by axis (0 = x, 1 = y)."""
+    """Per-sequence lookup tables of the band pass (:func:`_decode_rows`), indexed by axis (0 = x, 1 = y)."""
 
     white: int
     black: int
@@ -173,189 +173,298 @@ _RANKED_SCALE = np.ones(256, np.float32)  # rank -> 1 for a valid pixel, NaN for
 _RANKED_SCALE[1:] = np.nan
 
 
+@dataclass(frozen=True)
+class _DecodeInputs:
+    """What every band of rows reads (see :func:`decode`): the frames, the sequence's tables and the
+    thresholds, in the frames' grey levels."""
+
+    frames: np.ndarray  # (F, H, W), C-contiguous
+    tables: _Tables
+    saturation_level: float
+    min_intensity: float
+    min_modulation: float
+    min_quality: float
+    consistency: float
+
+
+@dataclass(frozen=True)
+class _DecodeMaps:
+    """The per-pixel outputs every band writes its rows of."""
+
+    coordinates: np.ndarray  # (2, H, W) float32: projector x and y
+    modulation: np.ndarray  # (H, W) float32
+    intensity: np.ndarray  # (H, W) float32
+    quality: np.ndarray  # (H, W) float32
+    rejection: np.ndarray  # (H, W) uint8
+
+    @classmethod
+    def empty(cls, height: int, width: int) -> _DecodeMaps:
+        return cls(np.empty((2, height, width), np.float32), *(np.empty((height, width), np.float32) for _ in range(3)),
+                   np.empty((height, width), np.uint8))
+
+
+@dataclass(frozen=True)
+class _PhaseSums:
+    """One phase group's sums over a band's pixels: ``C`` and ``S`` (see :func:`decode`), and the sum and the
+    sum of squares of its samples."""
+
+    cos: np.ndarray
+    sin: np.ndarray
+    total: np.ndarray
+    squares: np.ndarray
+
+
+@dataclass
+class _Band:
+    """A band of rows being decoded: its frames (F, rows, W), the float type its sums are made in, and the
+    pixels found ``POOR_FIT`` and ``INCONSISTENT`` so far (set in place by each axis)."""
+
+    frames: np.ndarray
+    work: type
+    poor_fit: np.ndarray
+    inconsistent: np.ndarray
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return self.frames.shape[1:]
+
+
+@dataclass(frozen=True)
+class _AxisDecoding:
+    """One coded axis of a band: the projector coordinate (unscaled by the rejections), its modulation and
+    quality."""
+
+    coordinate: np.ndarray
+    modulation: np.ndarray
+    quality: np.ndarray
+
+
 # Plain numpy and OpenCV, a band of rows at a time on the row-band pool (both release the GIL): the
 # phase sums accumulate from the uint8/uint16 frames one frame at a time (cv2.accumulate and
 # accumulateSquare read them without a float copy of the stack), and a band's temporaries, about
 # 256 kB each, stay in the CPU cache. uint8 samples are summed in float32, where sums and sums of
 # squares are exact (integers below 2**24); wider samples in float64.
-def _decode_rows(frames, tables, saturation_level, min_intensity, min_modulation, min_quality, consistency,
-                 coordinates, modulation, intensity, quality, rejection, rows):
-    """Decode the camera rows ``rows`` into the output arrays (see :func:`decode`)."""
+def _decode_rows(inputs: _DecodeInputs, maps: _DecodeMaps, rows: slice) -> None:
+    """Decode the camera rows ``rows`` into ``maps`` (see :func:`decode`)."""
+    frames, tables = inputs.frames, inputs.tables
     band = frames[:, rows]
-    shape = band.shape[1:]
-    work = np.float32 if frames.dtype == np.uint8 else np.float64
-    n_groups = tables.group_period.size
-    # Clipping: any phase frame (any frame without phase) at the saturation level.
-    clipping_frames = tables.group_frames if n_groups > 0 else range(band.shape[0])
-    brightest = band[clipping_frames[0]].copy()
+    band = _Band(band, np.float32 if frames.dtype == np.uint8 else np.float64, np.zeros(band.shape[1:], bool),
+                 np.zeros(band.shape[1:], bool))
+    saturated = _saturated(band, tables, inputs.saturation_level)
+    sums = _phase_sums(band, tables)
+    threshold, level = _threshold_and_level(band, tables, sums)
+    axes = [_decode_axis(band, tables, sums, threshold, axis, inputs) for axis in range(2)]
+    _write_band(maps, rows, band, axes, level, saturated, inputs)
+
+
+def _saturated(band: _Band, tables: _Tables, saturation_level: float) -> np.ndarray:
+    """Clipping: the pixels where any phase frame (any frame without phase) reaches the saturation level."""
+    clipping_frames = tables.group_frames if tables.group_period.size > 0 else range(band.frames.shape[0])
+    brightest = band.frames[clipping_frames[0]].copy()
     for f in clipping_frames[1:]:
-        np.maximum(brightest, band[f], out=brightest)
-    saturated = brightest >= _level_limit(frames.dtype, saturation_level)
-    sums = []  # per phase group: C, S, the sum and the sum of squares of the samples
-    sample, opposite = np.empty(shape, work), np.empty(shape, work)
-    for g in range(n_groups):
-        c_sum, s_sum, total, squares = (np.zeros(shape, work) for _ in range(4))
+        np.maximum(brightest, band.frames[f], out=brightest)
+    return brightest >= _level_limit(band.frames.dtype, saturation_level)
+
+
+def _phase_sums(band: _Band, tables: _Tables) -> list[_PhaseSums]:
+    """Each phase group's sums, in the tables' order."""
+    work, sums = band.work, []
+    sample, opposite = np.empty(band.shape, work), np.empty(band.shape, work)
+    for g in range(tables.group_period.size):
+        c_sum, s_sum, total, squares = (np.zeros(band.shape, work) for _ in range(4))
         first, end = tables.group_start[g], tables.group_start[g + 1]
         # With an even number of steps, the shift half a period on negates the cosine and sine: the
         # difference of the two frames enters C and S once, halving the multiply-adds.
         half = (end - first) // 2 if (end - first) % 2 == 0 else end - first
         for i in range(first, first + half):
-            np.copyto(sample, band[tables.group_frames[i]])
+            np.copyto(sample, band.frames[tables.group_frames[i]])
             if half < end - first:
-                np.copyto(opposite, band[tables.group_frames[i + half]])
+                np.copyto(opposite, band.frames[tables.group_frames[i + half]])
                 sample -= opposite
             # numpy's multiply and add, not cv2.scaleAdd: its vector body fuses the multiply-add and its
             # scalar tail does not, so the last bit would depend on where the allocator put the band.
             c_sum += np.multiply(sample, tables.group_cos[i].astype(work), out=opposite)
             s_sum += np.multiply(sample, tables.group_sin[i].astype(work), out=opposite)
         for i in range(first, end):
-            cv2.accumulate(band[tables.group_frames[i]], total)
-            cv2.accumulateSquare(band[tables.group_frames[i]], squares)
-        sums.append((c_sum, s_sum, total, squares))
+            cv2.accumulate(band.frames[tables.group_frames[i]], total)
+            cv2.accumulateSquare(band.frames[tables.group_frames[i]], squares)
+        sums.append(_PhaseSums(c_sum, s_sum, total, squares))
+    return sums
+
+
+def _threshold_and_level(band: _Band, tables: _Tables, sums: list[_PhaseSums]
+                         ) -> tuple[np.ndarray | None, np.ndarray]:
+    """The level a Gray plane without its inverse is compared with (the white and black frames' mean, or
+    the offset of the finest phase group, or the mean of the complementary Gray planes; None without any),
+    and each pixel's intensity (the white frame, or the mean of every phase frame, or that offset)."""
+    n_groups = tables.group_period.size
     references = tables.white >= 0 and tables.black >= 0
     offset = None
     if n_groups > 0 and not references:
-        offset = sums[-1][2] / (tables.group_start[n_groups] - tables.group_start[n_groups - 1])
+        offset = sums[-1].total / (tables.group_start[n_groups] - tables.group_start[n_groups - 1])
     elif n_groups == 0:
-        offset = np.zeros(shape, work)
+        offset = np.zeros(band.shape, band.work)
         for f in tables.mean_frames:
-            cv2.accumulate(band[f], offset)
+            cv2.accumulate(band.frames[f], offset)
         if tables.mean_frames.size > 0:
             offset /= tables.mean_frames.size
     threshold = offset
     if references:
-        threshold = np.zeros(shape, work)
-        cv2.accumulate(band[tables.white], threshold)
-        cv2.accumulate(band[tables.black], threshold)
+        threshold = np.zeros(band.shape, band.work)
+        cv2.accumulate(band.frames[tables.white], threshold)
+        cv2.accumulate(band.frames[tables.black], threshold)
         threshold *= 0.5
     if tables.white >= 0:
-        level = band[tables.white]
+        level = band.frames[tables.white]
     elif n_groups > 0:
         # The intensity without a white frame: the mean of every phase frame, the least noisy
         # offset (a board image with a twelfth of one frame's noise variance for SLStudio's 12).
-        level = sums[0][2].copy()
+        level = sums[0].total.copy()
         for g in range(1, n_groups):
-            level += sums[g][2]
+            level += sums[g].total
         level /= tables.group_start[n_groups]
     else:
         level = offset
+    return threshold, level
 
-    pixel_modulation = pixel_quality = None
-    poor_fit = np.zeros(shape, bool)
-    inconsistent = np.zeros(shape, bool)
+
+def _decode_axis(band: _Band, tables: _Tables, sums: list[_PhaseSums], threshold: np.ndarray | None, axis: int,
+                 inputs: _DecodeInputs) -> _AxisDecoding | None:
+    """The Gray-code stripe centre of ``axis``, refined by its phase groups coarsest first; None when the
+    sequence does not code it. Marks the band's pixels ``POOR_FIT`` and ``INCONSISTENT``."""
+    first_group, end_group = tables.group_range[axis], tables.group_range[axis + 1]
+    if tables.gray_count[axis] == 0 and first_group == end_group:
+        return None
+    axis_size = float(tables.axis_size[axis])
+    decoded, uncertainty = None, 0.0
+    if tables.gray_count[axis] > 0:
+        decoded, uncertainty = _gray_stripes(band, tables, threshold, axis, gray_only=first_group == end_group)
+    if first_group < end_group:
+        decoded = _unwrapped_phase(band, tables, sums, axis, decoded, uncertainty, inputs.consistency)
+        min_quality = _above32(inputs.min_quality) if decoded.quality.dtype == np.float32 else inputs.min_quality
+        band.poor_fit |= decoded.quality < min_quality
+    band.inconsistent |= decoded.coordinate < np.float32(-0.5)
+    band.inconsistent |= decoded.coordinate > _below32(axis_size - 0.5)
+    return decoded
+
+
+def _gray_stripes(band: _Band, tables: _Tables, threshold: np.ndarray | None, axis: int, gray_only: bool
+                  ) -> tuple[_AxisDecoding, float]:
+    """The stripe centre of each pixel from the axis's Gray planes, and its uncertainty (half a stripe).
+    The plane margins give the modulation and the quality of an axis coded by Gray code ``gray_only``
+    (else the phase's replace them: both are then None)."""
+    work, shape = band.work, band.shape
+    gray_count = int(tables.gray_count[axis])
+    # The stripe index, built most significant bit first: binary_i = binary_{i+1} XOR gray_i.
+    stripe_index = np.zeros(shape, np.uint8 if gray_count <= 8 else np.uint16 if gray_count <= 16 else np.int64)
+    binary = np.zeros(shape, np.uint8)
     bit = np.empty(shape, bool)
-    axis_references = []
-    for a in range(2):
-        first_group, end_group = tables.group_range[a], tables.group_range[a + 1]
-        gray_count = int(tables.gray_count[a])
-        if gray_count == 0 and first_group == end_group:
-            axis_references.append(None)
-            continue
-        referenced = False
-        uncertainty = 0.0
-        axis_size = float(tables.axis_size[a])
-        if gray_count > 0:
-            gray_only = first_group == end_group  # the plane margins are then modulation and quality
-            # The stripe index, built most significant bit first: binary_i = binary_{i+1} XOR gray_i.
-            stripe_index = np.zeros(shape, np.uint8 if gray_count <= 8 else np.uint16 if gray_count <= 16 else np.int64)
-            binary = np.zeros(shape, np.uint8)
-            if gray_only:
-                margin_sum = np.zeros(shape, work)
-                margin_min = np.full(shape, np.inf, work)
-            for b in range(gray_count):
-                plane = band[tables.gray_frame[a, b]]
-                other = band[tables.gray_complement[a, b]] if tables.gray_complement[a, b] >= 0 else threshold
-                # The bit XOR inverted: the plane above its complement or threshold, or for an inverted plane not.
-                (np.less_equal if tables.gray_inverted[a, b] else np.greater)(plane, other, out=bit)
-                np.bitwise_xor(binary, bit.view(np.uint8), out=binary)
-                np.add(stripe_index, stripe_index, out=stripe_index)
-                np.add(stripe_index, binary, out=stripe_index, casting="unsafe")
-                if gray_only:
-                    margin = np.abs(np.subtract(plane, other, dtype=work))
-                    if tables.gray_complement[a, b] >= 0:
-                        margin *= 0.5
-                    margin_sum += margin
-                    np.minimum(margin_min, margin, out=margin_min)
-            stripe = float(1 << int(tables.finest_bit[a]))
-            reference = stripe_index.astype(np.float32)
-            reference *= np.float32(stripe)
-            inconsistent |= reference >= axis_size  # stripe indices are exact in float32
-            reference += np.float32(0.5 * (stripe - 1.0))
-            if gray_only:
-                axis_modulation = margin_sum / gray_count
-                axis_quality = np.divide(margin_min, axis_modulation, out=np.zeros(shape, work),
-                                         where=axis_modulation > 0)
-            referenced = True
-            uncertainty = 0.5 * stripe
-        for g in range(first_group, end_group):
-            c_sum, s_sum, total, squares = sums[g]
-            period = float(tables.group_period[g])
-            steps = int(tables.group_start[g + 1] - tables.group_start[g])
-            tolerance = uncertainty + consistency * (0.5 * period - uncertainty)
-            if work == np.float32 and steps > 16:  # beyond, the float32 sums of uint8 samples are no longer exact
-                c_sum, s_sum, total, squares = (np.asarray(x, np.float64) for x in (c_sum, s_sum, total, squares))
-            energy = np.square(c_sum)  # C^2 + S^2 (not cv2.magnitude, which also fuses multiply-adds)
-            energy += np.square(s_sum)
-            amplitude = np.sqrt(energy)
-            # steps * sum (I - A)^2, exact for uint8 samples; the sinusoid's share of it, 0 without any.
-            alternating = squares * float(steps)
-            alternating -= np.square(total)
-            np.copyto(alternating, np.inf, where=alternating <= 0)
-            group_quality = energy
-            group_quality /= alternating
-            group_quality *= 2.0
-            np.minimum(group_quality, 1.0, out=group_quality)
-            axis_quality = group_quality if g == first_group else np.minimum(axis_quality, group_quality)
-            axis_modulation = amplitude
-            axis_modulation *= 2.0 / steps
-            wrapped = np.arctan2(s_sum, c_sum, dtype=np.float32)  # in (-pi, pi]
-            negative = wrapped < 0
-            wrapped *= np.float32(period / (2 * np.pi))
-            wrapped += negative * np.float32(period)
-            if referenced:
-                turns = reference - wrapped
-                turns *= np.float32(1 / period)
-                turns += np.float32(0.5)
-                np.floor(turns, out=turns)
-                turns *= np.float32(period)
-                wrapped += turns  # unwrapped
-                np.subtract(wrapped, reference, out=turns)
-                np.abs(turns, out=turns)
-                inconsistent |= turns > _below32(tolerance)
-            else:
-                np.subtract(wrapped, np.float32(period), out=wrapped,
-                            where=wrapped > _below32(0.5 * (axis_size - 1 + period)))
-            reference = wrapped
-            referenced = True
-            uncertainty = 0.0
-        if first_group < end_group:
-            poor_fit |= axis_quality < (_above32(min_quality) if axis_quality.dtype == np.float32 else min_quality)
-        inconsistent |= reference < np.float32(-0.5)
-        inconsistent |= reference > _below32(axis_size - 0.5)
-        axis_references.append(reference)
-        if pixel_modulation is None:
-            pixel_modulation, pixel_quality = axis_modulation, axis_quality
-        else:
-            pixel_modulation = np.minimum(pixel_modulation, axis_modulation)
-            pixel_quality = np.minimum(pixel_quality, axis_quality)
+    if gray_only:
+        margin_sum = np.zeros(shape, work)
+        margin_min = np.full(shape, np.inf, work)
+    for b in range(gray_count):
+        plane = band.frames[tables.gray_frame[axis, b]]
+        other = band.frames[tables.gray_complement[axis, b]] if tables.gray_complement[axis, b] >= 0 else threshold
+        # The bit XOR inverted: the plane above its complement or threshold, or for an inverted plane not.
+        (np.less_equal if tables.gray_inverted[axis, b] else np.greater)(plane, other, out=bit)
+        np.bitwise_xor(binary, bit.view(np.uint8), out=binary)
+        np.add(stripe_index, stripe_index, out=stripe_index)
+        np.add(stripe_index, binary, out=stripe_index, casting="unsafe")
+        if gray_only:
+            margin = np.abs(np.subtract(plane, other, dtype=work))
+            if tables.gray_complement[axis, b] >= 0:
+                margin *= 0.5
+            margin_sum += margin
+            np.minimum(margin_min, margin, out=margin_min)
+    stripe = float(1 << int(tables.finest_bit[axis]))
+    centre = stripe_index.astype(np.float32)
+    centre *= np.float32(stripe)
+    band.inconsistent |= centre >= float(tables.axis_size[axis])  # stripe indices are exact in float32
+    centre += np.float32(0.5 * (stripe - 1.0))
+    modulation = quality = None
+    if gray_only:
+        modulation = margin_sum / gray_count
+        quality = np.divide(margin_min, modulation, out=np.zeros(shape, work), where=modulation > 0)
+    return _AxisDecoding(centre, modulation, quality), 0.5 * stripe
 
-    # The code of the first reason that applies: the highest rank of those met, through a table.
-    low_modulation = pixel_modulation < (_above32(min_modulation) if pixel_modulation.dtype == np.float32
-                                         else min_modulation)
-    dark = level < _level_limit(level.dtype, min_intensity)
-    rank = inconsistent.view(np.uint8).copy()
-    for r, met in enumerate((poor_fit, low_modulation, saturated, dark), start=2):
-        np.maximum(rank, np.multiply(met.view(np.uint8), np.uint8(r)), out=rank)
-    cv2.LUT(rank, _RANKED_CODE, dst=rejection[rows])
-    scale = cv2.LUT(rank, _RANKED_SCALE)  # NaN where rejected
-    for a, reference in enumerate(axis_references):
-        if reference is None:
-            coordinates[a, rows] = np.nan
+
+def _unwrapped_phase(band: _Band, tables: _Tables, sums: list[_PhaseSums], axis: int,
+                     stripes: _AxisDecoding | None, uncertainty: float, consistency: float) -> _AxisDecoding:
+    """The axis's phase groups, coarsest first, each unwrapped against the reference before it (the
+    stripe centre, or the coarser period's coordinate; the first without Gray code is taken as it is);
+    the finest period's modulation and the least quality over the groups."""
+    axis_size = float(tables.axis_size[axis])
+    first_group, end_group = tables.group_range[axis], tables.group_range[axis + 1]
+    reference = None if stripes is None else stripes.coordinate
+    for g in range(first_group, end_group):
+        c_sum, s_sum, total, squares = (sums[g].cos, sums[g].sin, sums[g].total, sums[g].squares)
+        period = float(tables.group_period[g])
+        steps = int(tables.group_start[g + 1] - tables.group_start[g])
+        tolerance = uncertainty + consistency * (0.5 * period - uncertainty)
+        if band.work == np.float32 and steps > 16:  # beyond, the float32 sums of uint8 samples are no longer exact
+            c_sum, s_sum, total, squares = (np.asarray(x, np.float64) for x in (c_sum, s_sum, total, squares))
+        energy = np.square(c_sum)  # C^2 + S^2 (not cv2.magnitude, which also fuses multiply-adds)
+        energy += np.square(s_sum)
+        amplitude = np.sqrt(energy)
+        # steps * sum (I - A)^2, exact for uint8 samples; the sinusoid's share of it, 0 without any.
+        alternating = squares * float(steps)
+        alternating -= np.square(total)
+        np.copyto(alternating, np.inf, where=alternating <= 0)
+        group_quality = energy
+        group_quality /= alternating
+        group_quality *= 2.0
+        np.minimum(group_quality, 1.0, out=group_quality)
+        quality = group_quality if g == first_group else np.minimum(quality, group_quality)
+        modulation = amplitude
+        modulation *= 2.0 / steps
+        wrapped = np.arctan2(s_sum, c_sum, dtype=np.float32)  # in (-pi, pi]
+        negative = wrapped < 0
+        wrapped *= np.float32(period / (2 * np.pi))
+        wrapped += negative * np.float32(period)
+        if reference is not None:
+            turns = reference - wrapped
+            turns *= np.float32(1 / period)
+            turns += np.float32(0.5)
+            np.floor(turns, out=turns)
+            turns *= np.float32(period)
+            wrapped += turns  # unwrapped
+            np.subtract(wrapped, reference, out=turns)
+            np.abs(turns, out=turns)
+            band.inconsistent |= turns > _below32(tolerance)
         else:
-            np.multiply(reference, scale, out=coordinates[a, rows])
-    modulation[rows] = pixel_modulation
-    intensity[rows] = level
-    quality[rows] = pixel_quality
+            np.subtract(wrapped, np.float32(period), out=wrapped,
+                        where=wrapped > _below32(0.5 * (axis_size - 1 + period)))
+        reference = wrapped
+        uncertainty = 0.0
+    return _AxisDecoding(reference, modulation, quality)
+
+
+def _write_band(maps: _DecodeMaps, rows: slice, band: _Band, axes: list[_AxisDecoding | None], level: np.ndarray,
+                saturated: np.ndarray, inputs: _DecodeInputs) -> None:
+    """Each pixel's rejection code (the first reason that applies), its coordinates (NaN where rejected or
+    not coded), modulation and quality (the least over the axes) and intensity, into the band's rows."""
+    coded = [decoded for decoded in axes if decoded is not None]
+    modulation, quality = coded[0].modulation, coded[0].quality
+    for decoded in coded[1:]:
+        modulation = np.minimum(modulation, decoded.modulation)
+        quality = np.minimum(quality, decoded.quality)
+    # The code of the first reason that applies: the highest rank of those met, through a table.
+    low_modulation = modulation < (_above32(inputs.min_modulation) if modulation.dtype == np.float32
+                                   else inputs.min_modulation)
+    dark = level < _level_limit(level.dtype, inputs.min_intensity)
+    rank = band.inconsistent.view(np.uint8).copy()
+    for r, met in enumerate((band.poor_fit, low_modulation, saturated, dark), start=2):
+        np.maximum(rank, np.multiply(met.view(np.uint8), np.uint8(r)), out=rank)
+    cv2.LUT(rank, _RANKED_CODE, dst=maps.rejection[rows])
+    scale = cv2.LUT(rank, _RANKED_SCALE)  # NaN where rejected
+    for a, decoded in enumerate(axes):
+        if decoded is None:
+            maps.coordinates[a, rows] = np.nan
+        else:
+            np.multiply(decoded.coordinate, scale, out=maps.coordinates[a, rows])
+    maps.modulation[rows] = modulation
+    maps.intensity[rows] = level
+    maps.quality[rows] = quality
 
 
 def _reject_edges(coordinates: np.ndarray, rejection: np.ndarray, margin: int, max_jump: float) -> None:
@@ -535,16 +644,13 @@ def decode(
     full_scale = float(np.iinfo(frames.dtype).max if saturation_level is None else saturation_level)
     min_intensity = 0.02 * full_scale if min_intensity is None else min_intensity
     min_modulation = 0.012 * full_scale if min_modulation is None else min_modulation
-    tables = _sequence_tables(sequence)
+    inputs = _DecodeInputs(np.ascontiguousarray(frames), _sequence_tables(sequence), full_scale, float(min_intensity),
+                           float(min_modulation), float(min_quality), float(consistency))
     height, width = frames.shape[1:]
-    coordinates = np.empty((2, height, width), np.float32)
-    modulation = np.empty((height, width), np.float32)
-    intensity = np.empty((height, width), np.float32)
-    quality = np.empty((height, width), np.float32)
-    rejection = np.empty((height, width), np.uint8)
-    map_row_bands(partial(_decode_rows, np.ascontiguousarray(frames), tables, full_scale, float(min_intensity),
-                          float(min_modulation), float(min_quality), float(consistency), coordinates, modulation,
-                          intensity, quality, rejection), height, width)
+    maps = _DecodeMaps.empty(height, width)
+    map_row_bands(partial(_decode_rows, inputs, maps), height, width)
+    coordinates, modulation, intensity, quality, rejection = (maps.coordinates, maps.modulation, maps.intensity,
+                                                              maps.quality, maps.rejection)
     if np.isfinite(max_indirect) and sequence.phase_groups():
         _reject_indirect(coordinates, modulation, intensity, rejection, max_indirect)
     if edge_margin > 0 or np.isfinite(max_jump):

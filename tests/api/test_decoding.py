@@ -38,7 +38,7 @@ def _raises(kind: str):
     if kind == "abort":
         os.abort()
     if kind == "slow":
-        time.sleep(30)
+        time.sleep(30)  # the test: a decoding that outlasts its time limit
     raise AssertionError(kind)
 
 
@@ -96,7 +96,7 @@ def test_decodings_beyond_the_pool_wait_their_turn():
 
 def _sleep_and_time(seconds: float) -> tuple[float, float]:
     start = time.time()
-    time.sleep(seconds)
+    time.sleep(seconds)  # the test: a decoding that holds its process this long
     return start, time.time()
 
 

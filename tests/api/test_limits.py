@@ -30,7 +30,7 @@ def test_an_idempotency_key_expires_after_its_time(client, auth, runtime, active
     again = client.post("/v1/scans", headers=headers, json={"part_id": "42"})
     assert again.headers["idempotent-replayed"] == "true" and again.json() == first.json()
     assert client.post("/v1/scans", headers=headers, json={"part_id": "43"}).status_code == 422
-    time.sleep(1.2)
+    time.sleep(1.2)  # the test: the key's 1 s lifetime passes
     later = client.post("/v1/scans", headers=headers, json={"part_id": "43"})
     assert later.status_code == 202 and "idempotent-replayed" not in later.headers
     assert later.json()["job_id"] != first.json()["job_id"]

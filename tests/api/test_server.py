@@ -118,7 +118,7 @@ def test_a_slow_client_dripping_headers_is_cut_at_the_time_limit(port):
         try:
             for _ in range(40):  # 4 s of dripping, against a 0.5 s bound
                 connection.sendall(b"X")
-                time.sleep(0.1)
+                time.sleep(0.1)  # the test: the slow client's pace
         except (BrokenPipeError, ConnectionResetError):
             pass
         status, _, _, closed = _answer(connection)

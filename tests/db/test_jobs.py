@@ -1,4 +1,5 @@
 import json
+import threading
 import time
 import uuid
 
@@ -66,9 +67,13 @@ def test_api_keys_are_stored_hashed_with_hierarchical_scopes(engine):
 
 
 def _subscriber(prefix: str, received: list) -> mqtt.Client:
+    """A client subscribed to everything under ``prefix``; its ``subscribed`` event is set when the broker has
+    acknowledged the subscription (and so has queued the retained messages for it)."""
     subscriber = mqtt.Client(mqtt.CallbackAPIVersion.VERSION2)
     subscriber.on_message = lambda client, userdata, message: received.append(
         (message.topic, json.loads(message.payload) if message.payload else None, message.retain))
+    subscriber.subscribed = threading.Event()
+    subscriber.on_subscribe = lambda *_: subscriber.subscribed.set()
     subscriber.connect("127.0.0.1", 1883)
     subscriber.subscribe(f"{prefix}/#", qos=1)
     subscriber.loop_start()
@@ -87,8 +92,7 @@ def test_states_are_published_live_and_only_the_stations_latest_is_retained(engi
     listener = _subscriber(prefix, live)
     publisher = EventPublisher("127.0.0.1", 1883, prefix)
     tracker = JobTracker(make_sessions(engine), publisher)
-    _wait_for(listener.is_connected)
-    time.sleep(0.3)  # the subscription is acknowledged
+    assert listener.subscribed.wait(10)
     job_ids = []
     for scan_id in ("s8", "s9"):
         with tracker.sessions.begin() as session:
@@ -99,8 +103,12 @@ def test_states_are_published_live_and_only_the_stations_latest_is_retained(engi
     late: list = []  # a subscriber that connects afterwards gets one retained message: the station's latest
     latecomer = _subscriber(prefix, late)
     try:
-        _wait_for(lambda: len(live) >= 9 and late)
-        time.sleep(0.5)  # anything else retained would have arrived by now
+        assert latecomer.subscribed.wait(10)
+        # The broker sends a subscription's retained messages before anything published after it: once the
+        # latecomer hears its own marker, every retained message has come.
+        marker = f"{prefix}/marker"
+        latecomer.publish(marker, b"", qos=1).wait_for_publish(5)
+        _wait_for(lambda: len(live) >= 9 and any(topic == marker for topic, _, _ in late))
     finally:
         latecomer.publish(station_topic(prefix), b"", retain=True).wait_for_publish(5)
         for client in (listener, latecomer):
@@ -110,7 +118,8 @@ def test_states_are_published_live_and_only_the_stations_latest_is_retained(engi
     assert job_states == ["running", "succeeded"]
     assert [state["status"] for topic, state, _ in live if topic == f"{prefix}/scans/s9"] == ["running", "succeeded"]
     assert not any(retained for _, _, retained in live)
-    late = [message for message in late if message[1] is not None]  # not the clearing of the test's retained one
+    late = [message for message in late if message[1] is not None]  # not the marker, nor the clearing of the
+    # test's retained message
     assert [(topic, retained) for topic, _, retained in late] == [(station_topic(prefix), True)]
     assert late[0][1]["scan_id"] == "s9" and late[0][1]["status"] == "succeeded" and late[0][1]["job_id"] == job_ids[1]
 

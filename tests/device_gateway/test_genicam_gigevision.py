@@ -143,7 +143,7 @@ def test_a_camera_killed_mid_sequence_fails_that_capture_naming_it_and_comes_bac
         capturing = threading.Thread(target=lambda: answer.update(
             response=httpx.post(f"{url}/v1/captures", json={}, timeout=60)))
         capturing.start()
-        time.sleep(1.0)
+        time.sleep(1.0)  # the test's moment: the camera vanishes while the gateway films (no event says so)
         fake_gv_camera.kill()
         capturing.join(timeout=60)
         response = answer["response"]

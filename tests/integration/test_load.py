@@ -91,7 +91,7 @@ def test_mixed_traffic_against_the_scaled_out_service(e2e, deployment):
             response = client.post("/v1/scans")
             assert response.status_code == 202, response.text
             scans.append(response.json())
-            time.sleep(max(0.0, min(4.0, deadline - time.monotonic() - 5)))
+            time.sleep(max(0.0, min(4.0, deadline - time.monotonic() - 5)))  # the test's load: a scan every 4 s
         poll_figures = json.loads(polls.communicate(timeout=seconds + 60)[0])
         download_figures = json.loads(downloads.communicate(timeout=seconds + 60)[0])
         finals = [_wait_done(client, scan["job_id"]) for scan in scans]

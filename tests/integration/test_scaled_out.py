@@ -82,8 +82,12 @@ def test_scaled_out_scans_with_two_workers_and_survive_a_worker_crash(e2e, deplo
         for name in ("cloud.ply", "field.ply"):
             assert len(read_cloud(tmp_path / f"crashed-{name}")["x"]) == crashed["summary"]["point_count"]
         assert np.load(tmp_path / "crashed-frames.npy", allow_pickle=False).ndim == 3
-        time.sleep(1.0)  # the last MQTT messages arrive
-        states = events.states(f"{env['THERMOFIELD_SITE']}/station1/jobs/{accepted['job_id']}")
+        topic = f"{env['THERMOFIELD_SITE']}/station1/jobs/{accepted['job_id']}"
+        deadline = time.monotonic() + 30  # the job's last MQTT message arrives
+        while not any(state["status"] == "succeeded" for state in events.states(topic)):
+            assert time.monotonic() < deadline, events.states(topic)
+            time.sleep(0.1)
+        states = events.states(topic)
         _assert_in_order(states)
         assert [state["status"] for state in states].count("succeeded") == 1, states
         assert {state["attempts"] for state in states} == {0, 1, 2}, states  # queued, the killed run, the rerun

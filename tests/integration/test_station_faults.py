@@ -87,7 +87,8 @@ def test_a_lost_device_and_a_full_disk_fail_their_scan_cleanly_and_the_next_scan
         # The gateway (and with it the devices) lost in the middle of a capture: that scan fails and says why.
         lost = client.post("/v1/scans", json={"part_id": "lost"}).json()
         _wait_for(client, lost["job_id"], lambda state: state["stage"] == "capture")
-        time.sleep(1.5)  # well inside the capture (the gateway is filming its patterns)
+        time.sleep(1.5)  # the test's moment: well inside the capture (the gateway is filming its patterns; no
+        # event says so)
         e2e.processes.stop(gateway, signal.SIGKILL)
         killed_at = time.monotonic()
         retrying = _wait_for(client, lost["job_id"], lambda state: state["stage"] == "retrying" or _finished(state))
@@ -156,7 +157,7 @@ def _send_and_kill(e2e, api, port: int, request: bytes, delay_s: float) -> None:
     """Send ``request`` (all or part of an upload) and SIGKILL the API ``delay_s`` later, the request in flight."""
     with socket.create_connection(("127.0.0.1", port)) as connection:
         connection.sendall(request)
-        time.sleep(delay_s)
+        time.sleep(delay_s)  # the test's moment: the request in flight
         e2e.processes.stop(api, signal.SIGKILL)
         connection.settimeout(10)
         try:

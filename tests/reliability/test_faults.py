@@ -134,6 +134,9 @@ def _once_each(states: list[dict]) -> list[tuple]:
     return [key[:2] for key in seen]
 
 
+_MARKER = {"marker": True}  # published after the states: once heard, every state before it on its topic was
+
+
 def _wait_for(condition, timeout_s: float = 30.0) -> bool:
     deadline = time.monotonic() + timeout_s
     while not condition() and time.monotonic() < deadline:
@@ -164,7 +167,7 @@ def test_mosquitto_stopped_jobs_go_on_and_states_arrive_when_it_returns(private_
         with tracker.sessions() as session:
             assert session.get(Job, job_id).status == "succeeded"  # the database is the source of truth
         assert not mes.client.is_connected() and not publisher._client.is_connected()
-        time.sleep(1.0)  # the broker stays down a while, both clients retrying
+        time.sleep(1.0)  # the test: the broker stays down a while, both clients retrying
         assert len(mes.received) == before_the_stop  # nothing arrived while it was down
     finally:
         private_mosquitto.start()
@@ -172,7 +175,13 @@ def test_mosquitto_stopped_jobs_go_on_and_states_arrive_when_it_returns(private_
         # the publisher re-sends what it queued, the broker queues it in the MES's persistent session
         assert _wait_for(lambda: any(state["status"] == "succeeded"
                                      for state in mes.states(job_topic(prefix, job_id)))), mes.received
-        time.sleep(0.5)  # any duplicate (QoS 1 is at least once) would have come by now
+        # Any duplicate (QoS 1 is at least once) comes before a marker published after it on its topic: MQTT
+        # keeps the order of one topic's messages.
+        topics = (job_topic(prefix, job_id), scan_topic(prefix, "s1"), station_topic(prefix))
+        for topic in topics:
+            publisher.publish(topic, _MARKER)
+        assert _wait_for(lambda: all(_MARKER in mes.states(topic) for topic in topics)), mes.received
+        mes.received[:] = [message for message in mes.received if message[1] != _MARKER]
         late = _Subscriber(private_mosquitto.port, prefix)
         assert _wait_for(lambda: late.states(station_topic(prefix)))
     finally:
@@ -230,7 +239,7 @@ def test_a_real_scan_with_mosquitto_down_publishes_its_states_when_it_returns(pr
                 private_mosquitto.start()
         assert _wait_for(lambda: any(state["status"] == "succeeded" for state in mes.states(job_topic(prefix, job_id))),
                          60), mes.received
-        time.sleep(1.0)  # any repeat would have come by now
+        time.sleep(1.0)  # the test's window: any repeat would have come by now (the service's own publisher)
         late = _Subscriber(private_mosquitto.port, prefix)
         assert _wait_for(lambda: late.states(station_topic(prefix)))
         retained = [(state, retain) for topic, state, retain in late.received if topic == station_topic(prefix)]
@@ -367,7 +376,7 @@ def test_rabbitmq_stopped_jobs_wait_in_the_outbox_and_run_once_when_it_returns(p
         @dramatiq.actor(broker=broker, actor_name="scan", queue_name=queue_name, max_retries=0)
         def scan(job_id):
             runs.append(job_id)
-            time.sleep(0.3)
+            time.sleep(0.3)  # the test: the job's work takes a while
 
         worker = dramatiq.Worker(broker, worker_threads=2, worker_timeout=100)
         worker.start()
@@ -378,7 +387,7 @@ def test_rabbitmq_stopped_jobs_wait_in_the_outbox_and_run_once_when_it_returns(p
                     if session.query(Job).filter(Job.status == "succeeded").count() == len(jobs):
                         break
                 time.sleep(0.2)
-            time.sleep(1.0)  # the duplicate, if it were run, would run by now
+            time.sleep(1.0)  # the test's window: a duplicate, if it were run, would run by now (no event tells)
         finally:
             worker.stop()
         assert sorted(runs) == sorted(jobs), runs  # every job ran, none twice
@@ -445,7 +454,9 @@ def test_rabbitmq_restarted_under_a_running_job_does_not_run_it_twice(private_ra
                 if session.get(Job, job_id).status == "succeeded":
                     break
             time.sleep(0.2)
-        time.sleep(8.0)  # the waiting copy comes back (after half a lease) and finds the job finished
+        deadline = time.monotonic() + 60  # the waiting copy comes back (after half a lease) and finds it finished
+        while not any("Skipping" in record.getMessage() for record in caplog.records) and time.monotonic() < deadline:
+            time.sleep(0.2)
     finally:
         release.set()
         worker.stop()

@@ -435,9 +435,9 @@ def test_hostile_input_against_the_embedded_service(tmp_path):
         rows: list[Row] = []
         with Poller(service.url, "/readyz", {}, 0.01) as ready, \
                 Poller(service.url, f"/v1/jobs/{job_id}", {"Authorization": f"Bearer {reader}"}, 0.05) as poll:
-            time.sleep(1.0)
+            time.sleep(1.0)  # a hold: the pollers' first requests (connections opening) are not the baseline
             baseline = time.monotonic()
-            time.sleep(2.0)
+            time.sleep(2.0)  # the test: the baseline's window, no attack
             rows.append(Row("(no attack: baseline)", "-", "-", 0, [], 0.0, 0.0, 0.0,
                             (baseline, time.monotonic())))
             for upload in uploads:

@@ -76,7 +76,7 @@ def test_time_limit_stops_a_stuck_job(broker):
     @dramatiq.actor(broker=broker, actor_name="t_slow", queue_name="t_slow", max_retries=0, time_limit=300)
     def slow(job_id):
         for _ in range(100):
-            time.sleep(0.05)
+            time.sleep(0.05)  # the test: a job stuck past its time limit
 
     (job,) = run_jobs(broker, slow, 1)
     assert job.status == "failed" and job.error.startswith("TimeLimitExceeded")
