@@ -157,7 +157,9 @@ def refine_head_poses(points: Sequence[np.ndarray], normals: Sequence[np.ndarray
 
     with p_i head k's points, q_i the nearest point of another head j (within ``max_distance_mm``) and
     n_i the mean normal of j's 8 nearest, by Gauss-Newton on R(w) ~ I + [w]x with the reference
-    head's correction held at the identity. Correspondences beyond 3 median absolute deviations of
+    head's correction held at the identity. A head whose correction goes beyond the bound is refused,
+    held where the calibration put it, and the others are solved again without moving it. Correspondences
+    beyond 3 median absolute deviations of
     the distances are dropped in each iteration. The prior keeps the directions the overlaps do not
     constrain (a cylinder's rotation about its axis, and sliding along it where no end face is shared)
     where the calibration put them, instead of letting noise move them. Written here rather than with
@@ -183,18 +185,52 @@ def refine_head_poses(points: Sequence[np.ndarray], normals: Sequence[np.ndarray
         good = np.isfinite(p).all(axis=1) & np.isfinite(n).all(axis=1)
         clean.append((p[good], n[good]))
     centres = [p.mean(axis=0) if len(p) else np.zeros(3) for p, _ in clean]
-    x = np.zeros((count, 6))  # per head: rotation vector, translation
     prior = np.zeros((count, 6))
     for k, u in enumerate(uncertainty):
         prior[k] = [1 / np.radians(u.rotation_deg) ** 2] * 3 + [1 / u.translation_mm ** 2] * 3
+    held = {reference}
+    refused: dict[int, PoseCorrection] = {}
+    while True:  # a head whose correction is refused stays put, and the others are solved again without it
+        x, overlap = _solve_jointly(clean, centres, prior, held, max_distance_mm, noise_mm, iterations)
+        corrections = []
+        for k in range(count):
+            if k == reference:
+                corrections.append(_identity(centres[k], True, int(overlap[k])))
+            elif k in refused:
+                corrections.append(refused[k])
+            elif overlap[k] < _MIN_OVERLAP:
+                corrections.append(_identity(centres[k], False, int(overlap[k]),
+                                             f"too little overlap ({overlap[k]} points)"))
+            else:
+                corrections.append(PoseCorrection(Rotation.from_rotvec(x[k, :3]).as_matrix(), x[k, 3:].copy(),
+                                                  centres[k], True, int(overlap[k])))
+        beyond = [k for k, c in enumerate(corrections) if c.applied and k != reference
+                  and (c.translation_mm > bound_sigmas * uncertainty[k].translation_mm
+                       or c.rotation_deg > bound_sigmas * uncertainty[k].rotation_deg)]
+        if not beyond:
+            return corrections
+        for k in beyond:
+            c, u = corrections[k], uncertainty[k]
+            reason = (f"the overlap asks for {c.translation_mm:.3f} mm and {c.rotation_deg:.4f} deg, beyond "
+                      f"{bound_sigmas:g} sigma of the calibration ({u.translation_mm:g} mm, {u.rotation_deg:g} deg)")
+            refused[k] = PoseCorrection(c.rotation, c.translation, centres[k], False, c.overlap, reason)
+            held.add(k)
+
+
+def _solve_jointly(clean: list[tuple[np.ndarray, np.ndarray]], centres: list[np.ndarray], prior: np.ndarray,
+                   held: set[int], max_distance: float, noise: float, iterations: int) -> tuple[np.ndarray, np.ndarray]:
+    """The Gauss-Newton iterations of :func:`refine_head_poses` with the heads ``held`` at the identity: every
+    head's (rotation vector, translation) and its correspondences in the last iteration."""
+    count = len(clean)
+    x = np.zeros((count, 6))
     overlap = np.zeros(count, dtype=int)
     for _ in range(iterations):
         rotations = [Rotation.from_rotvec(x[k, :3]).as_matrix() for k in range(count)]
         relative = [(p - c) @ r.T for (p, _), c, r in zip(clean, centres, rotations)]
         moved = [a + c + x[k, 3:] for k, (a, c) in enumerate(zip(relative, centres))]
         moved_normals = [n @ r.T for (_, n), r in zip(clean, rotations)]
-        normal_matrix = np.diag((prior * 1.0).ravel()) * noise_mm**2
-        gradient = (prior * x).ravel() * noise_mm**2
+        normal_matrix = np.diag(prior.ravel()) * noise**2
+        gradient = (prior * x).ravel() * noise**2
         overlap[:] = 0
         for k in range(count):
             others = [j for j in range(count) if j != k and len(moved[j])]
@@ -203,8 +239,7 @@ def refine_head_poses(points: Sequence[np.ndarray], normals: Sequence[np.ndarray
             target = np.concatenate([moved[j] for j in others])
             owner = np.concatenate([np.full(len(moved[j]), j) for j in others])
             local = np.concatenate([np.arange(len(moved[j])) for j in others])
-            tree = cKDTree(target)
-            distance, index = tree.query(moved[k], k=_NEIGHBOURS, distance_upper_bound=max_distance_mm)
+            distance, index = cKDTree(target).query(moved[k], k=_NEIGHBOURS, distance_upper_bound=max_distance)
             found = np.isfinite(distance)
             good = found[:, 0]
             index = np.where(found, index, 0)
@@ -216,7 +251,7 @@ def refine_head_poses(points: Sequence[np.ndarray], normals: Sequence[np.ndarray
             residual = np.einsum("ij,ij->i", moved[k] - target[nearest], normal)
             if good.sum() >= _MIN_OVERLAP:
                 spread = 1.4826 * np.median(np.abs(residual[good] - np.median(residual[good])))
-                good &= np.abs(residual - np.median(residual[good])) <= max(3 * spread, noise_mm)
+                good &= np.abs(residual - np.median(residual[good])) <= max(3 * spread, noise)
             rows = np.flatnonzero(good)
             overlap[k] += len(rows)
             n, r = normal[rows], residual[rows]
@@ -232,7 +267,7 @@ def refine_head_poses(points: Sequence[np.ndarray], normals: Sequence[np.ndarray
                 gradient[6 * a:6 * a + 6] += ja.T @ r
                 for b, jb in blocks.items():
                     normal_matrix[6 * a:6 * a + 6, 6 * b:6 * b + 6] += ja.T @ jb
-        free = np.array([k != reference and overlap[k] >= _MIN_OVERLAP for k in range(count)])
+        free = np.array([k not in held and overlap[k] >= _MIN_OVERLAP for k in range(count)])
         index = np.flatnonzero(np.repeat(free, 6))
         if not len(index):
             break
@@ -240,27 +275,7 @@ def refine_head_poses(points: Sequence[np.ndarray], normals: Sequence[np.ndarray
         x.reshape(-1)[index] += step
         if np.abs(step).max() < 1e-7:
             break
-    corrections = []
-    for k in range(count):
-        if k == reference:
-            corrections.append(_identity(centres[k], True, int(overlap[k])))
-            continue
-        if overlap[k] < _MIN_OVERLAP:
-            corrections.append(_identity(centres[k], False, int(overlap[k]),
-                                         f"too little overlap ({overlap[k]} points)"))
-            continue
-        correction = PoseCorrection(Rotation.from_rotvec(x[k, :3]).as_matrix(), x[k, 3:].copy(), centres[k], True,
-                                    int(overlap[k]))
-        u = uncertainty[k]
-        if correction.translation_mm > bound_sigmas * u.translation_mm or \
-                correction.rotation_deg > bound_sigmas * u.rotation_deg:
-            reason = (f"the overlap asks for {correction.translation_mm:.3f} mm and {correction.rotation_deg:.4f} "
-                      f"deg, beyond {bound_sigmas:g} sigma of the calibration ({u.translation_mm:g} mm, "
-                      f"{u.rotation_deg:g} deg)")
-            correction = PoseCorrection(correction.rotation, correction.translation, centres[k], False,
-                                        int(overlap[k]), reason)
-        corrections.append(correction)
-    return corrections
+    return x, overlap
 
 
 def overlap_residuals(points: Sequence[np.ndarray], normals: Sequence[np.ndarray], *,
