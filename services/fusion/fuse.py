@@ -210,8 +210,8 @@ def sample_view(
         Radians, for points the view sees (in the image and not occluded); NaN
         otherwise.
     weight : (N,) float64 array
-        cos(view angle) times the number of frames that gave a value; 0 where
-        ``temperature`` is NaN.
+        cos(view angle) (f / d)^2 times the number of frames that gave a value (f the focal length in
+        pixels, d the distance from the camera centre in mm); 0 where ``temperature`` is NaN.
     """
     points, normals = _as_float(points), _as_float(normals)
     temperature = np.empty(len(points))
@@ -320,7 +320,9 @@ def _sample_view(count: int, points_of: Rows, normals_of: Rows, view: ThermalVie
                 frames_seen = finite.sum(axis=0)
                 mean = np.where(finite, samples, 0.0).sum(axis=0) / np.maximum(frames_seen, 1)
                 temperature[usable] = np.where(frames_seen > 0, mean, np.nan)
-            weight[usable] = cosine[usable] * frames_seen  # cos(angle), from before the arccos
+            # cos(angle) (from before the arccos) times the pixels per mm^2 of surface at that distance
+            offset = chunk_points[usable] - centre
+            weight[usable] = cosine[usable] * frames_seen * focal**2 / np.einsum("ij,ij->i", offset, offset)
         angle[~seen] = np.nan
         result(rows, temperature, angle, weight)
 
@@ -336,7 +338,7 @@ def fuse_temperature(
     occlusion_margin_px: int = DEFAULT_OCCLUSION_MARGIN_PX,
     thermal_blur_px: float = DEFAULT_THERMAL_BLUR_PX,
 ) -> TemperatureField:
-    """Temperature of every cloud point from calibrated thermal views, fused by view-angle weight.
+    """Temperature of every cloud point from calibrated thermal views, fused by view angle and distance.
 
     Parameters
     ----------
@@ -388,12 +390,15 @@ def fuse_temperature(
     temperature is the depth-aware bilinear sample at p, averaged over the
     view's frames, and views are fused by
 
-        T = sum_v w_v T_v / sum_v w_v,   w_v = n_v cos(theta_v),
+        T = sum_v w_v T_v / sum_v w_v,   w_v = n_v cos(theta_v) (f_v / d_v)^2,
 
-    with theta_v the angle between the normal and the line of sight and n_v the
-    number of frames, for theta_v <= theta_max. The cosine weight follows the
-    fall of a surface's directional emissivity and the growth of the pixel
-    footprint toward grazing angles [1]_.
+    with theta_v the angle between the normal and the line of sight, n_v the
+    number of frames, f_v the view's focal length (pixels) and d_v its distance
+    from the point (mm), for theta_v <= theta_max: the inverse of the surface
+    area one pixel covers, (d_v / f_v)^2 / cos(theta_v), the view that resolves
+    the point more finely counting more (a station's several thermal cameras see
+    a point from different distances). The cosine also follows the fall of a
+    surface's directional emissivity toward grazing angles [1]_.
 
     References
     ----------

@@ -259,9 +259,9 @@ def station_rig(scale: float = 1.0, heads: int = 4) -> Rig:
     camera and projector 150 mm apart across the meridian (the coded projector axis is y, the images' long
     side along the shaft), both aimed at the shaft's centre. The heads are offset 350 mm along the axis,
     odd heads toward +x, even heads toward -x, so that every end face is seen by two opposite heads at
-    about 60 degrees (a head straight over the shaft would see neither end face): the 300 mm shaft's lateral
-    surface is then seen by every head from 50 to 70 degrees along it, and both end faces, which the
-    length between them needs. Neighbouring heads overlap on the lateral surface between their meridians,
+    about 66 degrees from its normal (a head straight over the shaft would see neither end face, which the
+    length between them needs); every point of the shaft's side then faces some head (camera and
+    projector) within 50 degrees at the median and 65 at the 95th percentile. Neighbouring heads overlap on the lateral surface between their meridians,
     opposite heads on their end face: the overlaps the merge registers the heads on.
 
     Thermal cameras ``thermal-1`` and ``thermal-2`` (320x256, f 380 px) lie 550 mm from the axis halfway

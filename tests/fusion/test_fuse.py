@@ -77,7 +77,7 @@ def test_several_frames_average_the_noise(hot_scene):
     assert np.nanmedian(np.abs(residual_averaged)) < 0.7 * np.nanmedian(np.abs(residual_single))
 
 
-def test_views_are_weighted_by_cosine_of_view_angle(hot_scene):
+def test_views_are_weighted_by_cosine_of_view_angle_and_inverse_square_distance(hot_scene):
     from tests.fusion.conftest import look_at
 
     head_on = look_at("thermal", [0, 0, 0], [0, 0, 650], 380, 320, 256)
@@ -86,9 +86,10 @@ def test_views_are_weighted_by_cosine_of_view_angle(hot_scene):
     points, normals = hot_scene.points[plate], hot_scene.normals[plate]
     uniform = [ThermalView(head_on, np.full((256, 320), 100.0)), ThermalView(oblique, np.full((256, 320), 200.0))]
     field = fuse_temperature(points, normals, uniform)
-    cos_head_on = np.cos(view_angles(points, normals, head_on.centre))
-    cos_oblique = np.cos(view_angles(points, normals, oblique.centre))
-    expected = (100 * cos_head_on + 200 * cos_oblique) / (cos_head_on + cos_oblique)
+    # both cameras have f = 380 px: the weight is cos(angle) / distance^2 (the pixel's footprint's inverse)
+    w_head_on = np.cos(view_angles(points, normals, head_on.centre)) / np.sum((points - head_on.centre) ** 2, axis=1)
+    w_oblique = np.cos(view_angles(points, normals, oblique.centre)) / np.sum((points - oblique.centre) ** 2, axis=1)
+    expected = (100 * w_head_on + 200 * w_oblique) / (w_head_on + w_oblique)
     both = np.isfinite(field.temperature) & (np.abs(field.temperature - 100) > 1) & (np.abs(field.temperature - 200) > 1)
     assert both.sum() > 1000
     np.testing.assert_allclose(field.temperature[both], expected[both], atol=1e-3)
