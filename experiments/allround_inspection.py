@@ -134,7 +134,7 @@ def draw_part(rng, out: bool, kind: str):
 
 def verdicts(prepared, part_seeds: list[int]) -> None:
     print("| seed | truth: diameter, length, ovality, dent mm | T degC | bias K | cold diameter | length | ovality | "
-          "deepest cell mm | expected | verdict | right |")
+          "surface cells mm | expected | verdict | right |")
     print("|---|---|---|---|---|---|---|---|---|---|---|")
     right = 0
     half = len(part_seeds) // 2
@@ -156,7 +156,8 @@ def verdicts(prepared, part_seeds: list[int]) -> None:
         dent = f"{-bumps[0].height_mm:.2f}" if bumps else "none"
         print(f"| {seed} | {diameter:.3f}, {length:.3f}, {ovality:.3f}, {dent}"
               f"{' (out: ' + kind + ')' if out else ''} | {base:.0f} | {bias:+.1f} | {cells.replace(', ', ' | ')} | "
-              f"{report['surface']['cell_min']:+.2f} {report['surface']['verdict']} | {wanted} | {report['verdict']} | "
+              f"{report['surface']['cell_min']:+.2f}..{report['surface']['cell_max']:+.2f} {report['surface']['verdict']} | "
+              f"{wanted} | {report['verdict']} | "
               f"{'yes' if report['verdict'] == wanted else '**no**'} |")
     print(f"\n{right} of {len(part_seeds)} verdicts right.")
 

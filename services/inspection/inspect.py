@@ -26,8 +26,10 @@ from services.inspection.verdict import decide, overall
 
 REPORT_VERSION = 1
 _SEED_POINTS = 30000
-# a diameter and an ovality (a difference of two-point diameters) see the systematic error of two opposite sides
-_SYSTEMATIC_FACTOR = {"diameter": 2.0, "ovality": 2.0, "distance": np.sqrt(2.0)}
+# a diameter sees the systematic error s of two opposite sides; an ovality (Dmax - Dmin) at worst that of four, a
+# pattern of two undulations per revolution raising Dmax by 2 s and lowering Dmin by 2 s (as a station's heads,
+# each biased by its view angle, make it: docs/inspection.md, "All round")
+_SYSTEMATIC_FACTOR = {"diameter": 2.0, "ovality": 4.0, "distance": np.sqrt(2.0)}
 
 
 @dataclass(frozen=True)

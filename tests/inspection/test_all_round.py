@@ -79,14 +79,14 @@ def test_dent_on_the_side_away_from_the_first_head(shaft):
 
 
 def test_oval_and_long_shaft(shaft):
-    field, _ = _scan(2, ovality=0.5, length=301.0)
+    field, _ = _scan(2, ovality=0.5, length=302.0)
     report = inspect_field(field=field, part=shaft[1]).report
     ovality = _feature(report, "body_ovality")
     assert ovality["cold"] == pytest.approx(0.5, abs=0.03)
     assert ovality["hot"] == pytest.approx(0.5 * (1 + STRAIN_1000), abs=0.03)
     assert ovality["verdict"] == "NotOK"
     length = _feature(report, "length")
-    assert length["cold"] == pytest.approx(301.0, abs=0.1) and length["verdict"] == "NotOK"
+    assert length["cold"] == pytest.approx(302.0, abs=0.1) and length["verdict"] == "NotOK"
     diameter = _feature(report, "body_diameter")
     assert diameter["cold"] == pytest.approx(90.0, abs=0.03) and diameter["verdict"] == "OK"
     assert report["verdict"] == "NotOK"
