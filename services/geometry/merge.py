@@ -18,6 +18,8 @@ import numpy as np
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
+from services.open3d_loader import open3d
+
 DEFAULT_MAX_DISTANCE_MM = 2.0
 """Correspondences farther apart than this are no overlap."""
 DEFAULT_NOISE_MM = 0.03
@@ -28,6 +30,16 @@ PATCH_MM = 4.0
 """The side of the surface patches over which the overlap residual averages the point noise away."""
 _NEIGHBOURS = 8
 _MIN_OVERLAP = 50
+_NORMAL_NEIGHBOURS = 30
+"""The neighbours of the PCA normals the merge uses (see :func:`surface_normals`)."""
+_MAX_NORMAL_ANGLE_DEG = 10.0
+_REFINE_POINTS = 20_000
+"""The refinement uses about this many of each head's points (every k-th): a pose has six parameters."""
+_DEGENERATE = 1e-3
+"""Directions whose information from the overlaps is below this share of the best-constrained one's (in units
+of the calibration's uncertainty) are left alone by the refinement."""
+"""A correspondence whose two normals differ by more is no overlap: at a rim, the nearest point of another head
+may lie on the other face (an end face's point for a point of the side), whose plane would pull the head along."""
 
 
 @dataclass(frozen=True)
@@ -90,12 +102,46 @@ class PairResidual:
     patch_rms_mm: float
 
 
+def surface_normals(points: np.ndarray, normals: np.ndarray) -> np.ndarray:
+    """Normals of a head's cloud by PCA over its 30 nearest points (Open3D), turned as the given ones.
+
+    A reconstruction's normals (central differences of neighbouring pixels) scatter by a few degrees
+    with the points' noise. Along a direction the overlaps hardly constrain (a cylinder's axis), that
+    scatter is information the surface does not hold: the ICP cost would then follow the noise along
+    it by tenths of a millimetre. The normals of a patch of 30 points scatter about ten times less.
+    """
+    o3d = open3d()
+    cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(points, dtype=np.float64)))
+    cloud.estimate_normals(o3d.geometry.KDTreeSearchParamKNN(_NORMAL_NEIGHBOURS))
+    smooth = np.asarray(cloud.normals)
+    flip = np.einsum("ij,ij->i", smooth, normals) < 0
+    smooth[flip] *= -1
+    return smooth
+
+
+def _clean(points: Sequence[np.ndarray], normals: Sequence[np.ndarray],
+           most: int | None = None) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Each head's finite points (about ``most`` of them, every k-th, when given) and their
+    :func:`surface_normals`."""
+    clean = []
+    for p, n in zip(points, normals):
+        p, n = np.asarray(p, dtype=np.float64), np.asarray(n, dtype=np.float64)
+        if p.ndim != 2 or p.shape[1] != 3 or n.shape != p.shape:
+            raise ValueError(f"Each head's points and normals must both be (N, 3); got {p.shape} and {n.shape}.")
+        good = np.isfinite(p).all(axis=1) & np.isfinite(n).all(axis=1)
+        p, n = p[good], n[good]
+        if most is not None:
+            p, n = p[::max(1, len(p) // most)], n[::max(1, len(p) // most)]
+        clean.append((p, surface_normals(p, n) if len(p) >= _NORMAL_NEIGHBOURS else n))
+    return clean
+
+
 def _identity(centre: np.ndarray, applied: bool, overlap: int, reason: str = "") -> PoseCorrection:
     return PoseCorrection(np.eye(3), np.zeros(3), centre, applied, overlap, reason)
 
 
 def _local_planes(tree: cKDTree, points: np.ndarray, normals: np.ndarray, queries: np.ndarray,
-                  max_distance: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                  query_normals: np.ndarray, max_distance: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """For each query, the tangent plane of the target at its nearest target point (that point, and the mean
     normal of the 8 nearest) and whether the nearest lies within ``max_distance``. The plane goes through the
     nearest point, not the neighbours' mean: on a curved surface the mean lies inside it by about the
@@ -111,6 +157,7 @@ def _local_planes(tree: cKDTree, points: np.ndarray, normals: np.ndarray, querie
     length = np.linalg.norm(normal, axis=1)
     good = close & (length > 0.5 * found.sum(axis=1))  # the neighbours' normals roughly agree
     normal /= np.maximum(length, 1e-12)[:, None]
+    good &= np.einsum("ij,ij->i", query_normals, normal) >= np.cos(np.radians(_MAX_NORMAL_ANGLE_DEG))
     return centre, normal, good
 
 
@@ -156,13 +203,14 @@ def refine_head_poses(points: Sequence[np.ndarray], normals: Sequence[np.ndarray
         sum_(k, j) sum_i (n_i . (T_k p_i - T_j q_i))^2 / sigma_n^2 + sum_k (|w_k|^2 / sigma_w,k^2 + |t_k|^2 / sigma_t,k^2),
 
     with p_i head k's points, q_i the nearest point of another head j (within ``max_distance_mm``) and
-    n_i the mean normal of j's 8 nearest, by Gauss-Newton on R(w) ~ I + [w]x with the reference
+    n_i the mean normal of j's 8 nearest (normals by PCA over 30 points, :func:`surface_normals`), by Gauss-Newton on R(w) ~ I + [w]x with the reference
     head's correction held at the identity. A head whose correction goes beyond the bound is refused,
-    held where the calibration put it, and the others are solved again without moving it. Correspondences
-    beyond 3 median absolute deviations of
-    the distances are dropped in each iteration. The prior keeps the directions the overlaps do not
-    constrain (a cylinder's rotation about its axis, and sliding along it where no end face is shared)
-    where the calibration put them, instead of letting noise move them. Written here rather than with
+    held where the calibration put it, and the others are solved again without moving it.
+    Correspondences beyond 3 median absolute deviations of the distances, or whose two normals differ
+    by more than 10 degrees (at a rim), are dropped in each iteration. The prior keeps the directions
+    the overlaps do not constrain (a cylinder's rotation about its axis, and sliding along it where no end face is shared)
+    where the calibration put them, instead of letting noise move them; the steps are taken only along
+    directions the overlaps constrain [2]_. Written here rather than with
     Open3D's ``registration_icp``: that registers one pair without a prior, and the heads' overlaps
     must be solved together (a head overlaps two or three others) and are degenerate alone.
 
@@ -170,6 +218,8 @@ def refine_head_poses(points: Sequence[np.ndarray], normals: Sequence[np.ndarray
     ----------
     .. [1] Y. Chen and G. Medioni, "Object modelling by registration of multiple range images",
        Image and Vision Computing 10(3), 145-155, 1992.
+    .. [2] J. Zhang, M. Kaess and S. Singh, "On degeneracy of optimization-based state estimation
+       problems", ICRA 2016 (solution remapping).
     """
     count = len(points)
     if len(normals) != count or len(uncertainty) != count:
@@ -177,13 +227,7 @@ def refine_head_poses(points: Sequence[np.ndarray], normals: Sequence[np.ndarray
                          f"{len(normals)} and {len(uncertainty)}.")
     if not 0 <= reference < count:
         raise ValueError(f"The reference head must be one of the {count} heads; got {reference}.")
-    clean = []
-    for p, n in zip(points, normals):
-        p, n = np.asarray(p, dtype=np.float64), np.asarray(n, dtype=np.float64)
-        if p.ndim != 2 or p.shape[1] != 3 or n.shape != p.shape:
-            raise ValueError(f"Each head's points and normals must both be (N, 3); got {p.shape} and {n.shape}.")
-        good = np.isfinite(p).all(axis=1) & np.isfinite(n).all(axis=1)
-        clean.append((p[good], n[good]))
+    clean = _clean(points, normals, _REFINE_POINTS)
     centres = [p.mean(axis=0) if len(p) else np.zeros(3) for p, _ in clean]
     prior = np.zeros((count, 6))
     for k, u in enumerate(uncertainty):
@@ -217,6 +261,27 @@ def refine_head_poses(points: Sequence[np.ndarray], normals: Sequence[np.ndarray
             held.add(k)
 
 
+def _step(data: np.ndarray, gradient: np.ndarray, prior: np.ndarray, x: np.ndarray) -> np.ndarray:
+    """One Gauss-Newton step of the data (normal matrix, gradient) plus the prior (precisions ``prior`` about 0),
+    taken only along the directions the data constrain.
+
+    In units of the prior's standard deviations the data's normal matrix is H = S J^T J S / sigma_n^2
+    (S = diag(sigma)); its eigenvectors of eigenvalue below ``_DEGENERATE`` times the largest are
+    directions the overlaps leave open (a cylinder's rotation about its axis, sliding along it). The
+    points' noise is not independent (the reconstruction's small systematic errors are correlated over
+    the surface), so there even a tiny systematic residual would outweigh the prior; the step leaves
+    those directions where the calibration put them (solution remapping: Zhang, Kaess and Singh, ICRA
+    2016).
+    """
+    scale = 1 / np.sqrt(prior)
+    scaled = data * np.outer(scale, scale)
+    values, vectors = np.linalg.eigh(scaled)
+    kept = values > _DEGENERATE * max(values.max(), 1e-300)
+    vectors, values = vectors[:, kept], values[kept]
+    scaled_gradient = scale * gradient + x / scale  # the prior's gradient is x / sigma^2, scaled by sigma
+    return scale * (vectors @ ((vectors.T @ scaled_gradient) / -(values + 1.0)))
+
+
 def _solve_jointly(clean: list[tuple[np.ndarray, np.ndarray]], centres: list[np.ndarray], prior: np.ndarray,
                    held: set[int], max_distance: float, noise: float, iterations: int) -> tuple[np.ndarray, np.ndarray]:
     """The Gauss-Newton iterations of :func:`refine_head_poses` with the heads ``held`` at the identity: every
@@ -229,8 +294,8 @@ def _solve_jointly(clean: list[tuple[np.ndarray, np.ndarray]], centres: list[np.
         relative = [(p - c) @ r.T for (p, _), c, r in zip(clean, centres, rotations)]
         moved = [a + c + x[k, 3:] for k, (a, c) in enumerate(zip(relative, centres))]
         moved_normals = [n @ r.T for (_, n), r in zip(clean, rotations)]
-        normal_matrix = np.diag(prior.ravel()) * noise**2
-        gradient = (prior * x).ravel() * noise**2
+        normal_matrix = np.zeros((6 * count, 6 * count))  # the data's, J^T J (without 1 / sigma_n^2)
+        gradient = np.zeros(6 * count)
         overlap[:] = 0
         for k in range(count):
             others = [j for j in range(count) if j != k and len(moved[j])]
@@ -247,6 +312,7 @@ def _solve_jointly(clean: list[tuple[np.ndarray, np.ndarray]], centres: list[np.
             length = np.linalg.norm(normal, axis=1)
             good &= length > 0.5 * found.sum(axis=1)  # the neighbours' normals roughly agree
             normal /= np.maximum(length, 1e-12)[:, None]
+            good &= np.einsum("ij,ij->i", moved_normals[k], normal) >= np.cos(np.radians(_MAX_NORMAL_ANGLE_DEG))
             nearest = index[:, 0]
             residual = np.einsum("ij,ij->i", moved[k] - target[nearest], normal)
             if good.sum() >= _MIN_OVERLAP:
@@ -271,7 +337,8 @@ def _solve_jointly(clean: list[tuple[np.ndarray, np.ndarray]], centres: list[np.
         index = np.flatnonzero(np.repeat(free, 6))
         if not len(index):
             break
-        step = -np.linalg.solve(normal_matrix[np.ix_(index, index)], gradient[index])
+        step = _step(normal_matrix[np.ix_(index, index)] / noise**2, gradient[index] / noise**2,
+                     prior.ravel()[index], x.reshape(-1)[index])
         x.reshape(-1)[index] += step
         if np.abs(step).max() < 1e-7:
             break
@@ -284,16 +351,13 @@ def overlap_residuals(points: Sequence[np.ndarray], normals: Sequence[np.ndarray
     """The residual between every pair of heads that overlap (by at least ``min_points`` points each way).
 
     Each point of one head within ``max_distance_mm`` of the other's is measured along the other's local
-    normal (the mean of its 8 nearest) from the other's nearest point, both ways, signed as the first head's
+    normal (the mean of its 8 nearest, within 10 degrees of the point's own) from the other's nearest point,
+    both ways, signed as the first head's
     surface less the second's (the normals point out of the part); distances beyond 5 median absolute
     deviations (stray points at the silhouettes) are left out. ``patch_rms_mm`` is the RMS over patches
     of ``patch_mm`` of the mean distance in each (patches of at least 5 points).
     """
-    clean = []
-    for p, n in zip(points, normals):
-        p, n = np.asarray(p, dtype=np.float64), np.asarray(n, dtype=np.float64)
-        good = np.isfinite(p).all(axis=1) & np.isfinite(n).all(axis=1)
-        clean.append((p[good], n[good]))
+    clean = _clean(points, normals)
     trees = [cKDTree(p) if len(p) else None for p, _ in clean]
     residuals = []
     for a in range(len(clean)):
@@ -302,7 +366,7 @@ def overlap_residuals(points: Sequence[np.ndarray], normals: Sequence[np.ndarray
             for first, second, sign in ((a, b, 1.0), (b, a, -1.0)):  # both ways as a's surface less b's
                 if trees[second] is None or not len(clean[first][0]):
                     continue
-                q, n, good = _local_planes(trees[second], *clean[second], clean[first][0], max_distance_mm)
+                q, n, good = _local_planes(trees[second], *clean[second], *clean[first], max_distance_mm)
                 located.append(clean[first][0][good])
                 distances.append(sign * _signed_distances(clean[first][0][good], q[good], n[good]))
             if not distances or sum(len(d) for d in distances) < 2 * min_points:
