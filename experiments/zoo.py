@@ -30,8 +30,10 @@ use cases that the commands run: ``reconstruct_capture`` (``thermofield reconstr
   visible cameras both see to a visible pixel; the median distance from the true visible pixel, next
   to that of the best similarity fitted to the true correspondences (parallax leaves no exact one).
 
-Each scene's result is cached in ``--cache`` under a key of the seed and the content of services/,
-device_gateway/ and this script, so a rerun with unchanged code only reads them.
+Each stage of a scene (``STAGES``: film, reconstruct, field, inspect, register) is cached in ``--cache`` on
+its own, under the seed and a key of the code the stage can run and of its input stage's key
+(:func:`stage_keys`): a fix of the inspection re-runs ``inspect`` on the cached frames, cloud and field, not
+the rendering. ``--stages film`` renders scenes into the cache and analyses nothing.
 """
 
 from __future__ import annotations
@@ -602,7 +604,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--json", type=Path, required=True, help="per-scene results (JSON) are written here")
     parser.add_argument("--markdown", type=Path, default=None, help="write the tables into this file (docs/zoo.md)")
     parser.add_argument("--cache", type=Path, default=default_cache(),
-                        help="per-scene result cache (default $XDG_CACHE_HOME/thermofield/zoo)")
+                        help="per-stage cache of the scenes (default $XDG_CACHE_HOME/thermofield/zoo)")
     parser.add_argument("--allow-tuning", action="store_true", help="allow tuning seeds into --markdown")
     parser.add_argument("--summarise", action="store_true",
                         help="run nothing: read the per-scene results of --json (those of --seeds) and write the tables")
