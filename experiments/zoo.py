@@ -30,8 +30,10 @@ use cases that the commands run: ``reconstruct_capture`` (``thermofield reconstr
   visible cameras both see to a visible pixel; the median distance from the true visible pixel, next
   to that of the best similarity fitted to the true correspondences (parallax leaves no exact one).
 
-Each scene's result is cached in ``--cache`` under a key of the seed and the content of services/,
-device_gateway/ and this script, so a rerun with unchanged code only reads them.
+Each stage of a scene (``STAGES``: film, reconstruct, field, inspect, register) is cached in ``--cache`` on
+its own, under the seed and a key of the code the stage can run and of its input stage's key
+(:func:`stage_keys`): a fix of the inspection re-runs ``inspect`` on the cached frames, cloud and field, not
+the rendering. ``--stages film`` renders scenes into the cache and analyses nothing.
 """
 
 from __future__ import annotations
@@ -46,11 +48,13 @@ import argparse  # noqa: E402
 import hashlib  # noqa: E402
 import json  # noqa: E402
 import multiprocessing  # noqa: E402
+import pickle  # noqa: E402
 import sys  # noqa: E402
 import tempfile  # noqa: E402
 import time  # noqa: E402
 import traceback  # noqa: E402
 from concurrent.futures import ProcessPoolExecutor, as_completed  # noqa: E402
+from dataclasses import dataclass  # noqa: E402
 from pathlib import Path  # noqa: E402
 
 import numpy as np  # noqa: E402
@@ -84,19 +88,84 @@ def parse_seeds(text: str) -> list[int]:
     return sorted(set(seeds))
 
 
-def code_digest() -> str:
-    """SHA-256 of the code a scene's result depends on: services/, device_gateway/ and this script's scoring
-    (``run_scene`` and the helpers it calls; the tables may change without invalidating the cache)."""
+STAGES = ("film", "reconstruct", "field", "inspect", "register")
+"""The stages of a scene, each cached on its own (see :func:`stage_keys`)."""
+_STAGE_MODULES = {
+    "film": ("services.simulation.zoo", "device_gateway.drivers.simulated", "device_gateway.station",
+             "services.structured_light.patterns"),
+    "reconstruct": ("services.pipeline.reconstruct", "services.pipeline.tables"),
+    "field": ("services.pipeline.field",),
+    "inspect": ("services.pipeline.inspect", "services.formats.part"),
+    "register": ("services.pipeline.register", "services.simulation.thermal", "services.geometry.camera"),
+}
+_STAGE_INPUT = {"film": None, "reconstruct": "film", "field": "reconstruct", "inspect": "field", "register": "film"}
+_PACKAGES = ("services", "device_gateway")
+
+
+def _module_path(name: str) -> Path | None:
+    base = ROOT.joinpath(*name.split("."))
+    for path in (base.with_suffix(".py"), base / "__init__.py"):
+        if path.is_file():
+            return path
+    return None
+
+
+def module_files(names: tuple[str, ...]) -> list[Path]:
+    """The repository's source files that importing the modules ``names`` can run: the modules, the packages
+    above them, and, transitively, every module of services/ or device_gateway/ that their code imports anywhere
+    (also inside functions, which a look at ``sys.modules`` after an import would miss). Read with ``ast``,
+    not imported, so that a key costs no import of the code it keys."""
+    import ast
+
+    seen: dict[str, Path] = {}
+    pending = list(names)
+    while pending:
+        name = pending.pop()
+        parts = name.split(".")
+        for depth in range(1, len(parts) + 1):  # a module's packages run on import too
+            prefix = ".".join(parts[:depth])
+            path = _module_path(prefix)
+            if path is None or prefix in seen:
+                continue
+            seen[prefix] = path
+            package = prefix if path.name == "__init__.py" else prefix.rpartition(".")[0]
+            for node in ast.walk(ast.parse(path.read_text(), filename=str(path))):
+                if isinstance(node, ast.Import):
+                    found = [alias.name for alias in node.names]
+                elif isinstance(node, ast.ImportFrom):
+                    module = node.module or ""
+                    if node.level:
+                        anchor = package.split(".")[:len(package.split(".")) - node.level + 1]
+                        module = ".".join([*anchor, module] if module else anchor)
+                    found = [module] + [f"{module}.{alias.name}" for alias in node.names]
+                else:
+                    continue
+                pending.extend(f for f in found if f.split(".")[0] in _PACKAGES and f not in seen)
+    return sorted(set(seen.values()))
+
+
+def stage_keys() -> dict[str, str]:
+    """Per stage, a SHA-256 of the code its result depends on: the source files that its entry modules can
+    run (:func:`module_files`), this script's functions for the stage, and the key of the stage whose output it
+    takes. Filming depends on the simulator alone, so a change of the structured light, the fusion or the
+    inspection re-runs the analysis of the cached frames, not their rendering; a change of the inspection
+    re-runs only ``inspect``."""
     import inspect
 
-    hasher = hashlib.sha256(f"zoo-result-{RESULT_VERSION}".encode())
-    for directory in ("services", "device_gateway"):
-        for path in sorted((ROOT / directory).rglob("*.py")):
+    functions = {"film": (film_zoo_scene, _film), "reconstruct": (_reconstruct, _interior, _stats),
+                 "field": (_field, _stats), "inspect": (_inspect,),
+                 "register": (_register, _interior, _best_similarity, registration_truth)}
+    keys: dict[str, str] = {}
+    for stage in STAGES:
+        hasher = hashlib.sha256(f"zoo-{stage}-{RESULT_VERSION}".encode())
+        hasher.update((keys.get(_STAGE_INPUT[stage] or "") or "").encode())
+        for path in module_files(_STAGE_MODULES[stage]):
             hasher.update(str(path.relative_to(ROOT)).encode())
             hasher.update(path.read_bytes())
-    for function in (run_scene, _interior, _stats, _best_similarity):
-        hasher.update(inspect.getsource(function).encode())
-    return hasher.hexdigest()
+        for function in functions[stage]:
+            hasher.update(inspect.getsource(function).encode())
+        keys[stage] = hasher.hexdigest()
+    return keys
 
 
 def default_cache() -> Path:
@@ -152,123 +221,200 @@ def film_zoo_scene(zoo, seed: int):
     return sequence, capture, simulated
 
 
-def run_scene(seed: int) -> dict:
-    """Film scene ``seed``, run the commands' use cases and score them against the truth."""
-    from services.errors import InputError
-    from services.formats.part import load_part
-    from services.geometry.camera import project_points
-    from services.pipeline.field import fuse_field
-    from services.pipeline.inspect import inspect_part, prepare_part_type
-    from services.pipeline.reconstruct import reconstruct_capture
-    from services.pipeline.register import register_pair, white_frame
-    from services.pipeline.tables import TriangulationTables
-    from services.simulation.thermal import seen_by
+@dataclass(frozen=True)
+class Filmed:
+    """What filming a zoo scene gives the analysis: the sequence and capture, and the truth of the camera's view
+    (per pixel: the surface its centre ray meets, -1 for none; whether the projector lights it; the point)."""
 
-    started = time.perf_counter()
-    zoo = zoo_scene(seed)
-    result: dict = {"seed": seed, "kind": zoo.kind, "in_tolerance": zoo.truth.in_tolerance,
-                    "truth": zoo.truth.deviation, "scene": zoo.description}
-    rig = zoo.rig
-    camera, projector, thermal = (rig.devices[name] for name in ("camera", "projector", "thermal"))
+    sequence: object
+    frames: np.ndarray
+    thermal: np.ndarray
+    saturation_level: float
+    surface: np.ndarray
+    lit: np.ndarray
+    points: np.ndarray
+
+
+def _film(seed: int, zoo) -> tuple[dict, dict]:
     sequence, capture, simulated = film_zoo_scene(zoo, seed)
     truth = simulated.view().truth
-    interior = _interior(truth.surface, truth.lit)
-    on_part = truth.surface == 0
-    result["film_s"] = round(time.perf_counter() - started, 1)
+    # cached as a dict of the fields: a class of this script pickled in a spawned worker is __mp_main__'s
+    return {}, {"sequence": sequence, "frames": np.asarray(capture.frames), "thermal": np.asarray(capture.thermal),
+                "saturation_level": capture.exposure["saturation_level"], "surface": truth.surface,
+                "lit": truth.lit, "points": truth.points}
 
-    # thermofield reconstruct
+
+def _reconstruct(seed: int, zoo, filmed: Filmed) -> tuple[dict, object]:
+    """``thermofield reconstruct`` and the point figures; the cloud (None when refused)."""
+    from services.errors import InputError
+    from services.pipeline.reconstruct import reconstruct_capture
+    from services.pipeline.tables import TriangulationTables
+
     try:
-        reconstruction = reconstruct_capture(frames=capture.frames, sequence=sequence, rig=rig,
-                                             tables=TriangulationTables(),
-                                             saturation_level=capture.exposure["saturation_level"])
+        reconstruction = reconstruct_capture(frames=filmed.frames, sequence=filmed.sequence, rig=zoo.rig,
+                                             tables=TriangulationTables(), saturation_level=filmed.saturation_level)
     except InputError as error:
-        result.update(refused=str(error), points=0, coverage=0.0, part_coverage=0.0)
-        return result
+        return {"refused": str(error), "points": 0, "coverage": 0.0, "part_coverage": 0.0}, None
+    interior = _interior(filmed.surface, filmed.lit)
+    on_part = filmed.surface == 0
     cloud = reconstruction.cloud
     glow = reconstruction.glow
-    result["glow_hint"] = glow.hint if glow is not None else None
     u, v = np.rint(cloud["u"]).astype(int), np.rint(cloud["v"]).astype(int)
     points = cloud.points
-    error = np.linalg.norm(points - truth.points[v, u], axis=1)
+    error = np.linalg.norm(points - filmed.points[v, u], axis=1)
     error = np.where(np.isfinite(error), error, np.inf)
-    has_point = np.zeros(truth.surface.shape, dtype=bool)
+    has_point = np.zeros(filmed.surface.shape, dtype=bool)
     has_point[v, u] = True
-    point_surface = truth.surface[v, u]
+    point_surface = filmed.surface[v, u]
     wrong = error > WRONG_MM
-    result.update(
-        points=int(len(points)), error=_stats(error), wrong_rate=float(wrong.mean()), wrong=int(wrong.sum()),
-        coverage=float(has_point[interior].mean()) if interior.any() else None,
-        part_coverage=float(has_point[interior & on_part].mean()) if (interior & on_part).any() else None,
-        part_points=int((point_surface == 0).sum()),
-        wrong_on_part=int((wrong & (point_surface == 0)).sum()),
-        wrong_off_part=int((wrong & (point_surface > 0)).sum()),
-        wrong_on_miss=int((wrong & (point_surface < 0)).sum()),
-        wrong_at_edge=int((wrong & ~interior[v, u]).sum()),
-        wrong_in_lit_interior=int((wrong & interior[v, u]).sum()),
-        wrong_unlit=int((wrong & ~truth.lit[v, u]).sum()))
-    result["reconstruct_s"] = round(time.perf_counter() - started - result["film_s"], 1)
+    return {"glow_hint": glow.hint if glow is not None else None,
+            "points": int(len(points)), "error": _stats(error), "wrong_rate": float(wrong.mean()),
+            "wrong": int(wrong.sum()),
+            "coverage": float(has_point[interior].mean()) if interior.any() else None,
+            "part_coverage": float(has_point[interior & on_part].mean()) if (interior & on_part).any() else None,
+            "part_points": int((point_surface == 0).sum()),
+            "wrong_on_part": int((wrong & (point_surface == 0)).sum()),
+            "wrong_off_part": int((wrong & (point_surface > 0)).sum()),
+            "wrong_on_miss": int((wrong & (point_surface < 0)).sum()),
+            "wrong_at_edge": int((wrong & ~interior[v, u]).sum()),
+            "wrong_in_lit_interior": int((wrong & interior[v, u]).sum()),
+            "wrong_unlit": int((wrong & ~filmed.lit[v, u]).sum())}, cloud
 
-    # thermofield field
-    field = fuse_field(cloud=cloud, rig=rig, thermal=[(None, capture.thermal)])
+
+def _field(seed: int, zoo, filmed: Filmed, cloud) -> tuple[dict, object]:
+    """``thermofield field`` and the temperature figures; the field."""
+    from services.pipeline.field import fuse_field
+
+    field = fuse_field(cloud=cloud, rig=zoo.rig, thermal=[(None, filmed.thermal)])
+    u, v = np.rint(cloud["u"]).astype(int), np.rint(cloud["v"]).astype(int)
+    point_surface = filmed.surface[v, u]
     temperature = np.asarray(field["temperature"], dtype=np.float64)
     part_index = np.flatnonzero(point_surface == 0)
-    true_temperature = zoo.temperatures.surfaces[0].evaluate(truth.points[v[part_index], u[part_index]])
+    true_temperature = zoo.temperatures.surfaces[0].evaluate(filmed.points[v[part_index], u[part_index]])
     measured = temperature[part_index]
     has_temperature = np.isfinite(measured)
     temperature_error = np.abs(measured[has_temperature] - true_temperature[has_temperature])
-    result.update(part_with_temperature=float(has_temperature.mean()) if len(part_index) else None,
-                  temperature_error=_stats(temperature_error),
-                  temperature_off_20k=float((temperature_error > 20.0).mean()) if len(temperature_error) else None)
     off_part = np.isfinite(temperature) & (point_surface != 0)
-    result["hot_readings_off_part"] = int((temperature[off_part] >= 300.0).sum())
+    return {"part_with_temperature": float(has_temperature.mean()) if len(part_index) else None,
+            "temperature_error": _stats(temperature_error),
+            "temperature_off_20k": float((temperature_error > 20.0).mean()) if len(temperature_error) else None,
+            "hot_readings_off_part": int((temperature[off_part] >= 300.0).sum())}, field
 
-    # thermofield inspect
+
+def _inspect(seed: int, zoo, field) -> tuple[dict, None]:
+    """``thermofield inspect`` with the scene's part file: the verdict, surface and features against the truth."""
+    from services.errors import InputError
+    from services.formats.part import load_part
+    from services.pipeline.inspect import inspect_part, prepare_part_type
+
     with tempfile.TemporaryDirectory(prefix="zoo-part-") as directory:
         part = load_part(zoo.write_part(directory))
         try:
             outcome = inspect_part(field=field, part=prepare_part_type(part))
         except InputError as error:
-            result.update(verdict="refused", inspect_error=str(error))
-        else:
-            report = outcome.report
-            result["verdict"] = report["verdict"]
-            result["surface"] = {key: report["surface"].get(key) for key in ("cell_min", "cell_max", "uncertainty",
-                                                                              "verdict")}
-            features = {}
-            for feature in report["features"]:
-                entry = {key: feature.get(key) for key in ("verdict", "cold", "uncertainty", "error")}
-                if feature["name"] in zoo.truth.features and feature.get("cold") is not None:
-                    entry["cold_error"] = float(feature["cold"]) - zoo.truth.features[feature["name"]]
-                features[feature["name"]] = entry
-            result["features"] = features
-    result["inspect_s"] = round(time.perf_counter() - started - result["film_s"] - result["reconstruct_s"], 1)
+            return {"verdict": "refused", "inspect_error": str(error)}, None
+    report = outcome.report
+    result: dict = {"verdict": report["verdict"],
+                    "surface": {key: report["surface"].get(key) for key in ("cell_min", "cell_max", "uncertainty",
+                                                                            "verdict")}}
+    features = {}
+    for feature in report["features"]:
+        entry = {key: feature.get(key) for key in ("verdict", "cold", "uncertainty", "error")}
+        if feature["name"] in zoo.truth.features and feature.get("cold") is not None:
+            entry["cold_error"] = float(feature["cold"]) - zoo.truth.features[feature["name"]]
+        features[feature["name"]] = entry
+    result["features"] = features
+    return result, None
 
-    # thermofield register: the thermal frame onto the white frame
-    visible = white_frame(capture.frames, sequence).astype(np.float32)
-    infrared = np.nan_to_num(capture.thermal[0].astype(np.float32), nan=float(np.nanmin(capture.thermal[0])))
+
+def _register(seed: int, zoo, filmed: Filmed) -> tuple[dict, None]:
+    """``thermofield register`` of the thermal frame onto the white frame, against the true correspondences."""
+    from services.errors import InputError
+    from services.geometry.camera import project_points
+    from services.pipeline.register import register_pair, white_frame
+    from services.simulation.thermal import seen_by
+
+    thermal = zoo.rig.devices["thermal"]
+    visible = white_frame(filmed.frames, filmed.sequence).astype(np.float32)
+    infrared = np.nan_to_num(filmed.thermal[0].astype(np.float32), nan=float(np.nanmin(filmed.thermal[0])))
     try:
         registration = register_pair(fixed=visible, moving=infrared, source=f"zoo scene {seed}")
     except InputError as error:
-        result["register_error"] = str(error)
-    else:
-        rows, columns = np.nonzero(interior & on_part)
-        pick = np.random.default_rng(seed).permutation(len(rows))[:4000]
-        world = truth.points[rows[pick], columns[pick]]
-        seen = seen_by(zoo.scene, thermal, world)
-        thermal_pixels = project_points(world[seen], thermal.K, thermal.dist, thermal.R, thermal.t)
-        inside = ((thermal_pixels[:, 0] >= 0) & (thermal_pixels[:, 0] <= thermal.width - 1)
-                  & (thermal_pixels[:, 1] >= 0) & (thermal_pixels[:, 1] <= thermal.height - 1))
-        visible_pixels = np.column_stack([columns[pick], rows[pick]])[seen][inside].astype(np.float64)
-        thermal_pixels = thermal_pixels[inside]
-        if len(thermal_pixels) >= 10:
-            matrix = np.asarray(registration.matrix, dtype=np.float64)[:2]
-            mapped = thermal_pixels @ matrix[:, :2].T + matrix[:, 2]
-            best = _best_similarity(thermal_pixels, visible_pixels)
-            fitted = thermal_pixels @ best[:, :2].T + best[:, 2]
-            result["register_px"] = float(np.median(np.linalg.norm(mapped - visible_pixels, axis=1)))
-            result["register_truth"] = registration_truth(zoo)
-            result["register_best_px"] = float(np.median(np.linalg.norm(fitted - visible_pixels, axis=1)))
-    result["seconds"] = round(time.perf_counter() - started, 1)
+        return {"register_error": str(error)}, None
+    result: dict = {}
+    rows, columns = np.nonzero(_interior(filmed.surface, filmed.lit) & (filmed.surface == 0))
+    pick = np.random.default_rng(seed).permutation(len(rows))[:4000]
+    world = filmed.points[rows[pick], columns[pick]]
+    seen = seen_by(zoo.scene, thermal, world)
+    thermal_pixels = project_points(world[seen], thermal.K, thermal.dist, thermal.R, thermal.t)
+    inside = ((thermal_pixels[:, 0] >= 0) & (thermal_pixels[:, 0] <= thermal.width - 1)
+              & (thermal_pixels[:, 1] >= 0) & (thermal_pixels[:, 1] <= thermal.height - 1))
+    visible_pixels = np.column_stack([columns[pick], rows[pick]])[seen][inside].astype(np.float64)
+    thermal_pixels = thermal_pixels[inside]
+    if len(thermal_pixels) >= 10:
+        matrix = np.asarray(registration.matrix, dtype=np.float64)[:2]
+        mapped = thermal_pixels @ matrix[:, :2].T + matrix[:, 2]
+        best = _best_similarity(thermal_pixels, visible_pixels)
+        fitted = thermal_pixels @ best[:, :2].T + best[:, 2]
+        result["register_px"] = float(np.median(np.linalg.norm(mapped - visible_pixels, axis=1)))
+        result["register_truth"] = registration_truth(zoo)
+        result["register_best_px"] = float(np.median(np.linalg.norm(fitted - visible_pixels, axis=1)))
+    return result, None
+
+
+def _stage(name: str, seed: int, cache: Path, keys: dict[str, str], compute) -> tuple[dict, object]:
+    """``compute()`` -> (figures, output), read from or written to ``cache/name/seed-key.pkl``; the figures
+    get ``name_s``, the seconds the computation took (those of the run that filled the cache)."""
+    from services.geometry.cloud import PointCloud
+
+    path = cache / name / f"{seed}-{keys[name][:16]}.pkl"
+    if path.is_file():
+        with path.open("rb") as file:
+            figures, output = pickle.load(file)
+        if isinstance(output, tuple) and output[:1] == ("PointCloud",):
+            output = PointCloud(*output[1:])
+        return figures, output
+    started = time.perf_counter()
+    figures, output = compute()
+    figures = {**figures, f"{name}_s": round(time.perf_counter() - started, 1)}
+    stored = output
+    if isinstance(output, PointCloud):  # its read-only mappings do not pickle: its arrays do
+        stored = ("PointCloud", dict(output.properties), dict(output.units), output.comments)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    temporary = path.with_suffix(f".{os.getpid()}.tmp")
+    with temporary.open("wb") as file:
+        pickle.dump((figures, stored), file, protocol=pickle.HIGHEST_PROTOCOL)
+    temporary.replace(path)
+    return figures, output
+
+
+def run_scene(seed: int, cache: Path, keys: dict[str, str], stages: tuple[str, ...] = STAGES) -> dict:
+    """Film scene ``seed``, run the commands' use cases and score them against the truth, each stage read from
+    ``cache`` when its key's result is there (``stages``: those to run, with the stages they take output from)."""
+    zoo = zoo_scene(seed)
+    result: dict = {"seed": seed, "kind": zoo.kind, "in_tolerance": zoo.truth.in_tolerance,
+                    "truth": zoo.truth.deviation, "scene": zoo.description}
+    figures, filmed = _stage("film", seed, cache, keys, lambda: _film(seed, zoo))
+    filmed = Filmed(**filmed)
+    result.update(figures)
+    if "register" in stages:
+        result.update(_stage("register", seed, cache, keys, lambda: _register(seed, zoo, filmed))[0])
+    if not {"reconstruct", "field", "inspect"} & set(stages):
+        return _seconds(result)
+    figures, cloud = _stage("reconstruct", seed, cache, keys, lambda: _reconstruct(seed, zoo, filmed))
+    result.update(figures)
+    if cloud is None or not {"field", "inspect"} & set(stages):
+        return _seconds(result)
+    figures, field = _stage("field", seed, cache, keys, lambda: _field(seed, zoo, filmed, cloud))
+    result.update(figures)
+    if "inspect" in stages:
+        result.update(_stage("inspect", seed, cache, keys, lambda: _inspect(seed, zoo, field))[0])
+    return _seconds(result)
+
+
+def _seconds(result: dict) -> dict:
+    """``seconds``: what the scene's stages cost together when computed (not reading the cache)."""
+    result["seconds"] = round(sum(result.get(f"{stage}_s", 0.0) for stage in STAGES), 1)
     return result
 
 
@@ -300,19 +446,11 @@ def within_search_range(truth: dict[str, float]) -> bool:
     return abs(truth["scale_change"]) <= 0.12 and abs(truth["angle_deg"]) <= 6.0 and truth["shift_fraction"] <= 0.12
 
 
-def _cached_run(seed: int, cache: Path, digest: str) -> dict:
-    path = cache / f"{seed}-{digest[:16]}.json"
-    if path.is_file():
-        return json.loads(path.read_text())
+def _guarded_run(seed: int, cache: Path, keys: dict[str, str], stages: tuple[str, ...]) -> dict:
     try:
-        result = run_scene(seed)
+        return run_scene(seed, cache, keys, stages)
     except Exception:  # a crash is a finding: record it and go on with the other scenes
-        result = {"seed": seed, "crash": traceback.format_exc(limit=6)}
-    cache.mkdir(parents=True, exist_ok=True)
-    temporary = path.with_suffix(".tmp")
-    temporary.write_text(json.dumps(result, default=float))
-    temporary.replace(path)
-    return result
+        return {"seed": seed, "crash": traceback.format_exc(limit=6)}
 
 
 def _percentile(values: list[float], q: float) -> float | None:
@@ -466,15 +604,23 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--json", type=Path, required=True, help="per-scene results (JSON) are written here")
     parser.add_argument("--markdown", type=Path, default=None, help="write the tables into this file (docs/zoo.md)")
     parser.add_argument("--cache", type=Path, default=default_cache(),
-                        help="per-scene result cache (default $XDG_CACHE_HOME/thermofield/zoo)")
+                        help="per-stage cache of the scenes (default $XDG_CACHE_HOME/thermofield/zoo)")
     parser.add_argument("--allow-tuning", action="store_true", help="allow tuning seeds into --markdown")
     parser.add_argument("--summarise", action="store_true",
                         help="run nothing: read the per-scene results of --json (those of --seeds) and write the tables")
+    parser.add_argument("--stages", default=",".join(STAGES),
+                        help=f"the stages to run (and those whose output they take), of {', '.join(STAGES)}; the "
+                             "tables need all of them (e.g. --stages film to render scenes into the cache alone)")
     args = parser.parse_args(argv)
     try:
         seeds = parse_seeds(args.seeds)
     except ValueError as error:
         parser.error(str(error))
+    stages = tuple(stage.strip() for stage in args.stages.split(",") if stage.strip())
+    if unknown := [stage for stage in stages if stage not in STAGES]:
+        parser.error(f"--stages: {', '.join(unknown)} is not a stage; the stages are {', '.join(STAGES)}")
+    if set(stages) != set(STAGES) and (args.markdown is not None or args.summarise):
+        parser.error("--stages: the tables (--markdown, --summarise) need every stage")
     if not seeds:
         parser.error("--seeds names no seed")
     if args.jobs < 1:
@@ -502,17 +648,19 @@ def main(argv: list[str] | None = None) -> int:
                 result["register_truth"] = registration_truth(zoo_scene(result["seed"]))
         args.json.write_text(json.dumps(results, indent=1, default=float))
     else:
-        digest = code_digest()
+        keys = stage_keys()
         args.json.parent.mkdir(parents=True, exist_ok=True)
         if args.jobs == 1:
             for seed in seeds:
-                keep(_cached_run(seed, args.cache, digest))
+                keep(_guarded_run(seed, args.cache, keys, stages))
         else:
             # spawned, not forked: a process that has used OpenMP (numba, Open3D) cannot fork safely
             with ProcessPoolExecutor(max_workers=args.jobs, mp_context=multiprocessing.get_context("spawn")) as pool:
-                futures = [pool.submit(_cached_run, seed, args.cache, digest) for seed in seeds]
+                futures = [pool.submit(_guarded_run, seed, args.cache, keys, stages) for seed in seeds]
                 for future in as_completed(futures):
                     keep(future.result())
+    if set(stages) != set(STAGES):
+        return 0
     command = "python experiments/zoo.py " + " ".join(argv if argv is not None else sys.argv[1:])
     table = summarise(results, command, tuning)
     print(table)

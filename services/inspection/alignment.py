@@ -17,6 +17,7 @@ _CANDIDATE_POINTS = 1000
 _FINE_POINTS = 10000
 _COARSE_KEEP = 3
 _PRUNED_STARTS = 6
+_RANK_TOLERANCE = 1e-9
 
 
 @dataclass(frozen=True)
@@ -77,13 +78,18 @@ def _rotations(omega: np.ndarray) -> np.ndarray:
             + (1 - np.cos(angle))[:, None, None] * cross @ cross)
 
 
-def _least_squares_steps(system: np.ndarray, right: np.ndarray) -> np.ndarray:
-    """Minimum-norm solutions (S, 6) of S normal systems (S, 6, 6), as ``np.linalg.lstsq`` solves one: singular
-    values below machine precision times 6 of the largest count as zero (a cylinder's spin about its axis)."""
-    u, singular, vt = np.linalg.svd(system)
-    kept = singular > np.finfo(float).eps * system.shape[-1] * singular[:, :1]
+def _least_squares_steps(system: np.ndarray, right: np.ndarray, size: float) -> np.ndarray:
+    """Minimum-norm solutions (S, 6) of S normal systems (S, 6, 6) in (rotation vector, translation), with the
+    rotations scaled by the part's ``size`` (mm) so that both halves are lengths: singular values below
+    ``_RANK_TOLERANCE`` of the largest count as zero. A symmetry (a cylinder's spin about its axis) or a
+    direction that no seen face pins then stays where it is, instead of taking a step from the rounding of the
+    distance grid's gradients (unscaled, a spin's singular value of about 1e-14 of the largest passed machine
+    precision and the polish walked a part off its true pose)."""
+    scale = np.array([1 / size] * 3 + [1.0] * 3)
+    u, singular, vt = np.linalg.svd(system * scale[:, None] * scale[None, :])
+    kept = singular > _RANK_TOLERANCE * singular[:, :1]
     inverse = np.divide(1.0, singular, out=np.zeros_like(singular), where=kept)
-    return np.einsum("sji,sj->si", vt, inverse * np.einsum("sji,sj->si", u, right))
+    return scale * np.einsum("sji,sj->si", vt, inverse * np.einsum("sji,sj->si", u, right * scale))
 
 
 def _moved(points: np.ndarray, transforms: np.ndarray) -> np.ndarray:
@@ -125,6 +131,7 @@ def _icp(points: np.ndarray, nominal: NominalSurface, transforms: np.ndarray, di
     take seconds.
     """
     transforms = np.array(transforms, dtype=np.float64)
+    size = float(np.linalg.norm(np.ptp(nominal.coarse_samples, axis=0)))
     active = np.ones(len(transforms), dtype=bool)
     for cut_off in distances:
         moved = _moved(points, transforms[active])
@@ -139,7 +146,7 @@ def _icp(points: np.ndarray, nominal: NominalSurface, transforms: np.ndarray, di
         design = np.concatenate([np.cross(moved, normal), normal], axis=2)
         weighted = design * weight[..., None]
         step = _least_squares_steps(weighted.transpose(0, 2, 1) @ design,
-                                    -np.einsum("sni,sn->si", weighted, residual))
+                                    -np.einsum("sni,sn->si", weighted, residual), size)
         increment = _rotations(step[:, :3])
         transforms[active, :3, :3] = increment @ transforms[active, :3, :3]
         transforms[active, :3, 3] = np.einsum("sij,sj->si", increment, transforms[active, :3, 3]) + step[:, 3:]
@@ -201,19 +208,21 @@ def align_nominal(points: np.ndarray, nominal: NominalSurface, max_distance_mm: 
     Correspondences run from each measured point to its nearest nominal surface sample, never the
     other way, so the part's unseen side does not pull on the fit: the view may be one-sided.
     Each start R0 = E_n P E_m^T, t0 = c_n - R0 c_m (principal axes E and centroids c of the nominal
-    samples and the measured points, P one of the 24 signed permutations with det +1; for the 8 that
-    match the first axes, also t0 shifted along the nominal's first axis so that the measured points'
-    lower or upper end (0.5 and 99.5 percentiles) meets the nominal's: a one-sided view's centroid lies
-    off the part's, and along a cylinder ICP cannot tell a shift from a fit until a face pins it) is
-    refined by point-to-plane ICP [1]_ with Tukey weights [2]_ on 300 points against 3000 nominal
-    samples, the weights' cut-off shrinking from a quarter to a thirtieth of the part's size over 10
-    iterations (after 3, only the 6 starts with most points near the nominal go on); the three starts with most
+    samples and the measured points, P one of the 24 signed permutations with det +1; each also with t0
+    shifted along each nominal axis so that the measured points' lower or upper end (0.5 and 99.5
+    percentiles) meets the nominal's: a one-sided view's centroid lies off the part's toward the viewer,
+    by a quarter of a cylinder's diameter across it, and along a cylinder ICP cannot tell a shift from a
+    fit until a face pins it; 168 starts) is refined by point-to-plane ICP [1]_ with Tukey weights [2]_ on
+    300 points against 3000 nominal samples, the weights' cut-off shrinking from a quarter to a thirtieth
+    of the part's size over 10 iterations (after 3, only the 6 starts with most points near the nominal go on); the three starts with most
     points near the nominal are refined on 1000 points down to ``max_distance_mm``; the one with most
     points within that distance of the nominal surface (then the lowest residual) wins and is
     polished by 5 iterations at ``max_distance_mm`` on 10 000 points, as a given start is, with each
     point's plane that of its closest point on the mesh (``NominalSurface.signed_distance_gradient``).
-    Symmetries of the part (a cylinder's rotation about its axis) leave the transform undetermined
-    along them, which no measure depends on.
+    Each step solves the 6 x 6 normal equations with the rotation scaled by the part's size, so that
+    both halves are lengths, dropping singular values below 1e-9 of the largest: symmetries of the part
+    (a cylinder's rotation about its axis) and directions no seen face pins leave the transform where it
+    was along them, which no measure depends on.
 
     References
     ----------
@@ -235,18 +244,20 @@ def align_nominal(points: np.ndarray, nominal: NominalSurface, max_distance_mm: 
         measured_centre, measured_axes = _principal_frame(fine)
         nominal_centre, nominal_axes = _principal_frame(nominal.samples)
         starts = []
-        axis = nominal_axes[:, 0]
-        nominal_extent = np.percentile(nominal.samples @ axis, [0.5, 99.5])
+        nominal_extents = np.percentile(nominal.samples @ nominal_axes, [0.5, 99.5], axis=0).T
         for permutation in _start_rotations():
             rotation = nominal_axes @ permutation @ measured_axes.T
             translation = nominal_centre - rotation @ measured_centre
-            shifts = [0.0]
-            if permutation[0, 0] != 0:  # first axes matched: a one-sided view's centroid lies off the part's
-                measured_extent = np.percentile((fine @ rotation.T + translation) @ axis, [0.5, 99.5])
-                shifts += list(nominal_extent - measured_extent)  # so also try the view's ends on the part's
+            shifts = [np.zeros(3)]
+            # a one-sided view's centroid lies off the part's toward the viewer: along the view, only the near
+            # end of the part is seen; so also try the view's lower or upper end on the part's along each axis
+            moved = fine @ rotation.T + translation
+            for axis, extent in zip(nominal_axes.T, nominal_extents):
+                for shift in extent - np.percentile(moved @ axis, [0.5, 99.5]):
+                    shifts.append(shift * axis)
             for shift in shifts:
                 guess = np.eye(4)
-                guess[:3, :3], guess[:3, 3] = rotation, translation + shift * axis
+                guess[:3, :3], guess[:3, 3] = rotation, translation + shift
                 starts.append(guess)
         starts = np.array(starts)
         schedule = np.geomspace(size / 4, size / 30, 10)
