@@ -289,17 +289,19 @@ class _Problem:
             n = 2 * len(o.object_points)
             if jacobian:
                 d_pose = d[:, :6]
-                blocks = [(self.view_offset + 6 * o.view,
-                           d_pose @ np.block([[dr_dview_r, dr_dview_t], [dt_dview_r, dt_dview_t]]))]
+                chain = np.empty((6, 6))
+                chain[:3, :3], chain[:3, 3:], chain[3:, :3], chain[3:, 3:] = dr_dview_r, dr_dview_t, dt_dview_r, dt_dview_t
+                blocks = [(self.view_offset + 6 * o.view, d_pose @ chain)]
                 if o.camera != self.reference:
-                    blocks.append((self.camera_columns[o.camera],
-                                   d_pose @ np.block([[dr_dcam_r, dr_dcam_t], [dt_dcam_r, dt_dcam_t]])))
+                    chain = np.empty((6, 6))
+                    chain[:3, :3], chain[:3, 3:], chain[3:, :3], chain[3:, 3:] = dr_dcam_r, dr_dcam_t, dt_dcam_r, dt_dcam_t
+                    blocks.append((self.camera_columns[o.camera], d_pose @ chain))
                 if self.refined[o.camera]:
                     blocks.append((self.intrinsic_columns[o.camera], d[:, [6 + i for i in self.refined[o.camera]]]))
                 for column, block in blocks:
-                    block_rows, block_columns = np.indices(block.shape)
-                    rows.append((row + block_rows).ravel())
-                    columns.append((column + block_columns).ravel())
+                    width = block.shape[1]
+                    rows.append(np.repeat(np.arange(row, row + n), width))
+                    columns.append(np.tile(np.arange(column, column + width), n))
                     values.append(block.ravel())
             row += n
         residual = np.concatenate(residuals)
@@ -309,31 +311,27 @@ class _Problem:
                        shape=(row, self.parameters)).tocsr()
         return residual, J
 
-    def solve(self, x0, observations=None, free=None):
-        """Levenberg-Marquardt from ``x0`` over the ``free`` parameters (default all) on ``observations``.
+    def solve(self, x0, observations=None):
+        """Levenberg-Marquardt from ``x0`` on ``observations`` (default all; a view without observations keeps
+        its parameters).
 
-        By hand on the normal equations: ``scipy.optimize.least_squares``'s sparse trust region (LSMR) took
-        98 iterations and 80 s on a four-head station without reaching the optimum, while J^T J here is small
-        (a few hundred unknowns) and a Cholesky solve of it converges in a handful of steps.
+        By hand on the normal equations, the board views eliminated by their Schur complement (6 x 6 blocks):
+        ``scipy.optimize.least_squares``'s sparse trust region (LSMR) took 98 iterations and 80 s on a four-head
+        station without reaching the optimum, while the reduced system here has a few dozen unknowns and converges
+        in a handful of steps.
         """
         observations = self.observations if observations is None else observations
-        free = np.arange(self.parameters) if free is None else free
         x = x0.copy()
         residual, J = self.residuals_and_jacobian(x, observations)
         cost, damping = float(residual @ residual), 1e-3
         for _ in range(100):
-            J = J[:, free]
             H, g = (J.T @ J).toarray(), J.T @ residual
-            scale = np.sqrt(np.maximum(np.diag(H), 1e-300))
-            normal = H / np.outer(scale, scale)
+            scale = np.sqrt(np.diag(H))
+            scale[scale == 0] = 1.0  # parameters no observation touches (a view left out) keep their value
+            normal, gradient = H / np.outer(scale, scale), g / scale
             while True:
-                try:
-                    step = -cho_solve(cho_factor(normal + damping * np.eye(len(free))), g / scale) / scale
-                except np.linalg.LinAlgError:
-                    damping *= 10
-                    continue
-                trial = x.copy()
-                trial[free] += step
+                step = self._damped_step(normal, gradient, damping) / scale
+                trial = x + step
                 trial_residual, trial_J = self.residuals_and_jacobian(trial, observations)
                 trial_cost = float(trial_residual @ trial_residual)
                 if trial_cost <= cost:
@@ -348,6 +346,29 @@ class _Problem:
                 break
         return x
 
+    def _split(self):
+        views = np.arange(self.view_offset, self.view_offset + 6 * self.views)
+        cameras = np.setdiff1d(np.arange(self.parameters), views)
+        return cameras, views
+
+    def _damped_step(self, normal, gradient, damping):
+        """Solve (N + damping I) step = -gradient with the views' 6 x 6 blocks eliminated (Schur complement)."""
+        cameras, views = self._split()
+        A = normal[np.ix_(cameras, cameras)] + damping * np.eye(len(cameras))
+        B = normal[np.ix_(cameras, views)].reshape(len(cameras), self.views, 6)
+        blocks = normal[np.ix_(views, views)].reshape(self.views, 6, self.views, 6)
+        C = blocks[np.arange(self.views), :, np.arange(self.views), :] + damping * np.eye(6)
+        C_inverse = np.linalg.inv(C)
+        g_views = gradient[views].reshape(self.views, 6)
+        B_C = np.einsum("pvi,vij->pvj", B, C_inverse)
+        S = A - np.einsum("pvj,qvj->pq", B_C, B)
+        rhs = -gradient[cameras] + np.einsum("pvj,vj->p", B_C, g_views)
+        step_cameras = cho_solve(cho_factor(S), rhs)
+        step_views = np.einsum("vij,vj->vi", C_inverse, -g_views - np.einsum("pvi,p->vi", B, step_cameras))
+        step = np.zeros(self.parameters)
+        step[cameras], step[views] = step_cameras, step_views.ravel()
+        return step
+
     def _pose_parameters(self, camera):
         column = self.camera_columns[camera]
         return np.arange(column, column + 6)
@@ -357,11 +378,18 @@ class _Problem:
         variance = float(residual @ residual) / max(1, len(residual) - self.parameters)
         H = (J.T @ J).toarray()
         scale = np.sqrt(np.diag(H))
-        covariance = np.linalg.inv(H / np.outer(scale, scale)) / np.outer(scale, scale) * variance
+        normal = H / np.outer(scale, scale)
+        # the cameras' block of the inverse is the inverse of the views' Schur complement
+        cameras, views = self._split()
+        B = normal[np.ix_(cameras, views)].reshape(len(cameras), self.views, 6)
+        blocks = normal[np.ix_(views, views)].reshape(self.views, 6, self.views, 6)
+        C_inverse = np.linalg.inv(blocks[np.arange(self.views), :, np.arange(self.views), :])
+        S = normal[np.ix_(cameras, cameras)] - np.einsum("pvi,vij,qvj->pq", B, C_inverse, B)
+        covariance = np.linalg.inv(S) / np.outer(scale[cameras], scale[cameras]) * variance
         std = np.zeros((self.cameras, 6))
         for camera in self.placed:
-            columns = self._pose_parameters(camera)
-            G = self._pose_derivatives(x[columns])
+            columns = np.searchsorted(cameras, self._pose_parameters(camera))
+            G = self._pose_derivatives(x[self._pose_parameters(camera)])
             std[camera] = np.sqrt(np.diag(G @ covariance[np.ix_(columns, columns)] @ G.T))
         return std
 
@@ -385,9 +413,7 @@ class _Problem:
             if seen != set(range(self.cameras)) or not _connected(kept, self.cameras):
                 raise ValueError(f"Without board view {left_out} the cameras are no longer tied to each other; "
                                  "every camera needs two views or more shared with a neighbour.")
-            column = self.view_offset + 6 * left_out
-            free = np.setdiff1d(np.arange(self.parameters), np.arange(column, column + 6))
-            y = self.solve(x, kept, free)
+            y = self.solve(x, kept)
             estimates.append([pose_difference(*_pose(x, self, c), *_pose(y, self, c)) for c in self.placed])
         estimates = np.array(estimates)  # (V, placed cameras, 6)
         deviations = estimates - estimates.mean(axis=0)
