@@ -46,7 +46,7 @@ from services.simulation.station_boards import (
 )
 
 Z90 = 1.6448536269514722
-BOARD = ChessboardSpec(type="chessboard", inner_corners=(9, 6), square_mm=30.0)
+BOARD = ChessboardSpec(type="chessboard", inner_corners=(13, 8), square_mm=25.0)
 
 
 def seeds(text: str) -> list[int]:
@@ -178,8 +178,8 @@ def summary(rows: list[dict]) -> str:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--seeds", type=seeds, default=[], help="e.g. 200-209")
-    parser.add_argument("--shared", type=int, default=10, help="board poses per pair of neighbouring heads")
-    parser.add_argument("--own", type=int, default=12, help="board poses per camera alone")
+    parser.add_argument("--shared", type=int, default=15, help="board poses per pair of neighbouring heads")
+    parser.add_argument("--own", type=int, default=25, help="board poses per camera alone")
     parser.add_argument("--projected", action="store_true",
                         help="corners projected with noise instead of rendered views (see the module docstring)")
     parser.add_argument("--noise", type=float, default=0.03, help="with --projected: corner noise, px")

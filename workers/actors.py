@@ -12,6 +12,8 @@ device and network trouble is retried, bad input (``ValueError``, including
   camera's alignment by mutual information (register).
 - ``calibrate``: a new calibration set with a device re-placed from paired board images, uploaded or
   filmed by the gateway (a calibration capture job).
+- ``calibrate_station``: a new calibration set with every head of a station placed in one world frame from
+  uploaded board views (``thermofield calibrate station``).
 """
 
 from __future__ import annotations
@@ -34,6 +36,7 @@ from services.formats.registration import registration_json
 from services.formats.rig import Rig, rig_to_json
 from services.formats.sequence import Sequence, parse_sequence
 from services.formats.stored_scan import CLOUD, EXPOSURE, FIELD, FRAMES, SEQUENCE, THERMAL, exposure_from_bytes
+from services.pipeline.calibrate import calibrate_station as calibrate_station_views
 from services.pipeline.calibrate import place_device, thermal_board_image, uploaded_board_image
 from services.pipeline.field import fuse_field
 from services.pipeline.reconstruct import reconstruct_capture
@@ -176,7 +179,36 @@ def calibrate(job_id: str) -> dict[str, Any]:
             "artifacts": {"rig.json": rig_digest, "stereo.json": runtime.store.put_bytes(report_json)}}
 
 
-ACTORS = {actor.actor_name: actor for actor in (scan, reconstruct, fuse, register, calibrate)}
+@dramatiq.actor(actor_name="calibrate_station", **_options(max_retries=0, time_limit_s=1800))
+def calibrate_station(job_id: str) -> dict[str, Any]:
+    """Place every head (and thermal camera) of the job's station calibration set in one world frame from the
+    uploaded board views (``params["views"]``: per head or thermal camera, ``[digest, suffix, file name]``), and
+    store the result as a new calibration set with the station calibration report."""
+    runtime = current_runtime()
+    params = _job(runtime, job_id).params
+    rig = _calibration_rig(runtime, params["calibration_set_id"])
+    board = parse_board(runtime.store.read_bytes(params["board"]).decode(), f"artifact {params['board']}")
+    views = {key: [(label, uploaded_board_image(runtime.store.read_bytes(digest), suffix=suffix,
+                                                source=f"{key}/{label}")) for digest, suffix, label in uploads]
+             for key, uploads in params["views"].items()}
+    runtime.tracker.progress(job_id, "calibrate", 0.3)
+    outcome = calibrate_station_views(board=board, rig=rig, views=views, world=params["world"],
+                                      intrinsics=params["intrinsics"], source=f"job {job_id}")
+    rig_digest = runtime.store.put_bytes(rig_to_json(outcome.rig).encode())
+    with runtime.sessions.begin() as session:
+        calibration = CalibrationSet(name=params["name"], station=params["station"], rig_sha256=rig_digest,
+                                     source="calibration")
+        session.add(calibration)
+        session.flush()
+        if params["activate"]:
+            activate_calibration(session, calibration)
+        calibration_id = calibration.id
+    report_json = outcome.report.model_dump_json(indent=2).encode()
+    return {"calibration_set_id": calibration_id,
+            "artifacts": {"rig.json": rig_digest, "station.json": runtime.store.put_bytes(report_json)}}
+
+
+ACTORS = {actor.actor_name: actor for actor in (scan, reconstruct, fuse, register, calibrate, calibrate_station)}
 
 
 def warm_up_runtime(runtime: Runtime) -> None:
