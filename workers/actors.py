@@ -85,7 +85,13 @@ def calibrate(job_id: str) -> dict[str, Any]:
     return jobs.calibrate_job(runtime=runtime, job_id=job_id, film=film)
 
 
-ACTORS = {actor.actor_name: actor for actor in (scan, reconstruct, fuse, register, calibrate)}
+@dramatiq.actor(actor_name="calibrate_station", **_options(max_retries=0, time_limit_s=1800))
+def calibrate_station(job_id: str) -> dict[str, Any]:
+    """:func:`services.pipeline.jobs.calibrate_station_job`: every head of a station in one world frame."""
+    return jobs.calibrate_station_job(runtime=current_runtime(), job_id=job_id)
+
+
+ACTORS = {actor.actor_name: actor for actor in (scan, reconstruct, fuse, register, calibrate, calibrate_station)}
 
 
 def warm_up_runtime(runtime: Runtime) -> None:

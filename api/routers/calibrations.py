@@ -1,11 +1,12 @@
-"""Calibration sets: upload a rig file or calibrate a device from board images; list, get, download, activate."""
+"""Calibration sets: upload a rig file, calibrate a device or a station from board images; list, get, download,
+activate."""
 
 from __future__ import annotations
 
 import hashlib
 import json
 from pathlib import PurePath
-from typing import Annotated
+from typing import Annotated, Literal
 
 from fastapi import APIRouter, Depends, File, Form, Request, UploadFile
 from fastapi.concurrency import run_in_threadpool
@@ -136,6 +137,71 @@ async def start_stereo_calibration(
     request_sha256 = request_digest(request, form)
     return await run_in_threadpool(respond_once, session, key, idempotency_key, request_sha256,
                                    lambda: start_job(runtime, queue, session, "calibrate", params),
+                                   runtime.settings.idempotency_ttl_s)
+
+
+@router.post("/{calibration_set_id}/station", name="start_station_calibration", status_code=202,
+             response_model=Accepted, responses={202: {"headers": {"Location": {"description": "The job."}}},
+                                                 **problem_responses(404, 409, 413)})
+async def start_station_calibration(
+    request: Request, key: AdminKey, calibration: ExistingCalibration, session: SessionDep, runtime: RuntimeDep,
+    queue: JobQueueDep,
+    board: Annotated[UploadFile, File(description="Board specification JSON (docs/calibration.md).")],
+    images: Annotated[list[UploadFile], File(min_length=2, description="Board views, each named HEAD/FILE (a head "
+                                                                       "of the station) or THERMAL/FILE (one of its "
+                                                                       "thermal cameras); one FILE under several "
+                                                                       "names is one board pose seen by those "
+                                                                       "cameras at once.")],
+    name: Annotated[str, Form(min_length=1, max_length=200)],
+    world: Annotated[str | None, Form(max_length=100, description="The head or device fixing the world frame "
+                                                                  "(default the first head's camera).")] = None,
+    intrinsics: Annotated[Literal["refined", "fixed"], Form()] = "refined",
+    activate: Annotated[bool, Form()] = False,
+    idempotency_key: IdempotencyKeyHeader = None,
+):
+    """Calibrate a station's heads (and thermal cameras) to one world frame from uploaded board views (``thermofield
+    calibrate station``): a ``calibrate_station`` job that creates a new calibration set from this one, which must
+    be a station (a version-2 rig with heads)."""
+    rig = _rig_of(runtime, calibration)
+    if not rig.station_heads:
+        raise Problem(422, "invalid-input", f"calibration set {calibration.id} is not a station (its rig lists no "
+                                            "heads); upload a version-2 rig first.")
+    cameras = {h.name: rig.devices[h.camera] for h in rig.heads}
+    cameras.update({n: d for n, d in rig.devices.items() if d.kind == "thermal"})
+    board_text = await read_limited(board, "board", _MAX_RIG_BYTES)
+    parse_board(board_text.decode("utf-8", errors="replace"), f"board ({board.filename})")
+    hasher = hashlib.sha256(board_text)
+    from services.formats.flir import JPEG_SUFFIXES
+    from services.formats.thermal import is_radiometric_file
+
+    checked = []  # every upload is checked before anything is stored
+    for upload in images:
+        path = PurePath(upload.filename or "")
+        camera, suffix = (path.parts[0] if len(path.parts) == 2 else None), path.suffix.lower()
+        if camera not in cameras:
+            raise Problem(422, "invalid-input", f"images: {upload.filename!r} must be named HEAD/FILE or THERMAL/FILE "
+                                                f"with one of {sorted(cameras)}.")
+        suffixes = FRAME_SUFFIXES + (JPEG_SUFFIXES if cameras[camera].kind == "thermal" else ())
+        if suffix not in suffixes:
+            raise Problem(422, "invalid-input", f"images: {upload.filename!r} is not one of {', '.join(suffixes)}.")
+        content = await read_limited(upload, "images", runtime.settings.max_image_bytes)
+        hasher.update(upload.filename.encode() + content)
+        radiometric = cameras[camera].kind == "thermal" and is_radiometric_file(content, suffix)
+        checked.append((camera, path.name, content, suffix, f"images: {upload.filename!r}", cameras[camera].size,
+                        radiometric))
+    settings = runtime.settings
+    await request.app.state.decoders.run(check_board_images, [item[2:] for item in checked], settings.max_image_pixels,
+                                         settings.decode_memory_bytes, source="the board images")
+    views: dict[str, list] = {}
+    for camera, label, content, suffix, *_ in checked:
+        views.setdefault(camera, []).append([runtime.store.put_bytes(content), suffix, label])
+    params = {"calibration_set_id": calibration.id, "station": calibration.station, "name": name, "world": world,
+              "intrinsics": intrinsics, "activate": activate, "board": runtime.store.put_bytes(board_text),
+              "views": views}
+    form = json.dumps({"name": name, "world": world, "intrinsics": intrinsics, "activate": activate}).encode()
+    request_sha256 = request_digest(request, form + hasher.digest())
+    return await run_in_threadpool(respond_once, session, key, idempotency_key, request_sha256,
+                                   lambda: start_job(runtime, queue, session, "calibrate_station", params),
                                    runtime.settings.idempotency_ttl_s)
 
 

@@ -1,4 +1,4 @@
-"""``thermofield calibrate camera|projector|stereo``: calibration from board images to files and a rig."""
+"""``thermofield calibrate camera|projector|stereo|station``: calibration from board images to files and a rig."""
 
 from __future__ import annotations
 
@@ -14,6 +14,7 @@ from services.formats.calibration import (
     save_camera_calibration,
     save_figure,
     save_projector_calibration,
+    save_station_calibration,
     save_stereo_calibration,
 )
 from services.formats.images import FRAME_SUFFIXES, read_frame
@@ -21,7 +22,8 @@ from services.formats.rig import load_rig, save_rig
 from services.formats.sequence import read_capture
 from services.structured_light.decode import decode
 from services.pipeline.calibrate import (
-    LabelledImage, calibrate_camera_views, calibrate_projector_captures, capture_board_image, place_device,
+    LabelledImage, calibrate_camera_views, calibrate_projector_captures, calibrate_station, capture_board_image,
+    place_device, station_from_heads,
 )
 
 REPORT_FIGURES = ("residual_bars", "residual_vectors", "coverage")
@@ -74,6 +76,38 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     stereo.add_argument("--camera", default=None, help="reference camera name (default: the rig's only camera)")
     stereo.add_argument("--out", required=True, type=Path, help="rig JSON to write (may be --rig)")
     stereo.set_defaults(handler=run_stereo)
+
+    station = topics.add_parser("station", help="every head (and thermal camera) of a station in one world frame, "
+                                                "by bundle adjustment over board views neighbouring heads share")
+    station.add_argument("--board", required=True, type=Path)
+    station.add_argument("--views", required=True, type=Path,
+                         help="directory with one sub-directory per head (named as the head) and per thermal camera "
+                              "(named as the device); one file name in several sub-directories is one board pose "
+                              "seen by those cameras at once")
+    heads = station.add_mutually_exclusive_group(required=True)
+    heads.add_argument("--rig", type=Path, help="the station's rig (version 2) to calibrate again: its heads, "
+                                                "intrinsics and camera-projector poses")
+    heads.add_argument("--head", action="append", metavar="NAME=RIG", type=_named_path,
+                       help="a head and its own rig (calibrate projector's output), repeatable, in order around the "
+                            "part")
+    station.add_argument("--thermal", action="append", default=[], metavar="NAME=CAMERA", type=_named_path,
+                         help="a thermal camera of the station and its calibration (calibrate camera --kind "
+                              "thermal), repeatable")
+    station.add_argument("--world", default=None,
+                         help="the head or device that fixes the world frame, keeping its pose in the rig "
+                              "(default: the first head's camera)")
+    station.add_argument("--intrinsics", choices=("refined", "fixed"), default="refined",
+                         help="refine every camera's intrinsics with the poses (default), or keep them")
+    station.add_argument("--out", required=True, type=Path,
+                         help="station rig JSON to write (version 2); the report goes beside it as RIG_station.json")
+    station.set_defaults(handler=run_station)
+
+
+def _named_path(text: str) -> tuple[str, Path]:
+    name, separator, path = text.partition("=")
+    if not separator or not name or not path:
+        raise argparse.ArgumentTypeError(f"expected NAME=FILE; got {text!r}")
+    return name, Path(path)
 
 
 def list_frames(directory: Path) -> list[Path]:
@@ -192,3 +226,39 @@ def run_stereo(args: argparse.Namespace) -> int:
 def stereo_report_path(rig_out: Path, device_name: str) -> Path:
     """Where ``calibrate stereo`` writes its stereo report: ``RIG_stereo_DEVICE.json`` beside the rig."""
     return rig_out.with_name(f"{rig_out.stem}_stereo_{device_name}.json")
+
+
+def run_station(args: argparse.Namespace) -> int:
+    board = load_board(args.board)
+    thermal = {name: load_camera_calibration(path).device() for name, path in args.thermal}
+    if args.rig is not None:
+        rig = load_rig(args.rig)
+        if not rig.station_heads:
+            raise InputError(f"{args.rig}: not a station rig (version 2 with heads); give each head with --head")
+        for name, device in thermal.items():
+            rig = rig.with_device(name, device.replace(kind="thermal"))
+    else:
+        rig = station_from_heads({name: load_rig(path) for name, path in args.head}, thermal)
+    if not args.views.is_dir():
+        raise InputError(f"{args.views}: not a directory")
+    views = {directory.name: _read_all(list_frames(directory))
+             for directory in sorted(args.views.iterdir()) if directory.is_dir()}
+    outcome = calibrate_station(board=board, rig=rig, views=views, world=args.world, intrinsics=args.intrinsics,
+                                source=str(args.views))
+    report = outcome.report
+    save_station_calibration(report, station_report_path(args.out))
+    save_rig(outcome.rig, args.out)
+    print(f"station: RMS {report.rms_px:.3f} px over {len(report.views)} board views; overlaps RMS "
+          f"{report.overlap_rms_px:.3f} px, {report.overlap_rms_mm:.4f} mm on the board; world: {report.world}")
+    for record in report.devices:
+        sigma = record.pose_std
+        print(f"{record.device}: {record.views} views, RMS {record.rms_px:.3f} px; pose sigma "
+              f"{max(sigma['rx'], sigma['ry'], sigma['rz']):.4f} deg, {max(sigma['x'], sigma['y'], sigma['z']):.3f} mm")
+    for message in report.unseen:
+        print(f"not used: {message}")
+    return 0
+
+
+def station_report_path(rig_out: Path) -> Path:
+    """Where ``calibrate station`` writes its report: ``RIG_station.json`` beside the rig."""
+    return rig_out.with_name(f"{rig_out.stem}_station.json")

@@ -24,6 +24,13 @@ candidate's held-out reprojection RMS (empty with fewer than four views, when th
 Projector calibrations with this camera refine its corners with the same window; files without the key
 (written before it existed) mean 0.25.
 
+``StationCalibrationFile`` (``"version": 1``) is what ``thermofield calibrate station`` writes beside the station's
+rig: the device fixing the world frame, whether the intrinsics were refined, the reprojection RMS overall and in
+the overlaps (px, and mm on the board), each adjusted camera's views, RMS and pose uncertainty (six degrees of
+freedom: ``rx``, ``ry``, ``rz`` in degrees about the world axes, ``x``, ``y``, ``z`` of its centre in mm; the
+reported sigma and the Jacobian's and the view jackknife's behind it), each pair of cameras that shared views, and
+the images in which no board was found. docs/calibration.md, "Stations".
+
 ``views[i].R, t`` is the board-to-camera pose, x_cam = R x_board + t, in millimetres;
 ``pose_std`` holds the standard deviations of the Rodrigues vector (rad) and of t (mm).
 """
@@ -31,6 +38,7 @@ Projector calibrations with this camera refine its corners with the same window;
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Annotated, Literal
 
 from matplotlib.figure import Figure
 from pydantic import BaseModel, ConfigDict, Field
@@ -146,6 +154,59 @@ class StereoCalibrationFile(BaseModel):
     per_view_rms_px: list[list[float]]
 
 
+STATION_CALIBRATION_VERSION = 1
+
+
+class StationDeviceRecord(BaseModel):
+    """One camera of a station calibration (a head's camera or a thermal camera): its views, residual and the
+    uncertainty of its pose in the world."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    device: str
+    head: str | None
+    views: int
+    rms_px: float
+    pose_std: dict[str, float]
+    pose_std_jacobian: dict[str, float]
+    pose_std_jackknife: dict[str, float]
+
+
+class StationOverlapRecord(BaseModel):
+    """Two cameras that saw the board together: how many views, and their residual in those views."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    devices: Annotated[list[str], Field(min_length=2, max_length=2)]
+    views: int
+    rms_px: float
+    rms_mm: float
+
+
+class StationCalibrationFile(BaseModel):
+    """What ``thermofield calibrate station`` writes beside the station's rig (version 1)."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    version: Literal[1] = STATION_CALIBRATION_VERSION
+    world: str
+    intrinsics: Literal["fixed", "refined"]
+    board: BoardSpec
+    rms_px: float
+    overlap_rms_px: float
+    overlap_rms_mm: float
+    devices: list[StationDeviceRecord]
+    overlaps: list[StationOverlapRecord]
+    views: list[str]
+    unseen: list[str] = []
+
+
+def load_station_calibration(path: str | Path) -> StationCalibrationFile:
+    """Read and validate a station calibration report."""
+    return validate_json(StationCalibrationFile, read_text(path, "station calibration"),
+                         f"{path}: not a station calibration file")
+
+
 def load_camera_calibration(path: str | Path) -> CameraCalibrationFile:
     """Read and validate a camera calibration file."""
     return validate_json(CameraCalibrationFile, read_text(path, "camera calibration"),
@@ -164,6 +225,11 @@ def save_projector_calibration(report: ProjectorCalibrationFile, path: str | Pat
 
 def save_stereo_calibration(report: StereoCalibrationFile, path: str | Path) -> None:
     """Write the stereo calibration report atomically."""
+    write_model(report, path)
+
+
+def save_station_calibration(report: StationCalibrationFile, path: str | Path) -> None:
+    """Write the station calibration report atomically."""
     write_model(report, path)
 
 

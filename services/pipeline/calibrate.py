@@ -1,4 +1,5 @@
-"""Use cases: calibrate a camera, a projector, and place a device in a rig, from images in memory.
+"""Use cases: calibrate a camera, a projector, place a device in a rig, and calibrate a station of several heads to
+one world frame, from images in memory.
 
 The command line reads the images from directories and writes the results to files; the calibrate
 actor passes uploaded or gateway-filmed images. Every check is made here, with errors that name the
@@ -7,13 +8,14 @@ image (by the label the caller gives it) and what is wrong.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
+from typing import Literal
 
 import numpy as np
 from matplotlib.figure import Figure
 
-from services.calibration.camera import calibrate_camera
+from services.calibration.camera import INTRINSIC_NAMES, calibrate_camera
 from services.calibration.corner_window import WindowSelection, select_corner_window
 from services.calibration.corners import DEFAULT_WINDOW_FRACTION, BoardDetection, detect_board, refine_corners
 from services.calibration.determination import poorly_determined
@@ -21,14 +23,16 @@ from services.calibration.frontal import calibrate_with_frontal_refinement
 from services.calibration.model_selection import ModelSelection
 from services.calibration.projector import calibrate_projector, projector_corners
 from services.calibration.report import coverage_map, residual_bars, residual_vectors
+from services.calibration.station import POSE_NAMES, BoardObservation, adjust_station, tied_groups
 from services.calibration.stereo import calibrate_stereo
 from services.errors import InputError
 from services.formats.board import MIN_VIEWS, BoardSpec
 from services.formats.calibration import (
     CalibratedView, CameraCalibrationFile, CornerWindowRecord, ModelCandidate, ModelSelectionRecord,
-    ProjectorCalibrationFile, RejectedView, StereoCalibrationFile, WindowCandidate,
+    ProjectorCalibrationFile, RejectedView, StationCalibrationFile, StationDeviceRecord, StationOverlapRecord,
+    StereoCalibrationFile, WindowCandidate,
 )
-from services.formats.rig import Rig
+from services.formats.rig import Head, Rig
 from services.formats.sequence import Sequence as PatternSequence
 from services.geometry.camera_model import CameraModel, DeviceKind
 from services.intensity import percentile_stretch
@@ -279,3 +283,154 @@ def place_device(*, board: BoardSpec, rig: Rig, device: str, reference_images: S
                                    baseline_mm=result.baseline_mm, pairs=pair_names,
                                    per_view_rms_px=result.per_view_rms.tolist())
     return rig.with_device(device, placed), report
+
+
+IntrinsicsMode = Literal["fixed", "refined"]
+
+
+def station_from_heads(heads: Mapping[str, Rig], thermal: Mapping[str, CameraModel] | None = None) -> Rig:
+    """A station rig from its heads' own rigs (``calibrate projector``'s, one camera and one projector each) and
+    its thermal cameras' intrinsics: devices ``camera-NAME`` and ``projector-NAME`` with each head's
+    camera-projector pose kept, every head's camera at the origin (until :func:`calibrate_station` places it)."""
+    devices, station_heads = {}, []
+    for name, head_rig in heads.items():
+        if len(head_rig.heads) != 1:
+            raise InputError(f"head {name!r}: its rig must hold one camera and one projector (calibrate projector's "
+                             f"output); it has {sorted(head_rig.devices)}")
+        head = head_rig.heads[0]
+        camera, projector = head_rig.devices[head.camera], head_rig.devices[head.projector]
+        relative = projector.R @ camera.R.T
+        devices[f"camera-{name}"] = camera.replace(R=np.eye(3), t=np.zeros(3))
+        devices[f"projector-{name}"] = projector.replace(R=relative, t=projector.t - relative @ camera.t)
+        station_heads.append(Head(name, f"camera-{name}", f"projector-{name}"))
+    for name, device in (thermal or {}).items():
+        if name in devices:
+            raise InputError(f"thermal camera {name!r}: a head's device already has that name")
+        devices[name] = device.replace(kind="thermal", R=np.eye(3), t=np.zeros(3))
+    return Rig(devices, station_heads=tuple(station_heads))
+
+
+@dataclass(frozen=True)
+class StationCalibrationOutcome:
+    """The calibrated station rig (version 2) and the calibration report."""
+
+    rig: Rig
+    report: StationCalibrationFile
+
+
+def calibrate_station(*, board: BoardSpec, rig: Rig, views: Mapping[str, Sequence[LabelledImage]],
+                      world: str | None = None, intrinsics: IntrinsicsMode = "refined", jackknife: bool = True,
+                      source: str = "the views") -> StationCalibrationOutcome:
+    """Place every head (and thermal camera) of a station in one world frame by bundle adjustment.
+
+    ``rig`` is the station: its heads, each camera's intrinsics and each head's camera-projector pose (from the
+    heads' own calibrations), and the thermal cameras' intrinsics; the poses of its cameras are recomputed, but the
+    device fixing the world frame (``world``: a head or a device; default the first head's camera) keeps its pose
+    in ``rig``, so a station re-calibrated keeps its world frame. ``views`` holds, per head name (its camera's
+    images) or thermal camera name, labelled board images; one label (the file name) in several cameras' images is
+    one board pose seen by all of them. Images where no board is found are listed in the report (``unseen``).
+    ``intrinsics="refined"`` refines every camera's focal lengths, principal point and non-zero distortion
+    coefficients with the poses; ``"fixed"`` keeps them. A projector follows its head's camera.
+    """
+    names: list[str] = []  # adjusted devices in order: the heads' cameras, then thermal cameras
+    heads_of: dict[str, str] = {}
+    for key in views:
+        if key not in {h.name for h in rig.heads} and (key not in rig.devices or rig.devices[key].kind != "thermal"):
+            raise InputError(f"{source}: {key!r} is neither a head of the station ({[h.name for h in rig.heads]}) "
+                             f"nor one of its thermal cameras "
+                             f"({sorted(n for n, d in rig.devices.items() if d.kind == 'thermal')})")
+    for head in rig.heads:
+        if head.name not in views:
+            raise InputError(f"{source}: no images of head {head.name!r}; every head must see the board")
+        names.append(head.camera)
+        heads_of[head.camera] = head.name
+    names += sorted(key for key in views if key not in heads_of.values())
+    labels = sorted({label for images in views.values() for label, _ in images})
+    observations, unseen, problems = [], [], []
+    for index, name in enumerate(names):
+        key = heads_of.get(name, name)
+        device = rig.devices[name]
+        for label, image in views[key]:
+            if (image.shape[1], image.shape[0]) != device.size:
+                problems.append(f"{key}/{label}: image is {image.shape[1]}x{image.shape[0]} but {name} is "
+                                f"{device.width}x{device.height}")
+                continue
+            detection = detect_board(image, board)
+            if detection is None:
+                unseen.append(f"{key}/{label}: no {_describe(board)} found")
+                continue
+            observations.append(BoardObservation(index, labels.index(label), board.object_points()[detection.ids],
+                                                 detection.image_points))
+    if problems:
+        raise InputError(f"{source}: {len(problems)} images cannot be used:\n  " + "\n  ".join(problems))
+    seen_labels = sorted({o.view for o in observations})
+    renumber = {view: i for i, view in enumerate(seen_labels)}
+    observations = [BoardObservation(o.camera, renumber[o.view], o.object_points, o.image_points)
+                    for o in observations]
+    labels = [labels[view] for view in seen_labels]
+    blind = [heads_of.get(n, n) for i, n in enumerate(names) if not any(o.camera == i for o in observations)]
+    if blind:
+        raise InputError(f"{source}: the board was found in no image of {blind}")
+    groups = tied_groups(observations, len(names))
+    if len(groups) > 1:
+        described = "; ".join(", ".join(heads_of.get(names[i], names[i]) for i in sorted(g)) for g in groups)
+        raise InputError(f"{source}: the cameras fall into groups that share no board view ({described}); add views "
+                         "of the board seen by neighbouring heads at once")
+    if world is None:
+        world = names[0]
+    elif world in {h.name for h in rig.heads}:
+        world = rig.head(world).camera
+    if world not in names:
+        raise InputError(f"world: {world!r} is not a head or an adjusted camera of the station ({names})")
+    reference = names.index(world)
+    refined = None
+    if intrinsics == "refined":
+        refined = [INTRINSIC_NAMES[:4] + tuple(INTRINSIC_NAMES[4 + i] for i in np.flatnonzero(rig.devices[n].dist))
+                   for n in names]
+    try:
+        bundle = adjust_station(observations, [(rig.devices[n].K, rig.devices[n].dist) for n in names],
+                                reference=reference, reference_pose=(rig.devices[world].R, rig.devices[world].t),
+                                refined_intrinsics=refined, jackknife=jackknife)
+    except ValueError as error:
+        raise InputError(f"{source}: {error}") from None
+    devices = dict(rig.devices)
+    for index, name in enumerate(names):
+        old = rig.devices[name]
+        R, t = bundle.rotations[index], bundle.translations[index]
+        devices[name] = old.replace(K=bundle.K[index], dist=bundle.dist[index][:old.dist.size], R=R, t=t)
+        if name in heads_of:
+            projector_name = rig.head(heads_of[name]).projector
+            projector = rig.devices[projector_name]
+            relative = projector.R @ old.R.T
+            devices[projector_name] = projector.replace(R=relative @ R, t=relative @ (t - old.t) + projector.t)
+    report = _station_report(board, names, heads_of, world, intrinsics, labels, unseen, observations, bundle)
+    return StationCalibrationOutcome(Rig(devices, rig.units, rig.station_heads or rig.heads), report)
+
+
+def _station_report(board, names, heads_of, world, intrinsics, labels, unseen, observations, bundle
+                    ) -> StationCalibrationFile:
+    counts = np.array([len(o.object_points) for o in observations])
+
+    def rms(selected: list[int], values: np.ndarray) -> float:
+        return float(np.sqrt(np.sum(counts[selected] * values[selected] ** 2) / np.sum(counts[selected])))
+
+    devices = []
+    for index, name in enumerate(names):
+        mine = [i for i, o in enumerate(observations) if o.camera == index]
+        devices.append(StationDeviceRecord(
+            device=name, head=heads_of.get(name), views=len(mine), rms_px=rms(mine, bundle.observation_rms_px),
+            pose_std=dict(zip(POSE_NAMES, bundle.pose_std[index].tolist())),
+            pose_std_jacobian=dict(zip(POSE_NAMES, bundle.pose_std_jacobian[index].tolist())),
+            pose_std_jackknife=dict(zip(POSE_NAMES, bundle.pose_std_jackknife[index].tolist()))))
+    overlaps = []
+    for a in range(len(names)):
+        for b in range(a + 1, len(names)):
+            shared = ({o.view for o in observations if o.camera == a} & {o.view for o in observations if o.camera == b})
+            if shared:
+                selected = [i for i, o in enumerate(observations) if o.view in shared and o.camera in (a, b)]
+                overlaps.append(StationOverlapRecord(devices=[names[a], names[b]], views=len(shared),
+                                                     rms_px=rms(selected, bundle.observation_rms_px),
+                                                     rms_mm=rms(selected, bundle.observation_rms_mm)))
+    return StationCalibrationFile(world=world, intrinsics=intrinsics, board=board, rms_px=bundle.rms_px,
+                                  overlap_rms_px=bundle.overlap_rms_px, overlap_rms_mm=bundle.overlap_rms_mm,
+                                  devices=devices, overlaps=overlaps, views=labels, unseen=unseen)

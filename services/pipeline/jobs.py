@@ -10,6 +10,8 @@ client's, so that this layer imports no shell.
 - :func:`reconstruct_job`, :func:`fuse_job`, :func:`register_job`: one step again on a stored scan.
 - :func:`calibrate_job`: a device re-placed from paired board images (uploaded or filmed), stored as a new
   calibration set.
+- :func:`calibrate_station_job`: every head (and thermal camera) of a station placed in one world frame
+  from uploaded board views, stored as a new calibration set.
 - :func:`station_rig`: the rig of the station's active calibration set (for the warm-up).
 """
 
@@ -32,7 +34,7 @@ from services.formats.registration import registration_json
 from services.formats.rig import Rig, rig_to_json
 from services.formats.sequence import Sequence, parse_sequence
 from services.formats.stored_scan import CLOUD, EXPOSURE, FIELD, FRAMES, SEQUENCE, THERMAL, exposure_from_bytes
-from services.pipeline.calibrate import place_device, thermal_board_image, uploaded_board_image
+from services.pipeline.calibrate import calibrate_station, place_device, thermal_board_image, uploaded_board_image
 from services.pipeline.field import fuse_field
 from services.pipeline.reconstruct import reconstruct_capture
 from services.pipeline.register import register_scan
@@ -170,6 +172,31 @@ def calibrate_job(*, runtime: Runtime, job_id: str,
     report_json = report.model_dump_json(indent=2).encode()
     return {"calibration_set_id": calibration_id,
             "artifacts": {"rig.json": rig_digest, "stereo.json": store.put_bytes(report_json)}}
+
+
+def calibrate_station_job(*, runtime: Runtime, job_id: str) -> dict[str, Any]:
+    """Place every head (and thermal camera) of the job's station calibration set in one world frame from the
+    uploaded board views (``params["views"]``: per head or thermal camera, ``[digest, suffix, file name]``;
+    :func:`services.pipeline.calibrate.calibrate_station`) and store the result as a new calibration set. The
+    result names the set and holds ``rig.json`` and ``station.json`` (the station calibration report)."""
+    params = job_params(runtime.sessions, job_id)
+    rig = _calibration_rig(runtime, params["calibration_set_id"])
+    store = runtime.store
+    board = parse_board(store.read_bytes(params["board"]).decode(), f"artifact {params['board']}")
+    views = {key: [(label, uploaded_board_image(store.read_bytes(digest), suffix=suffix, source=f"{key}/{label}"))
+                   for digest, suffix, label in uploads]
+             for key, uploads in params["views"].items()}
+    runtime.tracker.progress(job_id, "calibrate", 0.3)
+    outcome = calibrate_station(board=board, rig=rig, views=views, world=params["world"],
+                                intrinsics=params["intrinsics"], source=f"job {job_id}")
+    rig_digest = store.put_bytes(rig_to_json(outcome.rig).encode())
+    with runtime.sessions.begin() as session:
+        calibration_id = add_calibration_set(session, name=params["name"], station=params["station"],
+                                             rig_sha256=rig_digest, source="calibration",
+                                             activate=params["activate"]).id
+    report_json = outcome.report.model_dump_json(indent=2).encode()
+    return {"calibration_set_id": calibration_id,
+            "artifacts": {"rig.json": rig_digest, "station.json": store.put_bytes(report_json)}}
 
 
 def station_rig(*, runtime: Runtime) -> Rig | None:
