@@ -272,7 +272,8 @@ def _sample_view(count: int, points_of: Rows, normals_of: Rows, view: ThermalVie
     stencils = []
     for stencil_px in (1.0, 0.0):
         reach = footprint_radius(thermal_blur_px, stencil_px)
-        stencils.append((background_depth(buffer, reach).ravel(), SAMPLE_FOOTPRINTS + np.sqrt(2) * reach))
+        far = background_depth(buffer, reach, depth_tolerance_mm).ravel()
+        stencils.append((far, SAMPLE_FOOTPRINTS + np.sqrt(2) * reach))
     buffer = fill_empty_pixels(buffer)
     # the square window reaches margin * sqrt(2) pixels away along its diagonals
     guard_footprints = SAMPLE_FOOTPRINTS + np.sqrt(2) * occlusion_margin_px

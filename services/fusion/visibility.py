@@ -88,27 +88,40 @@ def footprint_radius(blur_sigma_px: float, stencil_px: float = 1.0) -> int:
     return int(np.ceil(stencil_px + 0.5 + TAIL_SIGMAS * blur_sigma_px - 1e-9))
 
 
-def background_depth(buffer: np.ndarray, radius_px: int) -> np.ndarray:
+def background_depth(buffer: np.ndarray, radius_px: int, depth_step_mm: float = 2.0) -> np.ndarray:
     """Largest z-buffer depth within ``radius_px`` pixels (a square window) of each pixel; +inf where the
     window reaches a pixel on which no surface of the cloud lies.
 
-    ``buffer`` is the raw z-buffer (+inf where no point fell). Empty pixels that a morphological
-    closing of the occupied pixels by the window fills (gaps between the splats of a cloud sparser
-    than the view, narrower than the window) add nothing to the maximum; empty pixels
-    outside the cloud's outline stay +inf, so that a window over a silhouette sees the empty space
-    (or the farther surface) behind it, and so do pixels beyond the image's edge.
+    ``buffer`` is the raw z-buffer (+inf where no point fell). Gaps in a surface narrower than the window
+    add nothing to the maximum: empty pixels between the splats of a cloud sparser than the view, and
+    pixels where a farther surface shows through such a gap (the far side of a merged all-round cloud seen
+    between the near side's splats) by more than ``depth_step_mm``. Empty pixels outside the cloud's outline
+    stay +inf, so that a window over a silhouette sees the empty space (or the farther surface) behind it,
+    and so do pixels beyond the image's edge.
+
+    Notes
+    -----
+    The gaps are what a grey-level opening [1]_ of the depth by the window removes, o = dilate(erode(Z)):
+    depth peaks (farther or empty pixels) narrower than the window. A pixel with Z > o + depth_step is a
+    gap and takes o; the result is the window maximum of that. For empty gaps alone this is the binary
+    closing of the occupied pixels.
+
+    References
+    ----------
+    .. [1] J. Serra, "Image Analysis and Mathematical Morphology", Academic Press, 1982.
     """
     size = 2 * int(radius_px) + 1
     square = np.ones((size, size), np.uint8)
-    occupied = np.isfinite(buffer)
-    # nothing beyond the image's edge: a strip of background there is no gap
-    closed = cv2.morphologyEx(occupied.astype(np.uint8), cv2.MORPH_CLOSE, square, borderType=cv2.BORDER_CONSTANT,
-                              borderValue=0).astype(bool)
-    filled = buffer.copy()
-    filled[closed & ~occupied] = 0.0  # a gap adds nothing to the maximum: its neighbours' depths stand for it
+    depth = np.ascontiguousarray(buffer, dtype=np.float64)
+    # beyond the image's edge is empty (+inf) for both steps: a strip of background there is no gap
+    opened = cv2.dilate(cv2.erode(depth, square, borderType=cv2.BORDER_CONSTANT, borderValue=np.inf), square,
+                        borderType=cv2.BORDER_CONSTANT, borderValue=np.inf)
+    with np.errstate(invalid="ignore"):  # inf - inf: an empty pixel in empty space stays as it is
+        gap = depth > opened + depth_step_mm
+    filled = np.where(gap, opened, depth)
     # a window maximum (OpenCV's dilation); beyond the image is unknown, so +inf (what a pixel at the image's
     # edge mixes in from outside it is not in the image)
-    return cv2.dilate(np.ascontiguousarray(filled), square, borderType=cv2.BORDER_CONSTANT, borderValue=np.inf)
+    return cv2.dilate(filled, square, borderType=cv2.BORDER_CONSTANT, borderValue=np.inf)
 
 
 def depth_gradient(

@@ -74,3 +74,24 @@ def test_background_depth_sees_empty_space_beyond_an_outline_but_not_gaps_betwee
     assert far[20, 48] == 700.0 and far[20, 40] == 500.0
     edge = np.full((10, 10), 500.0)
     assert np.isinf(background_depth(edge, 2)[5, 0]) and background_depth(edge, 2)[5, 5] == 500.0  # beyond the image
+
+
+def test_background_depth_ignores_a_far_side_showing_through_gaps_but_not_a_wide_one():
+    from services.fusion.visibility import background_depth
+
+    # the near side of a merged all-round cloud (500 mm) with its far side (590 mm) behind it everywhere
+    buffer = np.full((40, 60), np.inf)
+    buffer[10:30, 10:50] = 590.0
+    near = buffer.copy()
+    near[12:28, 12:48] = 500.0
+    through = near.copy()
+    through[20, 30] = through[21, 31] = through[15, 20] = 590.0  # one-pixel gaps in the near side
+    assert background_depth(through, 2)[20, 30] == background_depth(near, 2)[20, 30] == 500.0
+    np.testing.assert_array_equal(background_depth(through, 2), background_depth(near, 2))
+    wide = near.copy()
+    wide[18:26, 26:34] = 590.0  # a window of the far side wider than the footprint is a farther surface
+    assert background_depth(wide, 2)[22, 30] == 590.0 and background_depth(wide, 2)[22, 24] == 590.0
+    # a smaller step than depth_step_mm is the surface's own relief, not a gap
+    relief = near.copy()
+    relief[20, 30] = 501.0
+    assert background_depth(relief, 2)[20, 30] == 501.0

@@ -68,9 +68,17 @@ def test_known_pose_errors_are_undone_within_the_prior():
     worst_after = max(r.patch_rms_mm for r in after)
     assert worst_before > 0.04
     assert worst_after < 0.01
-    # the heads are back on the true surface (the reference head was not disturbed)
-    for points in merged:
-        assert np.sqrt(np.mean(_true_surface_distance(points) ** 2)) < 0.012
+    # the sides are back on the true surface (the reference head was not disturbed)
+    side = [np.abs(points[:, 0]) < HALF - 1.0 for points in merged]
+    for points, on_side in zip(merged, side):
+        assert np.sqrt(np.mean(_true_surface_distance(points[on_side]) ** 2)) < 0.012
+    # along the axis only the end faces constrain the heads: head 2 shares the reference's face and is back on it;
+    # heads 1 and 3 share the other face with each other, so they agree with each other, and their common shift
+    # along the axis, which no overlap observes, stays where the calibration put it (within its prior)
+    end_offset = [np.mean(np.abs(points[~on_side, 0]) - HALF) for points, on_side in zip(merged, side)]
+    assert abs(end_offset[2] - end_offset[0]) < 0.012
+    assert abs(end_offset[1] - end_offset[3]) < 0.012
+    assert abs(end_offset[1]) < 3 * 0.05
 
 
 def test_a_correction_beyond_the_calibrations_uncertainty_is_refused_not_applied():
@@ -107,7 +115,9 @@ def test_the_overlap_residual_measures_a_known_offset_along_the_normal():
     assert residual.patch_rms_mm == pytest.approx(0.05, abs=0.006)
     assert residual.rms_mm > residual.patch_rms_mm  # the point noise is in it
     (aligned,) = overlap_residuals([first[0], second[0]], [first[1], second[1]])
-    assert aligned.patch_rms_mm < 0.01
+    # aligned, what is left is the noise floor: 0.02 mm noise over the ~7 points of a head in a 4 mm patch
+    assert aligned.patch_rms_mm < 0.015
+    assert aligned.patch_rms_mm < 0.3 * residual.patch_rms_mm
 
 
 def test_thinning_keeps_one_head_per_voxel_the_one_seeing_it_most_squarely():

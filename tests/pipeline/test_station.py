@@ -61,9 +61,23 @@ def test_the_merge_reports_small_residuals_thin_overlaps_and_bounded_corrections
     report = station.merged.report
     assert report.heads == ("head-1", "head-2", "head-3", "head-4")
     assert len(report.residuals) >= 4  # neighbours on the side, opposite heads on their end face
-    assert max(r.patch_rms_mm for r in report.residuals) <= 0.03
-    assert all(c.applied for c in report.corrections)
-    assert all(c.translation_mm <= 0.15 and c.rotation_deg <= 0.03 for c in report.corrections)
+    # the rig is exact: what is left in the overlaps is the reconstruction's view-angle bias (at 0.3 of the
+    # resolution -0.06 to +0.05 mm where one head sees the surface obliquely, docs/station.md), which the
+    # refinement cannot remove and must not make worse
+    before = {(r.first, r.second): r.patch_rms_mm for r in report.residuals_before}
+    assert all(r.patch_rms_mm <= before[r.first, r.second] + 0.005 for r in report.residuals)
+    assert max(r.patch_rms_mm for r in report.residuals) <= 0.08
+    for c in report.corrections:
+        assert (c.applied and c.translation_mm <= 0.15 and c.rotation_deg <= 0.03) or \
+            "beyond 3 sigma of the calibration" in c.reason
+    # the refined merge lies on the true shaft as closely as the unrefined one (the calibration is exact)
+    heads = {h.name: reconstruct_head(frames=c.frames, sequence=c.sequence, rig=station.rig, head=h.name,
+                                      tables=TriangulationTables()).cloud
+             for h, c in zip(station.rig.heads, station.heads)}
+    unrefined = merge_heads(clouds=heads, rig=station.rig, refine=False).cloud.points
+    refined = station.merged.cloud.points
+    assert np.median(np.abs(_surface_distance(refined, station.truth))) <= \
+        1.1 * np.median(np.abs(_surface_distance(unrefined, station.truth)))
     assert sum(report.kept_points) == len(station.merged.cloud)
     assert sum(report.kept_points) < 0.95 * sum(report.measured_points)  # the overlaps were thinned
 
