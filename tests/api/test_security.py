@@ -13,7 +13,7 @@ OPEN_OPERATIONS = {"get_health", "get_readiness", "get_metrics"}
 # The least scope of each operation; a key of a lower scope gets 403.
 SCOPE_OF_METHOD = {"get": "read", "post": "operate", "delete": "admin"}
 ADMIN_OPERATIONS = {"create_calibration_set", "activate_calibration_set", "start_stereo_calibration",
-                    "start_stereo_capture", "create_api_key", "list_api_keys", "revoke_api_key", "create_part_type",
+                    "start_station_calibration", "start_stereo_capture", "create_api_key", "list_api_keys", "revoke_api_key", "create_part_type",
                     "select_part_type"}
 LOWER_SCOPES = {"read": [], "operate": ["read"], "admin": ["read", "operate"]}
 

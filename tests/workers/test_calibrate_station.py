@@ -31,12 +31,15 @@ def station():
 
 
 def misplaced(truth: Rig) -> Rig:
-    """The station with every head but the first 20 mm and 1 degree away from where it is."""
+    """The station with every head but the first moved as a whole, 20 mm and 1 degree (a world motion
+    x -> Q x + s, so that each head's camera and projector keep their pose to each other, as the heads' own
+    calibrations give it)."""
     devices, turn = dict(truth.devices), cv2.Rodrigues(np.radians([1.0, 0.0, 0.0]))[0]
+    shift = np.full(3, 20.0 / 3**0.5)
     for head in truth.heads[1:]:
         for name in (head.camera, head.projector):
             device = truth.devices[name]
-            devices[name] = device.replace(R=turn @ device.R, t=turn @ device.t + 20.0)
+            devices[name] = device.replace(R=device.R @ turn.T, t=device.t - device.R @ turn.T @ shift)
     return Rig(devices, station_heads=truth.station_heads)
 
 
