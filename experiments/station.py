@@ -1,6 +1,6 @@
 """The simulated four-head station (issue 36): coverage, merge residuals, point and temperature errors, pictures.
 
-Run (about 15 minutes at full resolution on this machine; ``--scale 0.5`` is four times faster):
+Run (about 1.5 minutes at full resolution on this 2-core machine):
 
     nice -n 5 .venv/bin/python experiments/station.py --out docs/figures/station
 
