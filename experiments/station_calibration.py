@@ -42,7 +42,7 @@ from services.calibration.station import POSE_NAMES, BoardObservation, adjust_st
 from services.formats.board import ChessboardSpec
 from services.pipeline.calibrate import calibrate_station
 from services.simulation.station_boards import (
-    _outline, _own_poses, _shared_poses, ring_station_rig, station_board_views,
+    ring_station_rig, station_board_poses, station_board_views,
 )
 
 Z90 = 1.6448536269514722
@@ -101,16 +101,7 @@ def projected_rows(seed: int, shared: int, own: int, noise: float, shift: float)
     truth = ring_station_rig(rng)
     started = time.perf_counter()
     cameras = [truth.devices[head.camera] for head in truth.heads]
-    outline, poses, seen = _outline(BOARD), [], []
-    for a in range(len(cameras)):  # the same poses station_board_views draws
-        for b in range(a + 1, len(cameras)):
-            found = _shared_poses(cameras[a], cameras[b], BOARD, outline, rng, shared)
-            poses += found
-            seen += [(a, b)] * len(found)
-    for a, camera in enumerate(cameras):
-        found = _own_poses(camera, BOARD, outline, rng, own)
-        poses += found
-        seen += [(a,)] * len(found)
+    poses, seen = station_board_poses(cameras, BOARD, rng, shared, own)
     X, observations = BOARD.object_points(), []
     for view, ((R, t), which) in enumerate(zip(poses, seen)):
         for index in which:

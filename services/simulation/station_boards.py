@@ -8,6 +8,7 @@ e.g. :func:`ring_station_rig`), with :func:`services.simulation.boards.render_bo
 
 from __future__ import annotations
 
+from collections.abc import Collection, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -106,6 +107,28 @@ class StationBoardViews:
     images: dict[str, dict[int, np.ndarray]]
 
 
+def station_board_poses(cameras: Sequence[CameraModel], board: ChessboardSpec, rng: np.random.Generator,
+                        shared: int, own: int, pairs: Collection[tuple[int, int]] | None = None
+                        ) -> tuple[list[tuple[np.ndarray, np.ndarray]], list[tuple[int, ...]]]:
+    """Board poses (R, t: board to world) that pairs of cameras see together and that each camera sees alone, and
+    for each pose the indices of the cameras that see it; ``shared`` poses per pair (only the ``pairs`` given, if
+    any), ``own`` per camera (see :func:`station_board_views`, Notes)."""
+    outline = _outline(board)
+    poses, seen = [], []
+    for a in range(len(cameras)):
+        for b in range(a + 1, len(cameras)):
+            if pairs is not None and (a, b) not in pairs:
+                continue
+            found = _shared_poses(cameras[a], cameras[b], board, outline, rng, shared)
+            poses += found
+            seen += [(a, b)] * len(found)
+    for a, camera in enumerate(cameras):
+        found = _own_poses(camera, board, outline, rng, own)
+        poses += found
+        seen += [(a,)] * len(found)
+    return poses, seen
+
+
 def station_board_views(rig: Rig, board: ChessboardSpec, rng: np.random.Generator, *, shared: int = 6,
                         own: int = 8, blur_sigma: float = 0.7, noise_sigma: float = 1.5,
                         supersample: int = 2) -> StationBoardViews:
@@ -139,17 +162,7 @@ def station_board_views(rig: Rig, board: ChessboardSpec, rng: np.random.Generato
     names = [head.camera for head in rig.heads]
     if len(cameras) < 2:
         raise ValueError(f"A station's board views need at least two head cameras; the rig has {len(cameras)}.")
-    outline = _outline(board)
-    poses, seen = [], []
-    for a in range(len(cameras)):
-        for b in range(a + 1, len(cameras)):
-            found = _shared_poses(cameras[a], cameras[b], board, outline, rng, shared)
-            poses += found
-            seen += [(a, b)] * len(found)
-    for a, camera in enumerate(cameras):
-        found = _own_poses(camera, board, outline, rng, own)
-        poses += found
-        seen += [(a,)] * len(found)
+    poses, seen = station_board_poses(cameras, board, rng, shared, own)
     images: dict[str, dict[int, np.ndarray]] = {name: {} for name in names}
     for view, ((R, t), which) in enumerate(zip(poses, seen)):
         for camera in which:

@@ -6,7 +6,7 @@ import pytest
 
 from services.calibration.station import BoardObservation, adjust_station, pose_difference, tied_groups
 from services.formats.board import ChessboardSpec
-from services.simulation.station_boards import _outline, _own_poses, _shared_poses, ring_station_rig
+from services.simulation.station_boards import ring_station_rig, station_board_poses
 
 BOARD = ChessboardSpec(type="chessboard", inner_corners=(9, 6), square_mm=30.0)
 Z90 = 1.6448536269514722
@@ -16,19 +16,7 @@ def projected_views(rig, rng, shared=6, own=4, noise_px=0.0, view_shift_px=0.0, 
     """Observations of board poses shared by neighbouring heads and seen by each camera alone: the true corners
     plus independent noise and a shift shared by all corners of one camera's view."""
     cameras = [rig.devices[head.camera] for head in rig.heads]
-    outline = _outline(BOARD)
-    poses, seen = [], []
-    for a in range(len(cameras)):
-        for b in range(a + 1, len(cameras)):
-            if pairs is not None and (a, b) not in pairs:
-                continue
-            found = _shared_poses(cameras[a], cameras[b], BOARD, outline, rng, shared)
-            poses += found
-            seen += [(a, b)] * len(found)
-    for a, camera in enumerate(cameras):
-        found = _own_poses(camera, BOARD, outline, rng, own)
-        poses += found
-        seen += [(a,)] * len(found)
+    poses, seen = station_board_poses(cameras, BOARD, rng, shared, own, pairs)
     observations, X = [], BOARD.object_points()
     for view, ((R, t), which) in enumerate(zip(poses, seen)):
         for index in which:
