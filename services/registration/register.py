@@ -31,7 +31,7 @@ import numpy as np
 
 from services.registration.borders import data_mask
 from services.registration.gradient_fields import SampledFieldSimilarity, gradient_epsilon, normalized_gradient_field
-from services.registration.models import MODELS, PARAMETER_COUNTS, update_matrix
+from services.registration.models import MODELS, PARAMETER_COUNTS, corner_error, update_matrix
 from services.registration.newton import maximize
 from services.registration.mutual_information import (DEFAULT_BINS, DEFAULT_LOG_BASE, MovingWindow, moving_window,
                                                       quantize)
@@ -47,6 +47,9 @@ _SEARCH_BINS = 16  # fewer bins at the coarse level: a few thousand samples fill
 # candidates and starts the next level, where the search leaves the start within a grid step. Each metric's
 # finer stencils are its plan's (_FieldPlan, _InformationPlan).
 _COARSE_REFINEMENT = (2.0, 0.5, 0.1, 1e-5)
+# Two starts whose coarsest-level refinements end within this many coarse pixels (corner distance) found the same
+# maximum: that refinement stops on steps of 0.1 px with a 0.5 px stencil, so one maximum's starts end well inside it.
+_SAME_MAXIMUM = 1.0
 _MAX_ITERATIONS = 40  # NGF's step convergence may take more than 20 models; MI and NMI stop well before 20
 _PARALLEL_PIXELS = 20_000  # levels with fewer moving pixels evaluate in one thread: a stencil point takes too little
 _MAX_THREADS = 4  # a similarity's stencil has 8 points, an affine's 12
@@ -318,6 +321,7 @@ class _FieldPlan:
     default_preprocessing: ClassVar[str] = "none"  # NGF takes its own gradients
     search_step: ClassVar[float] = 2.0
     candidates: ClassVar[int] = 5
+    proposals: ClassVar[int] = 20  # search results refined at most to find ``candidates`` distinct maxima
     cubic: ClassVar[bool] = True
     fine: ClassVar[Stencil] = (1.0, 0.5, 0.1, 1e-5)
     finest: ClassVar[Stencil] = (1.0, 1.0, 0.005, 0.0)
@@ -342,11 +346,18 @@ class _FieldPlan:
                shift: int) -> list[Candidate]:
         level = pyramid.coarsest
         return gradient_field_search(pyramid.fixed[level], pyramid.moving[level], scale, angles, factors, shift,
-                                     self.min_overlap, self.candidates, pyramid.masks[level])
+                                     self.min_overlap, self.proposals, pyramid.masks[level])
 
     def choose(self, candidates: list[Candidate], refine: _Refiner) -> tuple[np.ndarray, int]:
         coarsest = chosen = refine.pyramid.coarsest
-        refined = [refine.coarse(coarsest, candidate.matrix, _COARSE_REFINEMENT) for candidate in candidates]
+        height, width = refine.pyramid.moving[coarsest].shape
+        refined: list[tuple[np.ndarray, float]] = []
+        for candidate in candidates:  # best first, until ``candidates`` distinct maxima are found
+            matrix, value = refine.coarse(coarsest, candidate.matrix, _COARSE_REFINEMENT)
+            if all(corner_error(matrix, other, width, height) > _SAME_MAXIMUM for other, _ in refined):
+                refined.append((matrix, value))
+                if len(refined) == self.candidates:
+                    break
         if coarsest >= 2:  # choose among the candidates one level finer, where edges are sharper
             chosen = coarsest - 1
             refined = [refine.coarse(chosen, _level_matrix(_level_matrix(matrix, -coarsest), chosen), self.fine)
