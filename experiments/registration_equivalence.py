@@ -17,6 +17,10 @@ pairs of the ratios of the per-pair medians. Run the two versions alternately in
     done
     .venv/bin/python experiments/registration_equivalence.py --ratio before_*.json -- after_*.json
 
+``--synthetic N`` instead registers N rendered scenes and N photographs with known matrices
+(experiments/registration_accuracy.py's pairs, seed 0) with default options and saves (``--save``) or compares
+(``--compare``) each pair's corner error against the truth: whether a change of method makes any pair worse.
+
 The code registered is whichever ``services`` package PYTHONPATH puts first (this clone's otherwise).
 
 Usage: .venv/bin/python experiments/registration_equivalence.py --save base.json [--pairs tuning]
@@ -86,6 +90,33 @@ def compare(saved: list[dict], new: list[dict], tolerance: float) -> bool:
     return same
 
 
+def synthetic_errors(count: int) -> list[dict]:
+    """Per rendered scene and photograph (registration_accuracy's pairs, seed 0): the default's corner error."""
+    from experiments.registration_accuracy import INFRARED_SIZE, photograph_pairs, scene_pairs
+
+    rng = np.random.default_rng(0)
+    rows = []
+    for index, (source, visible, infrared, truth, scale) in enumerate(
+            list(scene_pairs(rng, count)) + list(photograph_pairs(rng, count))):
+        result = register(visible, infrared, "similarity", scale=scale)
+        rows.append({"pair": index, "source": source, "error": corner_error(truth, result.matrix, *INFRARED_SIZE)})
+    return rows
+
+
+def compare_errors(saved: list[dict], new: list[dict]) -> None:
+    """Print the per-source summary of saved and new corner errors and the pairs that got worse."""
+    print("| source | n | median before / after (px) | under 1 px before / after | max before / after (px) | "
+          "pairs worse by > 0.01 px | largest change (px) |")
+    print("|---|---|---|---|---|---|---|")
+    for source in ("scene", "photograph"):
+        before = np.array([row["error"] for row in saved if row["source"] == source])
+        after = np.array([row["error"] for row in new if row["source"] == source])
+        change = after - before
+        print(f"| {source} | {len(before)} | {np.median(before):.3f} / {np.median(after):.3f} | "
+              f"{np.sum(before < 1.0)} / {np.sum(after < 1.0)} | {before.max():.2f} / {after.max():.2f} | "
+              f"{np.sum(change > 0.01)} | {change[np.argmax(np.abs(change))]:+.3f} |")
+
+
 def timings(numbers: list[int], repeats: int) -> dict:
     """Per pair, the wall-clock seconds of each of ``repeats`` default registrations of the moved image."""
     times = {}
@@ -131,6 +162,8 @@ def main() -> None:
     parser.add_argument("--save", type=Path, help="register and save the matrices")
     parser.add_argument("--compare", type=Path, help="register and compare with saved matrices")
     parser.add_argument("--tolerance", type=float, default=1e-9, help="largest corner distance allowed (px)")
+    parser.add_argument("--synthetic", type=int, metavar="N",
+                        help="corner errors of N rendered scenes and N photographs with default options instead")
     parser.add_argument("--time", action="store_true", help="time default registrations of the moved pairs")
     parser.add_argument("--repeats", type=int, default=1)
     parser.add_argument("--rows-out", type=Path)
@@ -146,6 +179,13 @@ def main() -> None:
         times = timings(numbers, args.repeats)
         if args.rows_out is not None:
             args.rows_out.write_text(json.dumps(times))
+        return
+    if args.synthetic:
+        rows = synthetic_errors(args.synthetic)
+        if args.save is not None:
+            args.save.write_text(json.dumps(rows))
+        if args.compare is not None:
+            compare_errors(json.loads(args.compare.read_text()), rows)
         return
     rows = matrices(numbers, args.variants)
     if args.save is not None:
