@@ -10,7 +10,12 @@ images (none for NGF; the paper's inversion and histogram equalisation,
 CLAHE or gradient magnitude); (3) build Gaussian pyramids; (4) scan rotations, scales and shifts exhaustively at the coarsest
 level (:mod:`services.registration.search`); (5) refine the best candidates
 by damped Newton steps on finite-difference quadratic models
-(:mod:`services.registration.newton`), level by level down to full resolution.
+(:mod:`services.registration.newton`) and choose one (NGF: among the distinct
+maxima its proposals lead to); (6) refine the choice level by level down to
+full resolution. Each metric is one plan object (:class:`_FieldPlan`,
+:class:`_InformationPlan`): what it compares, its objective, its search, its
+choice and its stencils; the steps of :func:`register` do not branch on the
+metric.
 Affine and homography start as similarity at the coarsest level; a homography
 is refined as affine on the intermediate levels and gets its perspective terms
 only at full resolution, where they are best determined (this halved its
