@@ -10,7 +10,12 @@ images (none for NGF; the paper's inversion and histogram equalisation,
 CLAHE or gradient magnitude); (3) build Gaussian pyramids; (4) scan rotations, scales and shifts exhaustively at the coarsest
 level (:mod:`services.registration.search`); (5) refine the best candidates
 by damped Newton steps on finite-difference quadratic models
-(:mod:`services.registration.newton`), level by level down to full resolution.
+(:mod:`services.registration.newton`) and choose one (NGF: among the distinct
+maxima its proposals lead to); (6) refine the choice level by level down to
+full resolution. Each metric is one plan object (:class:`_FieldPlan`,
+:class:`_InformationPlan`): what it compares, its objective, its search, its
+choice and its stencils; the steps of :func:`register` do not branch on the
+metric.
 Affine and homography start as similarity at the coarsest level; a homography
 is refined as affine on the intermediate levels and gets its perspective terms
 only at full resolution, where they are best determined (this halved its
@@ -24,49 +29,36 @@ from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from functools import cache, partial
+from typing import ClassVar, Protocol
 
 import cv2
 import numpy as np
 
 from services.registration.borders import data_mask
 from services.registration.gradient_fields import SampledFieldSimilarity, gradient_epsilon, normalized_gradient_field
-from services.registration.models import MODELS, PARAMETER_COUNTS, update_matrix
+from services.registration.models import MODELS, PARAMETER_COUNTS, corner_error, update_matrix
 from services.registration.newton import maximize
 from services.registration.mutual_information import (DEFAULT_BINS, DEFAULT_LOG_BASE, MovingWindow, moving_window,
                                                       quantize)
 from services.registration.objective import METRICS, FixedSampler, field_score, information, sample_fixed, score
 from services.registration.preprocess import PREPROCESSING, preprocess
-from services.registration.search import coarse_search, gradient_field_search
+from services.registration.search import Candidate, coarse_search, gradient_field_search
 
 _COARSEST_SIZE = 48  # the coarsest level keeps at least this many moving pixels across
-# Coarse-search grid step of rotation and scale, in coarse moving pixels of corner motion. MI and NMI take 3:
-# on the 200 rendered and photographed pairs as precise as 2 (median 0.142 against 0.144 px) with half the
-# canvases; NGF keeps 2, since at 3 one more real TNO pair failed.
-_SEARCH_STEP = {"mi": 3.0, "nmi": 3.0, "ngf": 2.0}
 DEFAULT_SHIFT_RANGE = 0.12  # of the moving image's smaller side
 _SEARCH_BINS = 16  # fewer bins at the coarse level: a few thousand samples fill 16 x 16 cells, not 32 x 32
-_CANDIDATES = {"mi": 3, "nmi": 3, "ngf": 5}
 # Finite-difference stencils (first, smallest), step tolerance and relative-gain stop of the refinement, in
-# pixels of the level refined (services.registration.newton.maximize): the coarse levels only choose among
-# candidates and start the next level; the finer ones shrink the stencil, since the peak of MI is not quadratic.
-_COARSE_REFINEMENT = (2.0, 0.5, 0.1, 1e-5)  # coarsest level, where the search leaves the start within a grid step
-# The levels below: MI's peak is not quadratic, so its stencil shrinks; NGF's levels above full resolution only
-# rank its candidates and start the next level, and a 1 px model walks past the bumps that stopped a 0.125 px one
-# short of the peak (TNO pair 06 stopped 6 % off in scale); on the choice level, instead of 1 -> 0.25 px, it took
-# a quarter off the whole registration's time. Chosen on the odd TNO pairs, checked on the even ones.
-_FINE_REFINEMENT = {"mi": (0.5, 0.125, 0.02, 1e-5), "nmi": (0.5, 0.125, 0.02, 1e-5), "ngf": (1.0, 0.5, 0.1, 1e-5)}
-_CHOICE_REFINEMENT = _FINE_REFINEMENT["ngf"]  # the level NGF chooses its candidate on
-# Full resolution, started within a fraction of a pixel. NGF's precision on real pairs is the consistency of
-# two registrations, i.e. where each stops on a flat, rough maximum: it keeps a 1 px stencil, which sees the
-# smooth shape of the peak, and converges on the step alone (0.005 px, no gain stop); chosen on the odd TNO
-# pairs among stencils of 0.25 to 2 px, checked on the even ones.
-_FINEST_REFINEMENT = {"mi": (0.25, 0.125, 0.02, 1e-5), "nmi": (0.25, 0.125, 0.02, 1e-5),
-                      "ngf": (1.0, 1.0, 0.005, 0.0)}
+# pixels of the level refined (services.registration.newton.maximize): the coarsest level only chooses among
+# candidates and starts the next level, where the search leaves the start within a grid step. Each metric's
+# finer stencils are its plan's (_FieldPlan, _InformationPlan).
+_COARSE_REFINEMENT = (2.0, 0.5, 0.1, 1e-5)
+# Two starts whose coarsest-level refinements end within this many coarse pixels (corner distance) found the same
+# maximum: that refinement stops on steps of 0.1 px with a 0.5 px stencil, so one maximum's starts end well inside it.
+_SAME_MAXIMUM = 1.0
 _MAX_ITERATIONS = 40  # NGF's step convergence may take more than 20 models; MI and NMI stop well before 20
 _PARALLEL_PIXELS = 20_000  # levels with fewer moving pixels evaluate in one thread: a stencil point takes too little
 _MAX_THREADS = 4  # a similarity's stencil has 8 points, an affine's 12
 _FIELD_SIGMA = 1.0  # Gaussian smoothing (pixels) before gradient fields are taken
-DEFAULT_PREPROCESSING = {"mi": "gradient", "nmi": "gradient", "ngf": "none"}  # NGF takes its own gradients
 # The default metric, preprocessing and search range were chosen on the tuning half of the real TNO pairs (the
 # odd ones) by consistency under known moves, with no mask: NGF with no preprocessing, median 0.153 px and 13 of 13
 # under 1 px, where gradient-magnitude NMI gave 1.24 px and 6 of 13, CLAHE before NGF 0.151 px and 12 of 13; a
@@ -184,34 +176,6 @@ def _level_matrix(matrix: np.ndarray, level: int) -> np.ndarray:
     return down @ matrix @ np.linalg.inv(down)
 
 
-def _level_objective(
-    fixed: np.ndarray, moving: np.ndarray, bins: int, log_base: float, metric: str, min_overlap: float,
-    moving_valid: np.ndarray | None = None,
-) -> Callable[[], Callable[[np.ndarray], float]]:
-    """The objective of one pyramid level, as a function of the fixed image sampled on the moving grid.
-
-    ``fixed`` and ``moving`` are quantised images for MI and NMI, smoothed grey images for NGF; only the moving
-    pixels ``moving_valid`` marks count (all by default). Returns a factory: each call gives the objective with
-    its own work arrays, so that each thread has one.
-    """
-    if metric == "ngf":
-        epsilon = gradient_epsilon(fixed)
-        field = normalized_gradient_field(moving, gradient_epsilon(moving, moving_valid))
-
-        def field_objective() -> Callable[[np.ndarray], float]:
-            similarity = SampledFieldSimilarity(epsilon, *field, moving_valid)
-            return lambda samples: field_score(samples, similarity, min_overlap)
-
-        return field_objective
-    window = moving_window(moving if moving_valid is None else np.where(moving_valid, moving, -1.0), bins)
-
-    def information_objective() -> Callable[[np.ndarray], float]:
-        own_window = MovingWindow(window.level_offset, bins)
-        return lambda samples: score(samples, own_window, bins, log_base, metric, min_overlap)
-
-    return information_objective
-
-
 @cache
 def _thread_pool(workers: int, process: int) -> ThreadPoolExecutor:
     """The threads that evaluate stencil points beside the calling thread, kept for the life of ``process``.
@@ -270,11 +234,212 @@ def _coarse_model(model: str) -> str:
     return model if model in ("translation", "rigid", "similarity") else "similarity"
 
 
+Stencil = tuple[float, float, float, float]  # first and smallest step, step tolerance, relative-gain stop
+ObjectiveFactory = Callable[[], Callable[[np.ndarray], float]]  # each call: the objective with its own work arrays
+
+
+@dataclass(frozen=True)
+class _Pyramid:
+    """The images one registration compares, finest level first; level l has pixel coordinates x / 2**l.
+
+    ``fixed_prepared`` and ``moving_prepared`` are the preprocessed images before the plan turns them into what
+    its objective compares (``fixed`` and ``moving``: quantised for MI and NMI, the same for NGF); ``masks`` the
+    moving pixels with data (None: all); ``objectives`` each level's objective factory.
+    """
+
+    fixed: list[np.ndarray]
+    moving: list[np.ndarray]
+    masks: list[np.ndarray | None]
+    objectives: list[ObjectiveFactory]
+    fixed_prepared: list[np.ndarray]
+    moving_prepared: list[np.ndarray]
+
+    @property
+    def coarsest(self) -> int:
+        return len(self.fixed) - 1
+
+
+@dataclass(frozen=True)
+class _Refiner:
+    """:func:`_refine` at a level of one registration's pyramid, with its sampling and threads."""
+
+    pyramid: _Pyramid
+    model: str
+    cubic: bool
+    threads: int
+
+    def __call__(self, level: int, start: np.ndarray, stencil: Stencil, model: str) -> tuple[np.ndarray, float]:
+        return _refine(self.pyramid.fixed[level], self.pyramid.moving[level], start, model,
+                       self.pyramid.objectives[level], stencil, self.cubic, self.threads)
+
+    def coarse(self, level: int, start: np.ndarray, stencil: Stencil) -> tuple[np.ndarray, float]:
+        """Refine with the model of the coarse levels (:func:`_coarse_model`)."""
+        return self(level, start, stencil, _coarse_model(self.model))
+
+
+class _Plan(Protocol):
+    """How one metric registers: what it compares, its objective, its global search and how it chooses its start.
+
+    ``search_step`` is the coarse grid step of rotation and scale in coarse moving pixels of corner motion;
+    ``cubic`` samples the fixed image by bicubic instead of bilinear interpolation; ``fine`` and ``finest`` are the
+    stencils of the levels below the choice and of full resolution.
+    """
+
+    default_preprocessing: str
+    search_step: float
+    cubic: bool
+    fine: Stencil
+    finest: Stencil
+
+    def smoothed(self, image: np.ndarray) -> np.ndarray:
+        """The preprocessed image as the objective's pyramid starts from it."""
+
+    def compared(self, image: np.ndarray) -> np.ndarray:
+        """A pyramid level as the objective compares it."""
+
+    def objective(self, fixed: np.ndarray, moving: np.ndarray, moving_valid: np.ndarray | None) -> ObjectiveFactory:
+        """The objective of one level as a function of the fixed image sampled on the moving grid."""
+
+    def search(self, pyramid: _Pyramid, scale: float, angles: np.ndarray, factors: np.ndarray,
+               shift: int) -> list[Candidate]:
+        """The distinct best candidates of the exhaustive search at the coarsest level."""
+
+    def choose(self, candidates: list[Candidate], refine: _Refiner) -> tuple[np.ndarray, int]:
+        """The candidate refined and chosen, as a full-resolution matrix, and the level it was chosen on."""
+
+
+@dataclass(frozen=True)
+class _FieldPlan:
+    """Normalised gradient fields: the grey images smoothed, searched by their structure tensors, compared with
+    bicubic sampling (bilinear sampling blurs by how far off the grid it samples; NGF's gradients feel it).
+
+    The search grid step is 2 coarse pixels (at 3 one more real TNO pair failed); five candidates are refined at
+    the coarsest level and chosen among one level finer, where edges are sharper. On the levels below, a 1 px
+    stencil walks past the bumps that stopped a 0.125 px one short of the peak (TNO pair 06 stopped 6 % off in
+    scale); on the choice level, instead of 1 -> 0.25 px, it took a quarter off the whole registration's time.
+    Full resolution keeps a 1 px stencil, which sees the smooth shape of the flat, rough peak, and converges on
+    the step alone (0.005 px, no gain stop). Chosen on the odd TNO pairs among stencils of 0.25 to 2 px, checked
+    on the even ones.
+    """
+
+    min_overlap: float
+    default_preprocessing: ClassVar[str] = "none"  # NGF takes its own gradients
+    search_step: ClassVar[float] = 2.0
+    candidates: ClassVar[int] = 5
+    proposals: ClassVar[int] = 20  # search results refined at most to find ``candidates`` distinct maxima
+    cubic: ClassVar[bool] = True
+    fine: ClassVar[Stencil] = (1.0, 0.5, 0.1, 1e-5)
+    finest: ClassVar[Stencil] = (1.0, 1.0, 0.005, 0.0)
+
+    def smoothed(self, image: np.ndarray) -> np.ndarray:
+        return cv2.GaussianBlur(image, (0, 0), _FIELD_SIGMA)
+
+    def compared(self, image: np.ndarray) -> np.ndarray:
+        return image
+
+    def objective(self, fixed: np.ndarray, moving: np.ndarray, moving_valid: np.ndarray | None) -> ObjectiveFactory:
+        epsilon = gradient_epsilon(fixed)
+        field = normalized_gradient_field(moving, gradient_epsilon(moving, moving_valid))
+
+        def field_objective() -> Callable[[np.ndarray], float]:
+            similarity = SampledFieldSimilarity(epsilon, *field, moving_valid)
+            return lambda samples: field_score(samples, similarity, self.min_overlap)
+
+        return field_objective
+
+    def search(self, pyramid: _Pyramid, scale: float, angles: np.ndarray, factors: np.ndarray,
+               shift: int) -> list[Candidate]:
+        level = pyramid.coarsest
+        return gradient_field_search(pyramid.fixed[level], pyramid.moving[level], scale, angles, factors, shift,
+                                     self.min_overlap, self.proposals, pyramid.masks[level])
+
+    def choose(self, candidates: list[Candidate], refine: _Refiner) -> tuple[np.ndarray, int]:
+        coarsest = chosen = refine.pyramid.coarsest
+        height, width = refine.pyramid.moving[coarsest].shape
+        refined: list[tuple[np.ndarray, float]] = []
+        for candidate in candidates:  # best first, until ``candidates`` distinct maxima are found
+            matrix, value = refine.coarse(coarsest, candidate.matrix, _COARSE_REFINEMENT)
+            if all(corner_error(matrix, other, width, height) > _SAME_MAXIMUM for other, _ in refined):
+                refined.append((matrix, value))
+                if len(refined) == self.candidates:
+                    break
+        if coarsest >= 2:  # choose among the candidates one level finer, where edges are sharper
+            chosen = coarsest - 1
+            refined = [refine.coarse(chosen, _level_matrix(_level_matrix(matrix, -coarsest), chosen), self.fine)
+                       for matrix, _ in refined]
+        return _level_matrix(max(refined, key=lambda item: item[1])[0], -chosen), chosen
+
+
+@dataclass(frozen=True)
+class _InformationPlan:
+    """Mutual information (``metric`` "mi") or normalised mutual information ("nmi") of quantised images.
+
+    The search scores shifts by the structure tensors and the best of each canvas by a hard-binned histogram of
+    at most ``_SEARCH_BINS`` bins, on a grid step of 3 coarse pixels (on the 200 rendered and photographed pairs
+    as precise as 2, median 0.142 against 0.144 px, with half the canvases); three candidates are ranked after
+    the first stencil and only the best is refined on. MI's peak is not quadratic, so the stencils shrink to
+    0.125 px.
+    """
+
+    metric: str
+    bins: int
+    log_base: float
+    min_overlap: float
+    default_preprocessing: ClassVar[str] = "gradient"
+    search_step: ClassVar[float] = 3.0
+    candidates: ClassVar[int] = 3
+    cubic: ClassVar[bool] = False
+    fine: ClassVar[Stencil] = (0.5, 0.125, 0.02, 1e-5)
+    finest: ClassVar[Stencil] = (0.25, 0.125, 0.02, 1e-5)
+
+    def smoothed(self, image: np.ndarray) -> np.ndarray:
+        return image
+
+    def compared(self, image: np.ndarray) -> np.ndarray:
+        return quantize(image, self.bins)
+
+    def objective(self, fixed: np.ndarray, moving: np.ndarray, moving_valid: np.ndarray | None) -> ObjectiveFactory:
+        window = moving_window(moving if moving_valid is None else np.where(moving_valid, moving, -1.0), self.bins)
+
+        def information_objective() -> Callable[[np.ndarray], float]:
+            own_window = MovingWindow(window.level_offset, self.bins)
+            return lambda samples: score(samples, own_window, self.bins, self.log_base, self.metric,
+                                         self.min_overlap)
+
+        return information_objective
+
+    def search(self, pyramid: _Pyramid, scale: float, angles: np.ndarray, factors: np.ndarray,
+               shift: int) -> list[Candidate]:
+        level, search_bins = pyramid.coarsest, min(self.bins, _SEARCH_BINS)
+        search_fixed = quantize(pyramid.fixed_prepared[level], search_bins)
+        search_moving = quantize(pyramid.moving_prepared[level], search_bins)
+        return coarse_search(search_fixed, search_moving, scale, angles, factors, shift, search_bins, self.log_base,
+                             self.metric, self.min_overlap, self.candidates, pyramid.masks[level])
+
+    def choose(self, candidates: list[Candidate], refine: _Refiner) -> tuple[np.ndarray, int]:
+        coarsest = refine.pyramid.coarsest
+        first, smallest, tolerance, relative_gain = _COARSE_REFINEMENT
+        ranked = [refine.coarse(coarsest, candidate.matrix, (first, first, tolerance, relative_gain))
+                  for candidate in candidates]
+        best, _ = refine.coarse(coarsest, max(ranked, key=lambda item: item[1])[0],
+                                (0.5 * first, smallest, tolerance, relative_gain))
+        return _level_matrix(best, -coarsest), coarsest
+
+
+_PLANS: dict[str, Callable[[int, float, float], _Plan]] = {
+    "ngf": lambda bins, log_base, min_overlap: _FieldPlan(min_overlap),
+    "nmi": partial(_InformationPlan, "nmi"),
+    "mi": partial(_InformationPlan, "mi"),
+}
+DEFAULT_PREPROCESSING = {"ngf": _FieldPlan.default_preprocessing, "nmi": _InformationPlan.default_preprocessing,
+                         "mi": _InformationPlan.default_preprocessing}
+
+
 def _search_grid(
-    model: str, metric: str, coarse_shape: tuple[int, int], max_angle: float, max_scale_change: float
+    model: str, step: float, coarse_shape: tuple[int, int], max_angle: float, max_scale_change: float
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Rotations (radians) and scale factors of the coarse search, spaced by ``_SEARCH_STEP`` pixels at the corners."""
-    step = _SEARCH_STEP[metric] / (0.5 * float(np.hypot(*coarse_shape)))
+    """Rotations (radians) and scale factors of the coarse search, spaced by ``step`` pixels at the corners."""
+    step = step / (0.5 * float(np.hypot(*coarse_shape)))
     angles, factors = np.zeros(1), np.ones(1)
     if model != "translation" and max_angle > 0.0:
         angle_range = np.deg2rad(max_angle)
@@ -295,17 +460,77 @@ def _nominal_scale(fixed: np.ndarray, moving: np.ndarray, scale: float | None) -
 
 
 def _prepared(
-    fixed: np.ndarray, moving: np.ndarray, reduction: float, metric: str, preprocessing: str | None
+    fixed: np.ndarray, moving: np.ndarray, reduction: float, plan: _Plan, preprocessing: str | None
 ) -> tuple[np.ndarray, np.ndarray]:
-    """The images the objective compares: the fixed one reduced by ``reduction``, both preprocessed (and, for
-    NGF, smoothed)."""
-    preprocessing = preprocessing if preprocessing is not None else DEFAULT_PREPROCESSING[metric]
+    """The images the objective's pyramid starts from: the fixed one reduced by ``reduction``, both preprocessed
+    (by the plan's default preprocessing unless one is given) and smoothed as the plan says."""
+    preprocessing = preprocessing if preprocessing is not None else plan.default_preprocessing
     fixed_pre = preprocess(_reduce(fixed, reduction), preprocessing, invert=True)
     moving_pre = preprocess(moving, preprocessing)
-    if metric == "ngf":
-        fixed_pre = cv2.GaussianBlur(fixed_pre, (0, 0), _FIELD_SIGMA)
-        moving_pre = cv2.GaussianBlur(moving_pre, (0, 0), _FIELD_SIGMA)
-    return fixed_pre, moving_pre
+    return plan.smoothed(fixed_pre), plan.smoothed(moving_pre)
+
+
+def _build_pyramid(
+    plan: _Plan, fixed: np.ndarray, moving: np.ndarray, moving_mask: np.ndarray | None, reduction: float,
+    preprocessing: str | None,
+) -> _Pyramid:
+    """Step 1: the pyramids of both prepared images, of the moving pixels with data and of the objective."""
+    fixed_pre, moving_pre = _prepared(fixed, _filled(moving, moving_mask), reduction, plan, preprocessing)
+    levels = int(np.floor(np.log2(min(np.shape(moving)) / _COARSEST_SIZE)))  # >= 1 by the size check
+    fixed_levels, moving_levels = _pyramid(fixed_pre, levels), _pyramid(moving_pre, levels)
+    masks = _mask_pyramid(moving_mask, levels)
+    if masks[levels] is not None and not masks[levels].any():
+        raise ValueError("The moving mask leaves too little of the moving image with data to register: no pixel "
+                         "of the coarsest pyramid level has data.")
+    fixed_compared = [plan.compared(level) for level in fixed_levels]
+    moving_compared = [plan.compared(level) for level in moving_levels]
+    objectives = [plan.objective(f, m, mask) for f, m, mask in zip(fixed_compared, moving_compared, masks)]
+    return _Pyramid(fixed_compared, moving_compared, masks, objectives, fixed_levels, moving_levels)
+
+
+def _global_search(
+    plan: _Plan, pyramid: _Pyramid, model: str, nominal: float, reduction: float, max_shift: float | None,
+    max_angle: float, max_scale_change: float,
+) -> list[Candidate]:
+    """Step 2: the exhaustive search of rotations, scales and shifts at the coarsest level."""
+    coarsest = pyramid.coarsest
+    moving_height, moving_width = pyramid.moving[0].shape
+    angles, factors = _search_grid(model, plan.search_step, pyramid.moving[coarsest].shape, max_angle,
+                                   max_scale_change)
+    shift_range = max_shift if max_shift is not None else (
+        DEFAULT_SHIFT_RANGE * min(moving_height, moving_width) * nominal)
+    coarse_shift = int(np.ceil(shift_range / (nominal * 2**coarsest)))
+    candidates = plan.search(pyramid, nominal * reduction, angles, factors, coarse_shift)
+    if not candidates:
+        raise ValueError("The images do not overlap enough anywhere in the search range; "
+                         "check the nominal scale and the search range.")
+    return candidates
+
+
+def _descend(plan: _Plan, refine: _Refiner, matrix: np.ndarray, chosen_level: int) -> np.ndarray:
+    """Step 4: refine the chosen full-resolution ``matrix`` level by level below ``chosen_level`` down to full
+    resolution; a homography is refined as affine above full resolution."""
+    for level in range(chosen_level - 1, -1, -1):
+        level_model = "affine" if refine.model == "homography" and level > 0 else refine.model
+        level_matrix, _ = refine(level, _level_matrix(matrix, level), plan.finest if level == 0 else plan.fine,
+                                 level_model)
+        matrix = _level_matrix(level_matrix, -level)
+    return matrix
+
+
+def _registration(
+    pyramid: _Pyramid, matrix: np.ndarray, model: str, reduction: float, bins: int, log_base: float
+) -> Registration:
+    """Step 5: the result, with MI and NMI measured at full moving resolution over the overlap."""
+    moving_height, moving_width = pyramid.moving[0].shape
+    fixed_quantized = quantize(pyramid.fixed_prepared[0], bins)
+    moving_quantized = quantize(pyramid.moving_prepared[0], bins)
+    samples = sample_fixed(fixed_quantized, matrix, moving_width, moving_height)
+    if pyramid.masks[0] is not None:
+        moving_quantized = np.where(pyramid.masks[0], moving_quantized, -1.0)
+    mi, nmi, _ = information(samples, moving_quantized, bins, log_base)
+    full_matrix = np.linalg.inv(_scaling(reduction)) @ matrix
+    return Registration(model, full_matrix / full_matrix[2, 2], mi, nmi, bins, log_base)
 
 
 def objective_value(
@@ -342,13 +567,12 @@ def objective_value(
         raise ValueError(f"The matrix must be 3x3; got shape {np.shape(matrix)}.")
     moving_height, moving_width = np.shape(moving)
     moving_mask = moving_mask if moving_mask is not None else data_mask(moving)
+    plan = _PLANS[metric](bins, log_base, min_overlap)
     reduction = min(1.0, 1.0 / _nominal_scale(fixed, moving, scale))
-    fixed_pre, moving_pre = _prepared(fixed, _filled(moving, moving_mask), reduction, metric, preprocessing)
-    if metric != "ngf":
-        fixed_pre, moving_pre = quantize(fixed_pre, bins), quantize(moving_pre, bins)
-    objective = _level_objective(fixed_pre, moving_pre, bins, log_base, metric, min_overlap,
-                                 _mask_pyramid(moving_mask, 0)[0])
-    sampler = FixedSampler(fixed_pre, moving_width, moving_height, cubic=metric == "ngf")
+    fixed_pre, moving_pre = _prepared(fixed, _filled(moving, moving_mask), reduction, plan, preprocessing)
+    fixed_compared = plan.compared(fixed_pre)
+    objective = plan.objective(fixed_compared, plan.compared(moving_pre), _mask_pyramid(moving_mask, 0)[0])
+    sampler = FixedSampler(fixed_compared, moving_width, moving_height, cubic=plan.cubic)
     return objective()(sampler(_scaling(reduction) @ np.asarray(matrix, dtype=np.float64)))
 
 
@@ -454,78 +678,13 @@ def register(
     threads = threads if threads is not None else min(_MAX_THREADS, len(os.sched_getaffinity(0)))
     if max_angle < 0.0 or max_scale_change < 0.0 or (max_shift is not None and max_shift < 0.0):
         raise ValueError("The search ranges (max_shift, max_angle, max_scale_change) must be non-negative.")
-    moving_height, moving_width = np.shape(moving)
+    plan = _PLANS[metric](bins, log_base, min_overlap)
     moving_mask = moving_mask if moving_mask is not None else data_mask(moving)
     nominal = _nominal_scale(fixed, moving, scale)
     reduction = min(1.0, 1.0 / nominal)
-    fixed_pre, moving_pre = _prepared(fixed, _filled(moving, moving_mask), reduction, metric, preprocessing)
-    levels = int(np.floor(np.log2(min(moving_height, moving_width) / _COARSEST_SIZE)))  # >= 1 by the size check
-    fixed_levels, moving_levels = _pyramid(fixed_pre, levels), _pyramid(moving_pre, levels)
-    masks = _mask_pyramid(moving_mask, levels)
-    if masks[levels] is not None and not masks[levels].any():
-        raise ValueError("The moving mask leaves too little of the moving image with data to register: no pixel "
-                         "of the coarsest pyramid level has data.")
-    if metric == "ngf":
-        fixed_pyramid, moving_pyramid = fixed_levels, moving_levels
-    else:
-        fixed_pyramid = [quantize(level, bins) for level in fixed_levels]
-        moving_pyramid = [quantize(level, bins) for level in moving_levels]
-    objectives = [_level_objective(f, m, bins, log_base, metric, min_overlap, mask)
-                  for f, m, mask in zip(fixed_pyramid, moving_pyramid, masks)]
-
-    coarse_fixed, coarse_moving = fixed_pyramid[levels], moving_pyramid[levels]
-    angles, factors = _search_grid(model, metric, coarse_moving.shape, max_angle, max_scale_change)
-    default_shift = DEFAULT_SHIFT_RANGE * min(moving_height, moving_width) * nominal
-    shift_range = max_shift if max_shift is not None else default_shift
-    reduced_scale = nominal * reduction
-    coarse_shift = int(np.ceil(shift_range / (nominal * 2**levels)))
-    if metric == "ngf":
-        candidates = gradient_field_search(coarse_fixed, coarse_moving, reduced_scale, angles, factors, coarse_shift,
-                                           min_overlap, _CANDIDATES[metric], masks[levels])
-    else:
-        search_bins = min(bins, _SEARCH_BINS)
-        search_fixed, search_moving = quantize(fixed_levels[-1], search_bins), quantize(moving_levels[-1], search_bins)
-        candidates = coarse_search(search_fixed, search_moving, reduced_scale, angles, factors, coarse_shift,
-                                   search_bins, log_base, metric, min_overlap, _CANDIDATES[metric], masks[levels])
-    if not candidates:
-        raise ValueError("The images do not overlap enough anywhere in the search range; "
-                         "check the nominal scale and the search range.")
-
-    cubic = metric == "ngf"  # bilinear sampling blurs by how far off the grid it samples; NGF's gradients feel it
-
-    def coarse_refinement(start: np.ndarray, stencil: tuple[float, float, float, float]) -> tuple[np.ndarray, float]:
-        return _refine(coarse_fixed, coarse_moving, start, _coarse_model(model), objectives[levels], stencil, cubic,
-                       threads)
-
-    chosen_level = levels
-    if metric == "ngf":
-        refined = [coarse_refinement(candidate.matrix, _COARSE_REFINEMENT) for candidate in candidates]
-        if levels >= 2:  # choose among the candidates one level finer, where edges are sharper
-            chosen_level = levels - 1
-            refined = [_refine(fixed_pyramid[chosen_level], moving_pyramid[chosen_level],
-                               _level_matrix(_level_matrix(candidate, -levels), chosen_level), _coarse_model(model),
-                               objectives[chosen_level], _CHOICE_REFINEMENT, cubic, threads)
-                       for candidate, _ in refined]
-    else:  # MI and NMI rank the candidates after the first stencil; only the best is refined on
-        first, smallest, tolerance, relative_gain = _COARSE_REFINEMENT
-        ranked = [coarse_refinement(candidate.matrix, (first, first, tolerance, relative_gain))
-                  for candidate in candidates]
-        refined = [coarse_refinement(max(ranked, key=lambda item: item[1])[0],
-                                     (0.5 * first, smallest, tolerance, relative_gain))]
-    matrix = _level_matrix(max(refined, key=lambda item: item[1])[0], -chosen_level)
-    for level in range(chosen_level - 1, -1, -1):
-        level_start = _level_matrix(matrix, level)
-        level_model = "affine" if model == "homography" and level > 0 else model
-        level_matrix, _ = _refine(fixed_pyramid[level], moving_pyramid[level], level_start, level_model,
-                                  objectives[level],
-                                  (_FINEST_REFINEMENT if level == 0 else _FINE_REFINEMENT)[metric], cubic, threads)
-        matrix = _level_matrix(level_matrix, -level)
-
-    fixed_quantized, moving_quantized = (quantize(fixed_levels[0], bins), quantize(moving_levels[0], bins)) if (
-        metric == "ngf") else (fixed_pyramid[0], moving_pyramid[0])
-    samples = sample_fixed(fixed_quantized, matrix, moving_width, moving_height)
-    if moving_mask is not None:
-        moving_quantized = np.where(masks[0], moving_quantized, -1.0)
-    mi, nmi, _ = information(samples, moving_quantized, bins, log_base)
-    full_matrix = np.linalg.inv(_scaling(reduction)) @ matrix
-    return Registration(model, full_matrix / full_matrix[2, 2], mi, nmi, bins, log_base)
+    pyramid = _build_pyramid(plan, fixed, moving, moving_mask, reduction, preprocessing)
+    candidates = _global_search(plan, pyramid, model, nominal, reduction, max_shift, max_angle, max_scale_change)
+    refine = _Refiner(pyramid, model, plan.cubic, threads)
+    matrix, chosen_level = plan.choose(candidates, refine)
+    matrix = _descend(plan, refine, matrix, chosen_level)
+    return _registration(pyramid, matrix, model, reduction, bins, log_base)

@@ -178,3 +178,33 @@ def test_a_forked_process_registers_with_threads_of_its_own():
     with context.Pool(1) as pool:
         child = pool.apply_async(register, (visible, infrared, "similarity"), {"metric": "ngf", "threads": 2})
         assert np.array_equal(child.get(timeout=60).matrix, before)
+
+
+def test_the_gradient_field_choice_is_among_distinct_maxima_not_the_first_five_proposals():
+    # The coarse search may put its best proposals all in one basin (TNO pair 06's moved image: its first five
+    # proposals refined to one maximum 54 px off, the right one came ninth). Here six proposals 10 coarse pixels
+    # off the truth lead to one wrong maximum, and a seventh lies near the truth: the first five alone choose the
+    # wrong maximum; refined until five distinct maxima are found, the choice is the right one.
+    from services.registration.register import (_build_pyramid, _FieldPlan, _level_matrix, _nominal_scale,
+                                                _Refiner, _scaling)
+    from services.registration.search import Candidate
+
+    def shifted(matrix, dx, dy):
+        return matrix @ np.array([[1.0, 0.0, dx], [0.0, 1.0, dy], [0.0, 0.0, 1.0]])
+
+    visible, infrared, truth = scene_pair(22)
+    plan = _FieldPlan(0.3)
+    reduction = 1.0 / _nominal_scale(visible, infrared, None)
+    pyramid = _build_pyramid(plan, visible, infrared, None, reduction, None)
+    refine = _Refiner(pyramid, "similarity", True, 1)
+    true_coarse = _level_matrix(_scaling(reduction) @ truth, pyramid.coarsest)
+    decoys = [Candidate(shifted(true_coarse, 10.0 + 0.1 * k, 0.1 * k), 1.0) for k in range(6)]
+    near = Candidate(shifted(true_coarse, 0.5, 0.5), 0.5)
+
+    def error(proposals):
+        matrix, _ = plan.choose(proposals, refine)
+        full = np.linalg.inv(_scaling(reduction)) @ matrix
+        return corner_error(truth, full / full[2, 2], *INFRARED_SIZE)
+
+    assert error(decoys[:5]) > 20.0  # the decoys' maximum is wrong
+    assert error(decoys + [near]) < 1.0  # before the descent to full resolution
