@@ -186,6 +186,11 @@ def _field_points(field: dict[str, np.ndarray], min_temperature_c: float):
     finite = finite_rows(points)
     hot = finite & (temperature >= min_temperature_c)
     if hot.sum() < 100:
+        with_temperature = int(np.count_nonzero(finite & np.isfinite(temperature)))
+        if with_temperature < 100:
+            raise ValueError(f"Only {with_temperature} of the field's {int(finite.sum())} points have a temperature: "
+                             "the thermal camera saw too little of the surface alone (mixed edge pixels get none, "
+                             "docs/temperature-field.md); a part cannot be found or judged without them.")
         raise ValueError(f"Only {int(hot.sum())} points are at least {min_temperature_c:g} "
                          "degC hot; the field shows no hot part (segmentation.min_temperature_c in the part file).")
     return points, temperature, finite, hot

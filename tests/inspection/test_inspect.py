@@ -84,6 +84,10 @@ def test_bad_fields(station):
     cold = dict(field, temperature=np.full(len(field["x"]), 25.0, dtype=np.float32))
     with pytest.raises(ValueError, match="no hot part"):
         inspect_field(field=cold, part=station.prepared)
+    # a thin part that the thermal camera sees only in mixed edge pixels: no point has a temperature
+    unseen = dict(field, temperature=np.full(len(field["x"]), np.nan, dtype=np.float32))
+    with pytest.raises(ValueError, match=r"Only 0 of the field's \d+ points have a temperature"):
+        inspect_field(field=unseen, part=station.prepared)
 
 
 def test_hot_points_that_are_no_such_part_get_no_verdict(station):
