@@ -74,7 +74,7 @@ class Settings(BaseSettings):
     simulated_station_scale: float = Field(
         1.0, gt=0, le=1, description="Shrinks the simulated station's images and focal lengths (quick runs).")
     simulated_lost_head: str | None = Field(
-        None, description="Fault drills: the simulated station's head whose camera is lost in every capture.")
+        None, description="Fault drills: the simulated station's head whose camera is lost in the first capture.")
     oak_camera_id: str | None = Field(None, description="OAK filming the patterns (MxId, IP or name); default the only one.")
     oak_thermal_id: str | None = Field(None, description="OAK-T thermal camera (MxId, IP or name); default the only one.")
     camera_socket: str = Field("CAM_A", pattern=r"^CAM_[A-J]$", description="Board socket of the OAK camera's sensor.")

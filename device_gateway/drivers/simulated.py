@@ -183,7 +183,7 @@ class SimulatedStation:
         self.rig = rig or presets.forging_rig()
         self.thermal_image = thermal_image
         self.lose_camera_after: int | None = None
-        """Fault drills: the camera is lost after this many frames of each capture (None: never)."""
+        """Fault drills: the camera is lost once, after this many patterns shown since the station opened."""
         self.scene = scene or presets.forging_scene()
         self.temperatures = temperatures or forging_temperatures()
         self.options = options
@@ -196,7 +196,7 @@ class SimulatedStation:
         self._clean_frames: dict[bytes, np.ndarray] = {}  # a cold scene's noiseless image per pattern digest
         self._board: tuple[BoardSpec, tuple[np.ndarray, np.ndarray]] | None = None
         self.shown: np.ndarray | None = None
-        self.shown_count = 0  # patterns shown since the last simulated loss (fault drills)
+        self.shown_count = 0  # patterns shown since the station opened (fault drills)
         camera_name, _ = self.rig.device(camera, "camera")
         projector_name, _ = self.rig.device(projector, "projector")
         thermal_name, _ = self.rig.device(thermal, "thermal")
@@ -363,7 +363,7 @@ class SimulatedCamera(_SimulatedDevice, CameraDriver):
         self._require_open()
         lose_after = self.station.lose_camera_after
         if lose_after is not None and self.station.shown_count >= lose_after:
-            self.station.shown_count = 0
+            self.station.lose_camera_after = None  # lost once: back when re-opened
             raise DeviceLost(f"camera {self.name!r}: connection lost (simulated fault)")
         exposed = time.time()
         board = self.station.board_frame(self.name, "visible")
@@ -414,7 +414,7 @@ def simulated_station_heads(heads: int = 4, scale: float = 1.0, dent_depth_mm: f
     Each head is a :class:`SimulatedStation` of that head's camera and projector filming the shaft's scene (its
     glow and its own projector's light); the thermal cameras read the hot part as
     ``hot_part.simulated_thermal_frame`` renders it. ``lose_head`` names a head whose camera is lost half way
-    through each capture (fault drills).
+    through the first capture (fault drills; re-opened, it films the next).
 
     Returns
     -------
