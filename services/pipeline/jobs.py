@@ -113,7 +113,8 @@ def station_scan_job(*, runtime: Runtime, job_id: str, params: dict[str, Any], r
     """A station scan's first message, after its capture (``captured``: the gateway's ``StationCapture``): store
     every head's frames and the thermal frames, add one ``scan_head`` job per head that filmed and send them as
     one group (``dispatch``) whose completion runs :func:`scan_merge_job`. Returns the handed-over result (the
-    job waits at stage ``heads``): the capture's artifacts and, per head, its job or its capture's error.
+    job waits at stage ``heads``): the capture's artifacts, per head its job or its capture's error, and
+    ``last_frame_at`` (wall-clock seconds of the capture's last frame, a head's or a thermal camera's).
 
     A station whose every head failed is finished at once (:func:`scan_merge_job`'s outcome, NotDecidable).
     """
@@ -136,9 +137,11 @@ def station_scan_job(*, runtime: Runtime, job_id: str, params: dict[str, Any], r
     heads = {head.head: {"error": head.error} for head in captured.heads if head.error is not None}
     heads |= {head.head: {"job_id": head_job} for head, head_job in zip(good, head_jobs)}
     captured_at = next((float(h.frame_timestamps[0]) for h in good if len(h.frame_timestamps)), None)
+    stamps = [float(t) for h in good for t in h.frame_timestamps[-1:]] + [
+        float(t) for stamps in captured.thermal_timestamps.values() for t in stamps[-1:]]
     clock.stop()
     handed_over = {"scan_id": params["scan_id"], "artifacts": artifacts, "heads": heads, "captured_at": captured_at,
-                   "stage_seconds": clock.seconds}
+                   "last_frame_at": max(stamps, default=None), "stage_seconds": clock.seconds}
     if not head_jobs:
         return _finish_station_scan(runtime=runtime, job_id=job_id, params=params, rig=rig, handed_over=handed_over,
                                     head_results={})
@@ -207,8 +210,9 @@ def _finish_station_scan(*, runtime: Runtime, job_id: str, params: dict[str, Any
     stored = type(stored)(stored.outcome, {**artifacts, **stored.artifacts})
     seconds = {**handed_over.get("stage_seconds", {}),
                **{f"head {h.head}": h.seconds for h in heads if h.seconds is not None}, **clock.seconds}
-    return scan_result(scan_id=params["scan_id"], stored=stored, part_type_id=params.get("part_type_id"),
-                       stage_seconds=seconds)
+    result = scan_result(scan_id=params["scan_id"], stored=stored, part_type_id=params.get("part_type_id"),
+                         stage_seconds=seconds)
+    return {**result, "last_frame_at": handed_over.get("last_frame_at")}
 
 
 def reconstruct_job(*, runtime: Runtime, job_id: str) -> dict[str, Any]:
