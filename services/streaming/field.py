@@ -8,9 +8,8 @@ Entity tree (world frame = the rig's world frame, OpenCV axes, millimetres):
 - ``world/deviation``: the inspected part's points (as measured, beside the field) coloured by their
   deviation from the nominal part (diverging map over the surface tolerance: blue missing material,
   red excess), with the per-point ``deviation`` (mm) alongside; cleared for a scan not inspected.
-- ``world/heads/<head>``: a station's heads' clouds, each its own layer (``Points3D`` in the head's colour, as
-  the head measured it before the merge), with the per-point ``temperature`` of the merged field where the
-  merge kept the point; cleared paths are not logged for a single-head scan.
+- ``world/heads/<head>``: a station's heads' clouds, each its own layer (``Points3D`` in the head's colour
+  ``HEAD_COLORS``, as the head measured it before the merge); a single-head scan logs none.
 - ``verdict``: the inspection's verdict and features as a Markdown ``TextDocument``; cleared for a scan
   not inspected.
 - ``world/devices/<name>``: ``Transform3D`` of the device pose; our poses map world
