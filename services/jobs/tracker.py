@@ -189,7 +189,8 @@ class JobTracker:
 
     def announce(self, job: Job) -> None:
         """Publish the job's state, and its scan's when it is a scan job; the latter (or the job's) is also
-        the station's state, the one retained message. Then the listeners get the job's state."""
+        the station's state, the one retained message (a station scan's head job publishes its own state only).
+        Then the listeners get the job's state."""
         state = job_state(job)
         for listener in self.listeners:
             try:
@@ -200,6 +201,8 @@ class JobTracker:
             return
         prefix = self.publisher.prefix
         self.publisher.publish(job_topic(prefix, job.id), state)
+        if job.params.get("parent_job_id"):  # a station scan's head: its scan's and the station's state are the scan job's
+            return
         scan_id = job.params.get("scan_id")
         if scan_id is not None:
             if job.kind == "scan":
