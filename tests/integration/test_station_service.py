@@ -4,6 +4,7 @@ two worker processes and the gateway on PostgreSQL and RabbitMQ). One message pe
 completion merges, fuses and inspects; a head whose camera is lost mid-capture makes the scan NotDecidable, naming
 the head, with everything captured kept."""
 
+import time
 import uuid
 
 import httpx
@@ -61,13 +62,16 @@ def embedded(tmp_path_factory):
 
     directory = tmp_path_factory.mktemp("station-embedded")
     harness = EndToEnd(directory)
-    env = {"THERMOFIELD_DATA_DIR": str(directory / "data"), "THERMOFIELD_SITE": f"it-{uuid.uuid4().hex[:8]}",
+    site = f"it-{uuid.uuid4().hex[:8]}"
+    env = {"THERMOFIELD_DATA_DIR": str(directory / "data"), "THERMOFIELD_SITE": site,
            "THERMOFIELD_SIMULATED_LOST_HEAD": "head-3", **STATION}
     port = harness.free_port()
     harness.processes.start("serve", ["serve", "--port", str(port), "--gateway-port", str(harness.free_port()),
                                       "--rerun-port", str(harness.free_port())], env)
     harness.processes.wait_until_healthy(f"http://127.0.0.1:{port}/readyz", "serve", timeout_s=300)
     admin = harness.create_key(env, ["admin"])
+    harness.events = harness.mqtt(f"{site}/station1")
+    harness.site = site
     with httpx.Client(base_url=f"http://127.0.0.1:{port}", headers={"Authorization": f"Bearer {admin}"},
                       timeout=60) as client:
         yield harness, client, directory
@@ -107,6 +111,13 @@ def test_a_station_scan_through_the_embedded_service_merges_the_heads_and_inspec
     recording = client.get(scan["links"]["field.rrd"]).content
     for head in HEADS:
         assert f"world/heads/{head}".encode() in recording
+    deadline = time.monotonic() + 10  # MQTT: the scan's topic carries the scan job's states only, the last its summary
+    topic = f"{e2e.site}/station1/scans/{scan['scan_id']}"
+    while not (states := e2e.events.states(topic)) or states[-1]["status"] != "succeeded":
+        assert time.monotonic() < deadline, states
+        time.sleep(0.1)
+    assert {state["kind"] for state in states} == {"scan"} and "heads" in [state["stage"] for state in states]
+    assert states[-1]["summary"]["station"] == scan["summary"]["station"]
 
 
 def read_cloud_bytes(data: bytes, directory):
