@@ -47,7 +47,7 @@ from services.pipeline.register import register_scan
 from services.pipeline.scan import StageClock, scan_capture, scan_result
 from services.pipeline.station import HeadScan, scan_head, station_capture_artifacts, store_station_scan
 from services.pipeline.summary import field_summary, glow_summary
-from services.storage.artifacts import ArtifactStore
+from services.storage.artifacts import ArtifactStore, ArtifactWriter
 
 if TYPE_CHECKING:
     from services.inspection.inspect import PreparedPart
@@ -127,8 +127,9 @@ def station_scan_job(*, runtime: Runtime, job_id: str, params: dict[str, Any], r
     good = [head for head in captured.heads if head.error is None]
     files = station_capture_artifacts(heads=[HeadFrames(h.head, captured.sequence, h.frames) for h in good],
                                       exposures={h.head: h.exposure for h in good}, thermal=captured.thermal)
-    store = runtime.store
-    artifacts = {name: store.put_bytes(data) for name, data in files.items()}
+    with ArtifactWriter(runtime.store) as writer:  # hashed, written and synced two at a time
+        writer.put(files)
+        artifacts = writer.digests()
     head_params = [{"scan_id": params["scan_id"], "parent_job_id": job_id, "head": head.head,
                     "calibration_set_id": params["calibration_set_id"],
                     **{key: artifacts[head_artifact(head.head, key)]
