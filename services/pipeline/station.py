@@ -9,8 +9,9 @@ in ``rig.heads`` that measured the point.
 
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -26,6 +27,12 @@ from services.pipeline.reconstruct import reconstruct_capture
 from services.pipeline.tables import TriangulationTables
 from services.structured_light import defaults
 from services.structured_light.reconstruct import Reconstruction
+
+if TYPE_CHECKING:  # the service's stages load the inspection, the store and Rerun on first use, not the commands
+    from services.inspection.inspect import PreparedPart
+    from services.pipeline.scan import ScanOutcome, StageClock, StoredScan
+    from services.storage.artifacts import ArtifactStore
+    from services.streaming.field import FieldScene
 
 DEFAULT_POSE_UNCERTAINTY = PoseUncertainty(translation_mm=0.05, rotation_deg=0.01)
 """A head's pose uncertainty when the calibration gives none: the station calibration's target (issue 36)."""
@@ -271,7 +278,7 @@ class StationScanOutcome:
     """A station scan's merged cloud and report (None when a head failed) and the scan's outcome."""
 
     merged: MergedCloud | None
-    outcome: "ScanOutcome"
+    outcome: ScanOutcome
 
 
 def _station_summary(heads: Sequence[HeadScan], merged: MergedCloud | None):
@@ -297,7 +304,7 @@ def _station_summary(heads: Sequence[HeadScan], merged: MergedCloud | None):
 
 
 def process_station_scan(*, heads: Sequence[HeadScan], rig: Rig, thermal: Mapping[str, np.ndarray],
-                         part=None, clock=None,
+                         part: PreparedPart | None = None, clock: StageClock | None = None,
                          uncertainty: PoseUncertainty | Mapping[str, PoseUncertainty] = DEFAULT_POSE_UNCERTAINTY,
                          ) -> StationScanOutcome:
     """Merge the heads' clouds (:func:`merge_heads`), fuse the field from every thermal camera
@@ -344,8 +351,11 @@ def process_station_scan(*, heads: Sequence[HeadScan], rig: Rig, thermal: Mappin
 
 
 def store_station_scan(*, scan_id: str, heads: Sequence[HeadScan], rig: Rig, thermal: Mapping[str, np.ndarray],
-                       store, part=None, clock=None, captured_at: float | None = None, publish=None,
-                       uncertainty: PoseUncertainty | Mapping[str, PoseUncertainty] = DEFAULT_POSE_UNCERTAINTY):
+                       store: ArtifactStore, part: PreparedPart | None = None, clock: StageClock | None = None,
+                       captured_at: float | None = None,
+                       publish: Callable[[FieldScene, float | None], None] | None = None,
+                       uncertainty: PoseUncertainty | Mapping[str, PoseUncertainty] = DEFAULT_POSE_UNCERTAINTY,
+                       ) -> StoredScan:
     """:func:`process_station_scan` with its files stored and the field streamed: the merged ``cloud.ply``, the
     ``field.ply``, the inspection's files and the Rerun recording ``field.rrd`` (each head's cloud its own layer,
     and the merged field; the scene also given to ``publish``). A scan with a failed head stores no field and
