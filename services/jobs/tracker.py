@@ -176,10 +176,15 @@ class JobTracker:
 
     def recover(self) -> list[Job]:
         """Jobs a crash of the embedded service left unfinished (their messages died with its in-memory
-        broker), put back to ``queued`` and into the outbox to be sent again."""
+        broker), put back to ``queued`` and into the outbox to be sent again; a station scan's head jobs are
+        failed instead (their group died with the broker: their scan job, sent again, captures anew)."""
         with self.sessions.begin() as session:
             jobs = list(session.scalars(select(Job).where(Job.status.in_(("queued", "running")))))
             for job in jobs:
+                if job.params.get("parent_job_id"):  # a station scan's head: its scan job runs again, whole
+                    job.status, job.stage, job.finished_at = "failed", "failed", datetime.now(UTC)
+                    job.error = "interrupted by a restart (its scan job runs again)"
+                    continue
                 job.dispatched_at = None
                 if job.status == "running":
                     job.status, job.stage, job.error = "queued", "recovered", "interrupted by a restart"

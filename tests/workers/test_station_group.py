@@ -93,3 +93,19 @@ def test_a_group_of_jobs_sends_its_completion_once_after_every_member_is_recorde
     assert seen == [(parent, ["succeeded"] * 3)]
     with sessions() as session:
         assert session.get(Job, parent).status == "succeeded"
+
+
+def test_a_restart_sends_a_waiting_station_scan_again_and_fails_its_heads(engine):
+    sessions = make_sessions(engine)
+    tracker = JobTracker(sessions)
+    scan = _job(sessions, scan_id="s1")
+    tracker.start(scan, "w:1")
+    tracker.hand_over(scan, {CONTINUED: {"stage": "heads", "fraction": 0.3}})
+    with sessions.begin() as session:
+        head = tracker.create(session, "scan_head", {"parent_job_id": scan, "head": "head-1"}).id
+    tracker.recover()
+    with sessions() as session:
+        again, lost = session.get(Job, scan), session.get(Job, head)
+        assert (again.status, again.dispatched_at) == ("queued", None)  # the outbox sends it: captured anew
+        assert lost.status == "failed" and "restart" in lost.error
+    assert tracker.start(scan, "w:2") is not None
