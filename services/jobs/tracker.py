@@ -97,17 +97,16 @@ class JobTracker:
         JobBusy
             For a redelivery while the job's lease is live.
 
-        A ``continuation`` message takes up a job handed over (:meth:`hand_over`) and waiting at its stage; once
-        taken up, another copy is skipped.
+        A ``continuation`` message takes up a job handed over (:meth:`hand_over`) and waiting at its stage (the
+        same attempt); once taken up, another copy is skipped, and its retries and redeliveries are started as
+        any message's.
         """
         with self.sessions.begin() as session:
             job = session.get(Job, job_id, with_for_update=True)
             now = datetime.now(UTC)
-            if continuation:
-                if job is None or job.status != "running" or job.heartbeat_at is not None:
-                    return None
-                job.stage, job.worker, job.heartbeat_at = "continuing", worker, now
-            else:
+            if continuation and job is not None and job.status == "running" and job.heartbeat_at is None:
+                job.stage, job.worker, job.heartbeat_at = "continuing", worker, now  # handed over: take it up
+            else:  # a first attempt, a retry (of a continuation too), a redelivery
                 if job is None or job.status in TERMINAL_STATUSES or (job.status == "running" and not redelivered):
                     return None
                 if job.status == "running" and job.heartbeat_at and job.heartbeat_at > now - timedelta(seconds=LEASE_S):

@@ -109,3 +109,15 @@ def test_a_restart_sends_a_waiting_station_scan_again_and_fails_its_heads(engine
         assert (again.status, again.dispatched_at) == ("queued", None)  # the outbox sends it: captured anew
         assert lost.status == "failed" and "restart" in lost.error
     assert tracker.start(scan, "w:2") is not None
+
+
+def test_a_continuation_that_fails_is_retried_as_any_message(engine):
+    sessions = make_sessions(engine)
+    tracker = JobTracker(sessions)
+    job_id = _job(sessions)
+    tracker.start(job_id, "w:1")
+    tracker.hand_over(job_id, {CONTINUED: {"stage": "heads", "fraction": 0.3}})
+    assert tracker.start(job_id, "w:2", continuation=True) is not None
+    tracker.fail(job_id, "RuntimeError: merge", will_retry=True)
+    retried = tracker.start(job_id, "w:3", continuation=True)  # the retry's copy carries the option too
+    assert retried is not None and retried.attempts == 2 and retried.status == "running"
