@@ -4,7 +4,8 @@
 - ``GET /v1/devices``: the devices with name, kind, driver, resolution, identity.
 - ``GET /v1/sequence``: the sequence manifest every capture projects.
 - ``POST /v1/captures`` ``{"thermal_frames": 1}``: runs one capture and answers the
-  ``.npz`` archive of :mod:`device_gateway.transfer`.
+  ``.npz`` archive of :mod:`device_gateway.transfer` (a station of several heads: every head one after
+  another, then the thermal cameras, as the station capture archive).
 - ``POST /v1/board-views`` ``{"board": {...}, "views": 12, "interval_s": 2}``: films a
   calibration board in that many poses with both cameras (``.npz`` board views).
 
@@ -29,8 +30,9 @@ from pydantic import BaseModel, Field
 
 from services.bodylimit import BodySizeLimit
 from device_gateway.devices import DeviceError
-from device_gateway.station import ExposureControl, Station
-from device_gateway.transfer import BOARD_VIEWS_MEDIA_TYPE, MEDIA_TYPE, encode_board_views, encode_capture
+from device_gateway.station import ExposureControl, MultiHeadStation, Station
+from device_gateway.transfer import (BOARD_VIEWS_MEDIA_TYPE, MEDIA_TYPE, STATION_MEDIA_TYPE, encode_board_views,
+                                     encode_capture, encode_station_capture)
 from services.formats.board import BoardSpec
 from services.formats.sequence import Sequence
 from services.problems import problem_response
@@ -67,14 +69,14 @@ class Health(BaseModel):
     devices: dict[str, bool]
 
 
-def _station(request: Request) -> Station:
+def _station(request: Request) -> Station | MultiHeadStation:
     return request.app.state.station
 
 
-StationDep = Annotated[Station, Depends(_station)]
+StationDep = Annotated[Station | MultiHeadStation, Depends(_station)]
 
 
-def create_app(station: Station, sequence: Sequence, patterns: np.ndarray,
+def create_app(station: Station | MultiHeadStation, sequence: Sequence, patterns: np.ndarray,
                max_body_bytes: int = Settings.model_fields["max_body_bytes"].default) -> FastAPI:
     """The gateway app serving ``station``, projecting ``patterns`` (described by ``sequence``) per capture;
     a request body (the JSON of a capture or board-views request) over ``max_body_bytes`` is refused with 413
@@ -84,7 +86,10 @@ def create_app(station: Station, sequence: Sequence, patterns: np.ndarray,
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
         try:
             station.open()
-            station.camera.prepare(patterns)
+            if isinstance(station, MultiHeadStation):
+                station.prepare(patterns)
+            else:
+                station.camera.prepare(patterns)
         except DeviceError as error:
             logger.warning("starting with devices unavailable (captures will retry): %s", error)
         yield
@@ -120,16 +125,23 @@ def create_app(station: Station, sequence: Sequence, patterns: np.ndarray,
         return sequence
 
     @app.post("/v1/captures", operation_id="capture", response_class=Response,
-              responses={200: {"content": {MEDIA_TYPE: {}}, "description": "The capture archive."}})
+              responses={200: {"content": {MEDIA_TYPE: {}, STATION_MEDIA_TYPE: {}},
+                               "description": "The capture archive (a station of several heads: the station's)."}})
     def capture(station: StationDep, body: CaptureRequest | None = None) -> Response:
         request = body or CaptureRequest()
         result = station.capture(sequence, patterns, thermal_frames=request.thermal_frames,
                                  exposure=ExposureControl(mode=request.exposure))
+        if isinstance(station, MultiHeadStation):
+            return Response(encode_station_capture(result), media_type=STATION_MEDIA_TYPE)
         return Response(encode_capture(result), media_type=MEDIA_TYPE)
 
     @app.post("/v1/board-views", operation_id="boardViews", response_class=Response,
               responses={200: {"content": {BOARD_VIEWS_MEDIA_TYPE: {}}, "description": "The board views archive."}})
-    def board_views(station: StationDep, body: BoardViewsRequest) -> Response:
+    def board_views(station: StationDep, body: BoardViewsRequest, request: Request) -> Response:
+        if isinstance(station, MultiHeadStation):
+            return problem_response(409, "conflict", "a station of several heads films no paired board views: "
+                                    "calibrate it from uploaded views (POST /v1/calibration-sets/{id}/station)",
+                                    request.url.path)
         views = station.board_views(body.board, body.views, body.interval_s)
         return Response(encode_board_views(views), media_type=BOARD_VIEWS_MEDIA_TYPE)
 

@@ -8,8 +8,9 @@ from typing import Any
 import httpx
 
 from device_gateway.devices import DeviceError
-from device_gateway.station import BoardViews, Capture
-from device_gateway.transfer import BOARD_VIEWS_MEDIA_TYPE, MEDIA_TYPE, decode_board_views, decode_capture
+from device_gateway.station import BoardViews, Capture, StationCapture
+from device_gateway.transfer import (BOARD_VIEWS_MEDIA_TYPE, MEDIA_TYPE, STATION_MEDIA_TYPE, decode_board_views,
+                                     decode_capture, decode_station_capture)
 from services.formats.sequence import Sequence
 
 
@@ -52,11 +53,13 @@ class GatewayClient:
     def sequence(self) -> Sequence:
         return Sequence.model_validate(self._request("GET", "/v1/sequence").json())
 
-    def capture(self, thermal_frames: int = 1, exposure: str = "fixed") -> Capture:
+    def capture(self, thermal_frames: int = 1, exposure: str = "fixed") -> Capture | StationCapture:
         """Run one capture on the station (``exposure``: fixed, auto or hdr) and return its frames, thermal
-        frames and metadata."""
+        frames and metadata: a :class:`StationCapture` (every head's frames) from a gateway of several heads."""
         response = self._request("POST", "/v1/captures", json={"thermal_frames": thermal_frames,
                                                                "exposure": exposure})
+        if response.headers.get("content-type") == STATION_MEDIA_TYPE:
+            return decode_station_capture(response.content)
         if response.headers.get("content-type") != MEDIA_TYPE:
             raise GatewayError(f"gateway {self.base_url} answered {response.headers.get('content-type')!r}, "
                                f"not a capture archive", response.status_code)

@@ -4,16 +4,18 @@ from __future__ import annotations
 
 import importlib
 
+import numpy as np
 from fastapi import FastAPI
 
 from device_gateway.app import create_app
-from device_gateway.station import Station
+from device_gateway.station import MultiHeadStation, Station
 from services.errors import InputError
+from services.formats.sequence import Sequence
 from services.settings import Settings
 from services.structured_light.patterns import generate_sequence
 
 
-def build_station(settings: Settings) -> Station:
+def build_station(settings: Settings) -> Station | MultiHeadStation:
     """The station of ``settings.station_drivers``, chosen device by device: the simulated forging rig's devices
     (filming ``settings.simulated_scene`` when set), OAK or GenICam cameras, a display projector.
 
@@ -22,8 +24,13 @@ def build_station(settings: Settings) -> Station:
     InputError
         When a driver's package or system library is missing, a GenICam device has no id, or a simulated camera
         is asked to film a real projector.
+
+    With ``settings.simulated_station_heads`` it is the simulated station of that many heads around the hot
+    shaft (:func:`device_gateway.drivers.simulated.simulated_station_heads`), every device simulated.
     """
     drivers = settings.station_drivers
+    if settings.simulated_station_heads:
+        return _simulated_heads(settings)
     if drivers.camera == "simulated" and drivers.projector != "simulated":
         raise InputError("a simulated camera films the simulated projector only: set THERMOFIELD_PROJECTOR_DRIVER="
                          "simulated, or choose a real camera with THERMOFIELD_CAMERA_DRIVER")
@@ -37,6 +44,30 @@ def build_station(settings: Settings) -> Station:
     # The simulated rig moves the calibration board only where its own cameras film it; elsewhere a person does.
     holder = simulated if drivers.camera == drivers.thermal == "simulated" else None
     return Station(camera, thermal, projector, settle_s=settle_s, board_holder=holder)
+
+
+def _simulated_heads(settings: Settings) -> MultiHeadStation:
+    from device_gateway.drivers.simulated import simulated_station_heads
+
+    try:
+        heads, thermals, _ = simulated_station_heads(settings.simulated_station_heads, settings.simulated_station_scale,
+                                                     lose_head=settings.simulated_lost_head)
+    except ValueError as error:
+        raise InputError(f"THERMOFIELD_SIMULATED_LOST_HEAD: {error}") from None
+    return MultiHeadStation(heads, thermals, settle_s=0.0)
+
+
+def station_sequence_of(settings: Settings, station: Station | MultiHeadStation) -> tuple[Sequence, np.ndarray]:
+    """The sequence the gateway projects: a simulated station's of several heads codes its projectors' rows and
+    closes with a black frame (``services.simulation.station.station_sequence``); else the default sequence at the
+    projector's resolution."""
+    if isinstance(station, MultiHeadStation):
+        from services.simulation.presets import station_rig
+        from services.simulation.station import station_sequence
+
+        return station_sequence(station_rig(settings.simulated_station_scale, settings.simulated_station_heads))
+    projector = station.projector.info
+    return generate_sequence(projector.width, projector.height, closing_black=settings.hot_part_sequence)
 
 
 # Drivers are imported on use: depthai, Aravis and SDL load native libraries a simulated station never needs.
@@ -115,6 +146,5 @@ def _genicam_thermal(settings: Settings):
 def create_gateway(settings: Settings, station: Station | None = None) -> FastAPI:
     """The gateway app for ``settings``, projecting the default sequence at the projector's resolution."""
     station = station or build_station(settings)
-    projector = station.projector.info
-    sequence, patterns = generate_sequence(projector.width, projector.height, closing_black=settings.hot_part_sequence)
+    sequence, patterns = station_sequence_of(settings, station)
     return create_app(station, sequence, patterns, max_body_bytes=settings.max_body_bytes)

@@ -239,6 +239,24 @@ class Station:
 
     def _capture(self, sequence: Sequence, patterns: np.ndarray, thermal_frames: int,
                  control: ExposureControl) -> Capture:
+        frames, camera_frames, metadata = self.film_sequence(patterns, control)
+        thermal = [self.thermal.grab(self.grab_timeout_s) for _ in range(thermal_frames)]
+        return Capture(
+            sequence=sequence,
+            frames=frames,
+            frame_timestamps=np.array([frame.timestamp for frame in camera_frames]),
+            frame_metadata=[{**frame.metadata, "file": entry.file}
+                            for frame, entry in zip(camera_frames, sequence.frames)],
+            thermal=np.stack([frame.image for frame in thermal]).astype(np.float32, copy=False),
+            thermal_timestamps=np.array([frame.timestamp for frame in thermal]),
+            thermal_metadata=[frame.metadata for frame in thermal],
+            devices=[device.info for device in self.devices],
+            exposure=metadata,
+        )
+
+    def film_sequence(self, patterns: np.ndarray, control: ExposureControl) -> tuple[np.ndarray, list, dict[str, Any]]:
+        """Film ``patterns`` with the camera as ``control`` exposes it (the caller holds the devices): the frames
+        (F, H, W), the last exposure's camera frames (timestamps, metadata) and the exposure record."""
         saturation = self.camera.saturation_level
         metadata: dict[str, Any] = {"mode": control.mode, "saturation_level": saturation}
         if control.mode == "fixed":
@@ -260,19 +278,7 @@ class Station:
             metadata.update(exposures_us=[round(e, 2) for e in exposures], glow_level=round(glow, 5),
                             saturation_level=saturation)
             self.camera.set_exposure(chosen)
-        thermal = [self.thermal.grab(self.grab_timeout_s) for _ in range(thermal_frames)]
-        return Capture(
-            sequence=sequence,
-            frames=frames,
-            frame_timestamps=np.array([frame.timestamp for frame in camera_frames]),
-            frame_metadata=[{**frame.metadata, "file": entry.file}
-                            for frame, entry in zip(camera_frames, sequence.frames)],
-            thermal=np.stack([frame.image for frame in thermal]).astype(np.float32, copy=False),
-            thermal_timestamps=np.array([frame.timestamp for frame in thermal]),
-            thermal_metadata=[frame.metadata for frame in thermal],
-            devices=[device.info for device in self.devices],
-            exposure=metadata,
-        )
+        return frames, camera_frames, metadata
 
     def board_views(self, board: BoardSpec, views: int, interval_s: float = 2.0) -> BoardViews:
         """Film a calibration board in ``views`` poses with the camera and the thermal camera together.
@@ -309,6 +315,163 @@ class Station:
                           thermal=np.stack([frame.image for frame in thermal]).astype(np.float32, copy=False),
                           timestamps=np.array([frame.timestamp for frame in camera]),
                           devices=[device.info for device in self.devices])
+
+    def _reopen(self) -> None:
+        self.close()
+        try:
+            self.open()
+        except DeviceUnavailable as error:
+            logger.warning("device not back after a loss, will retry on the next capture: %s", error)
+
+
+@dataclass(frozen=True)
+class HeadCapture:
+    """One head's part of a station capture: its frames (F, H, W) in the sequence's order with their timestamps,
+    metadata (each frame's ``head`` and ``file``) and exposure record; or, when a device of the head was lost
+    while it filmed, no frames and ``error`` saying which and why."""
+
+    head: str
+    frames: np.ndarray
+    frame_timestamps: np.ndarray
+    frame_metadata: list[dict[str, Any]]
+    exposure: dict[str, Any] = field(default_factory=dict)
+    error: str | None = None
+
+
+@dataclass(frozen=True)
+class StationCapture:
+    """What one capture of a station of several heads returns: every head's capture in the rig's head order
+    (each filmed with the same ``sequence``, lit by its own projector only), then ``thermal`` (T, h, w) float32
+    degrees C per thermal camera (by the rig's device name), taken once for all heads."""
+
+    sequence: Sequence
+    heads: tuple[HeadCapture, ...]
+    thermal: dict[str, np.ndarray]
+    thermal_timestamps: dict[str, np.ndarray]
+    devices: list[DeviceInfo]
+
+
+@dataclass(frozen=True)
+class StationHead:
+    """A sensor head of a station: its name in the rig file, its camera and the projector whose patterns it films."""
+
+    name: str
+    camera: CameraDriver
+    projector: ProjectorDriver
+
+
+class MultiHeadStation:
+    """The devices of a station of several heads (a version-2 rig's ``heads``) and its thermal cameras.
+
+    A capture runs the heads one after another (time multiplexing: each head's projector shows the sequence,
+    each head's camera films it, the other projectors dark), then grabs the thermal frames once for all heads.
+    A head whose device is lost mid-capture does not stop the others: its :class:`HeadCapture` says which
+    device and why (``error``), its devices are re-opened, and the capture goes on; a lost thermal camera fails
+    the capture (:class:`DeviceLost`), as on a single-head station.
+    """
+
+    def __init__(self, heads: list[StationHead], thermals: dict[str, ThermalDriver], settle_s: float | None = None,
+                 grab_timeout_s: float = 2.0) -> None:
+        if len(heads) < 1 or not thermals:
+            raise ValueError("A station needs at least one head and one thermal camera.")
+        self.heads = heads
+        self.thermals = thermals
+        self._thermal = next(iter(thermals.values()))
+        self._stations = [Station(head.camera, self._thermal, head.projector, settle_s=settle_s,
+                                  grab_timeout_s=grab_timeout_s) for head in heads]
+        self.grab_timeout_s = grab_timeout_s
+        self._lock = threading.Lock()
+
+    @property
+    def projector(self) -> ProjectorDriver:
+        """The first head's projector (all heads project the same sequence)."""
+        return self.heads[0].projector
+
+    @property
+    def devices(self) -> list[DeviceDriver]:
+        return [device for head in self.heads for device in (head.camera, head.projector)] + list(self.thermals.values())
+
+    def open(self) -> None:
+        failure: DeviceUnavailable | None = None
+        for device in self.devices:
+            if not device.is_open:
+                try:
+                    device.open()
+                except DeviceUnavailable as error:
+                    failure = failure or error
+        if failure is not None:
+            raise failure
+
+    def close(self) -> None:
+        for device in self.devices:
+            device.close()
+
+    def health(self) -> dict[str, bool]:
+        return {device.info.name: device.is_open for device in self.devices}
+
+    def prepare(self, patterns: np.ndarray) -> None:
+        """Let every head's camera prepare for ``patterns`` (the simulated ones render them ahead)."""
+        for head in self.heads:
+            head.camera.prepare(patterns)
+
+    def capture(self, sequence: Sequence, patterns: np.ndarray, thermal_frames: int = 1,
+                exposure: ExposureControl = ExposureControl()) -> StationCapture:
+        """Film ``patterns`` head after head, then grab ``thermal_frames`` frames of every thermal camera.
+
+        Raises
+        ------
+        ValueError
+            As :meth:`Station.capture`.
+        DeviceUnavailable
+            When a device cannot be opened before the capture.
+        DeviceLost
+            When a thermal camera stops answering (a head's lost device is reported in its capture instead).
+        """
+        patterns = np.asarray(patterns)
+        if len(patterns) != len(sequence.frames) or thermal_frames < 1:
+            raise ValueError(f"The manifest lists {len(sequence.frames)} frames and {len(patterns)} patterns were "
+                             f"given, with {thermal_frames} thermal frames (at least one is needed).")
+        with self._lock:
+            self.open()
+            dark = np.zeros(patterns.shape[1:], np.uint8)
+            for head in self.heads:
+                head.projector.show(dark)
+            heads = []
+            for head, station in zip(self.heads, self._stations):
+                heads.append(self._film_head(head, station, sequence, patterns, exposure, dark))
+            try:
+                thermal = {name: [device.grab(self.grab_timeout_s) for _ in range(thermal_frames)]
+                           for name, device in self.thermals.items()}
+            except DeviceLost:
+                self._reopen()
+                raise
+        return StationCapture(
+            sequence=sequence, heads=tuple(heads),
+            thermal={name: np.stack([f.image for f in frames]).astype(np.float32, copy=False)
+                     for name, frames in thermal.items()},
+            thermal_timestamps={name: np.array([f.timestamp for f in frames]) for name, frames in thermal.items()},
+            devices=[device.info for device in self.devices])
+
+    def _film_head(self, head: StationHead, station: Station, sequence: Sequence, patterns: np.ndarray,
+                   exposure: ExposureControl, dark: np.ndarray) -> HeadCapture:
+        try:
+            frames, camera_frames, metadata = station.film_sequence(patterns, exposure)
+            head.projector.show(dark)
+        except (DeviceLost, DeviceUnavailable) as error:
+            logger.warning("head %r lost a device mid-capture: %s", head.name, error)
+            for device in (head.camera, head.projector):
+                device.close()
+            try:
+                for device in (head.camera, head.projector):
+                    device.open()
+            except DeviceUnavailable as reopened:
+                logger.warning("head %r not back after a loss, will retry on the next capture: %s", head.name,
+                               reopened)
+            empty = np.zeros((0, 0, 0), np.uint8)
+            return HeadCapture(head.name, empty, np.zeros(0), [], {}, f"head {head.name!r}: {error}")
+        return HeadCapture(head.name, frames, np.array([frame.timestamp for frame in camera_frames]),
+                           [{**frame.metadata, "head": head.name, "file": entry.file}
+                            for frame, entry in zip(camera_frames, sequence.frames)], metadata)
 
     def _reopen(self) -> None:
         self.close()

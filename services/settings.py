@@ -68,6 +68,13 @@ class Settings(BaseSettings):
     simulated_scene: Path | None = Field(
         None, description="Scene file the simulated gateway films (docs/simulator.md; with the temperature and "
                           "optics blocks of docs/hot-parts.md a glowing part); default the forging preset.")
+    simulated_station_heads: int = Field(
+        0, ge=0, le=12, description="Heads of the simulated station around the hot shaft (docs/station.md): the "
+                                    "simulated gateway films them one after another; 0: the single-head station.")
+    simulated_station_scale: float = Field(
+        1.0, gt=0, le=1, description="Shrinks the simulated station's images and focal lengths (quick runs).")
+    simulated_lost_head: str | None = Field(
+        None, description="Fault drills: the simulated station's head whose camera is lost in the first capture.")
     oak_camera_id: str | None = Field(None, description="OAK filming the patterns (MxId, IP or name); default the only one.")
     oak_thermal_id: str | None = Field(None, description="OAK-T thermal camera (MxId, IP or name); default the only one.")
     camera_socket: str = Field("CAM_A", pattern=r"^CAM_[A-J]$", description="Board socket of the OAK camera's sensor.")

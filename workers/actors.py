@@ -6,7 +6,9 @@ query and write no rows themselves. Retries and time limits are set per actor: d
 is retried, bad input (``ValueError``, including ``InputError``) and a full artifact store (``StorageFull``)
 are not.
 
-- ``scan``: capture with the gateway, reconstruct, fuse, inspect (with a part type), store, stream, summarise.
+- ``scan``: capture with the gateway, reconstruct, fuse, inspect (with a part type), store, stream, summarise; on
+  a station of several heads: capture, store, then ``scan_head`` per head as one group whose completion sends
+  ``scan_merge`` (merge, fuse, inspect, store, stream), which finishes the scan job.
 - ``reconstruct``, ``fuse``, ``register``: one step again on a stored scan, e.g. with
   another calibration set (reconstruct then fuse its cloud) or to check the thermal
   camera's alignment by mutual information (register).
@@ -23,6 +25,7 @@ import dramatiq
 
 from device_gateway.client import GatewayClient, GatewayError
 from device_gateway.station import BoardViews, Capture
+from services.jobs.tracker import CONTINUATION
 from services.pipeline import jobs
 from services.pipeline.warmup import warm_up
 from services.runtime import Runtime, current_runtime
@@ -51,7 +54,27 @@ def scan(job_id: str) -> dict[str, Any]:
         except GatewayError as error:  # the job's error says which stage lost the devices
             raise GatewayError(f"capture failed: {error}", error.status) from None
 
-    return jobs.scan_job(runtime=runtime, job_id=job_id, capture=capture)
+    return jobs.scan_job(runtime=runtime, job_id=job_id, capture=capture, dispatch=_dispatch_heads)
+
+
+def _dispatch_heads(head_jobs: list[str], scan_job: str) -> None:
+    """A station scan's heads as one group, one message each; its completion continues the scan (merge)."""
+    heads = dramatiq.group([scan_head.message(head_job) for head_job in head_jobs])
+    heads.add_completion_callback(scan_merge.message_with_options(args=(scan_job,), **{CONTINUATION: True}))
+    heads.run()
+
+
+@dramatiq.actor(actor_name="scan_head", **_options(max_retries=2, time_limit_s=120))
+def scan_head(job_id: str) -> dict[str, Any]:
+    """:func:`services.pipeline.jobs.scan_head_job`: one head of a station scan."""
+    return jobs.scan_head_job(runtime=current_runtime(), job_id=job_id)
+
+
+@dramatiq.actor(actor_name="scan_merge", **_options(max_retries=2, time_limit_s=120))
+def scan_merge(job_id: str) -> dict[str, Any]:
+    """:func:`services.pipeline.jobs.scan_merge_job`: a station scan's merge, field, inspection and storing, once
+    its heads are done (the scan job's continuation)."""
+    return jobs.scan_merge_job(runtime=current_runtime(), job_id=job_id)
 
 
 @dramatiq.actor(actor_name="reconstruct", **_options(max_retries=1, time_limit_s=120))
@@ -91,7 +114,8 @@ def calibrate_station(job_id: str) -> dict[str, Any]:
     return jobs.calibrate_station_job(runtime=current_runtime(), job_id=job_id)
 
 
-ACTORS = {actor.actor_name: actor for actor in (scan, reconstruct, fuse, register, calibrate, calibrate_station)}
+ACTORS = {actor.actor_name: actor for actor in (scan, scan_head, scan_merge, reconstruct, fuse, register, calibrate,
+                                                calibrate_station)}
 
 
 def warm_up_runtime(runtime: Runtime) -> None:

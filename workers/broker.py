@@ -6,8 +6,11 @@ from __future__ import annotations
 import logging
 
 import dramatiq
+from dramatiq.middleware import GroupCallbacks
 
+from services.jobs.barrier import DatabaseBarrierBackend
 from services.jobs.queue import job_broker
+from services.runtime import current_runtime
 from services.settings import Settings
 from workers.heartbeat import Heartbeat
 from workers.middleware import ComputeThreads, JobBookkeeping, WarmUp
@@ -28,6 +31,8 @@ def setup_broker(settings: Settings) -> dramatiq.Broker:
     broker = job_broker(settings)
     broker.add_middleware(ComputeThreads(settings.compute_threads))
     broker.add_middleware(JobBookkeeping())
+    # after the bookkeeping: a group's last message has its job recorded before its completion callback is sent
+    broker.add_middleware(GroupCallbacks(DatabaseBarrierBackend(lambda: current_runtime().sessions)))
     if settings.warm_up:
         broker.add_middleware(WarmUp())
     if settings.broker_url:

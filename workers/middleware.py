@@ -12,7 +12,7 @@ import cv2
 import dramatiq
 from dramatiq.middleware import Middleware, SkipMessage
 
-from services.jobs.tracker import LEASE_S, JobBusy
+from services.jobs.tracker import CONTINUATION, CONTINUED, LEASE_S, JobBusy
 from services.structured_light.row_bands import limit_threads
 from services.runtime import current_runtime
 
@@ -71,7 +71,7 @@ class JobBookkeeping(Middleware):
         redelivered = bool(getattr(message, "redelivered", False) or message.options.get("redelivered"))
         tracker = current_runtime().tracker
         try:
-            job = tracker.start(job_id, worker, redelivered)
+            job = tracker.start(job_id, worker, redelivered, continuation=bool(message.options.get(CONTINUATION)))
         except JobBusy as busy:
             logger.info("Message %s waits: %s.", message.message_id, busy)
             broker.enqueue(message.copy(options={"redelivered": True}), delay=int(LEASE_S * 500))
@@ -94,7 +94,10 @@ class JobBookkeeping(Middleware):
         tracker = current_runtime().tracker
         job_id = message.args[0]
         if exception is None:
-            tracker.succeed(job_id, result or {})
+            if isinstance(result, dict) and CONTINUED in result:
+                tracker.hand_over(job_id, result)
+            else:
+                tracker.succeed(job_id, result or {})
             return
         tracker.fail(job_id, _describe(exception), will_retry=_will_retry(broker, message, exception))
 

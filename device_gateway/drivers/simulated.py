@@ -34,11 +34,13 @@ import hashlib
 import threading
 import time
 from collections import deque
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
 
-from device_gateway.devices import CameraDriver, DeviceInfo, DeviceUnavailable, Frame, ProjectorDriver, ThermalDriver
+from device_gateway.devices import (CameraDriver, DeviceInfo, DeviceLost, DeviceUnavailable, Frame, ProjectorDriver,
+                                    ThermalDriver)
 from services.formats.board import BoardSpec
 from services.formats.rig import Rig
 from services.geometry.camera_model import CameraModel
@@ -176,8 +178,12 @@ class SimulatedStation:
 
     def __init__(self, rig: Rig | None = None, scene: Scene | None = None,
                  temperatures: TemperatureScene | None = None, options: SimulationOptions = SimulationOptions(),
-                 camera: str | None = None, projector: str | None = None, thermal: str | None = None) -> None:
+                 camera: str | None = None, projector: str | None = None, thermal: str | None = None,
+                 thermal_image: Callable[[CameraModel], np.ndarray] | None = None) -> None:
         self.rig = rig or presets.forging_rig()
+        self.thermal_image = thermal_image
+        self.lose_camera_after: int | None = None
+        """Fault drills: the camera is lost once, after this many patterns shown since the station opened."""
         self.scene = scene or presets.forging_scene()
         self.temperatures = temperatures or forging_temperatures()
         self.options = options
@@ -190,6 +196,7 @@ class SimulatedStation:
         self._clean_frames: dict[bytes, np.ndarray] = {}  # a cold scene's noiseless image per pattern digest
         self._board: tuple[BoardSpec, tuple[np.ndarray, np.ndarray]] | None = None
         self.shown: np.ndarray | None = None
+        self.shown_count = 0  # patterns shown since the station opened (fault drills)
         camera_name, _ = self.rig.device(camera, "camera")
         projector_name, _ = self.rig.device(projector, "projector")
         thermal_name, _ = self.rig.device(thermal, "thermal")
@@ -221,6 +228,9 @@ class SimulatedStation:
         with self._lock:
             if self._clean_thermal is None:
                 noiseless = self.options.thermal_effects.model_copy(update={"netd": 0.0})
+                if self.thermal_image is not None:
+                    self._clean_thermal = self.thermal_image(self.rig.devices[self.thermal.name])
+                    return self._clean_thermal
                 self._clean_thermal = render_thermal(self.scene, self.temperatures, self.rig.devices[self.thermal.name],
                                                      noiseless, self._rng)
             return self._clean_thermal
@@ -351,6 +361,10 @@ class SimulatedCamera(_SimulatedDevice, CameraDriver):
 
     def grab(self, timeout_s: float) -> Frame:
         self._require_open()
+        lose_after = self.station.lose_camera_after
+        if lose_after is not None and self.station.shown_count >= lose_after:
+            self.station.lose_camera_after = None  # lost once: back when re-opened
+            raise DeviceLost(f"camera {self.name!r}: connection lost (simulated fault)")
         exposed = time.time()
         board = self.station.board_frame(self.name, "visible")
         return Frame(self.station.film() if board is None else board, exposed,
@@ -388,3 +402,52 @@ class SimulatedProjector(_SimulatedDevice, ProjectorDriver):
     def show(self, pattern: np.ndarray) -> None:
         self._require_open()
         self.station.shown = np.asarray(pattern, dtype=np.uint8)
+        self.station.shown_count += 1
+
+
+def simulated_station_heads(heads: int = 4, scale: float = 1.0, dent_depth_mm: float = 0.0,
+                            lose_head: str | None = None,
+                            options: SimulationOptions = SimulationOptions()) -> tuple[list, dict, Rig]:
+    """The devices of the simulated station of several heads around the hot shaft
+    (``services.simulation.station.station_scene``; its true rig ``presets.station_rig(scale, heads)``).
+
+    Each head is a :class:`SimulatedStation` of that head's camera and projector filming the shaft's scene (its
+    glow and its own projector's light); the thermal cameras read the hot part as
+    ``hot_part.simulated_thermal_frame`` renders it. ``lose_head`` names a head whose camera is lost half way
+    through the first capture (fault drills; re-opened, it films the next).
+
+    Returns
+    -------
+    heads : list of device_gateway.station.StationHead
+    thermals : dict of thermal device name to SimulatedThermal
+    rig : Rig
+        The station's true calibration.
+    """
+    from device_gateway.station import StationHead
+    from services.simulation.hot_part import simulated_thermal_frame
+    from services.simulation.station import station_scene
+
+    station = station_scene(heads=heads, scale=scale, dent_depth_mm=dent_depth_mm)
+    rig = station.rig
+    noiseless = options.thermal_effects.model_copy(update={"netd": 0.0})
+    rng = np.random.default_rng(options.seed)
+
+    def thermal_image(device: CameraModel) -> np.ndarray:
+        return simulated_thermal_frame(station.part, device, rng, effects=noiseless)
+
+    thermal_names = [name for name, device in rig.devices.items() if device.kind == "thermal"]
+    if lose_head is not None and lose_head not in [head.name for head in rig.heads]:
+        raise ValueError(f"The simulated station has no head {lose_head!r}; its heads are "
+                         f"{[head.name for head in rig.heads]}.")
+    stations, thermals = [], {}
+    for index, head in enumerate(rig.heads):
+        simulated = SimulatedStation(rig=rig, scene=station.scene, temperatures=station.scene.temperature,
+                                     options=dataclasses.replace(options, seed=options.seed + index),
+                                     camera=head.camera, projector=head.projector,
+                                     thermal=thermal_names[index % len(thermal_names)], thermal_image=thermal_image)
+        if head.name == lose_head:
+            simulated.lose_camera_after = 12
+        stations.append(StationHead(head.name, simulated.camera, simulated.projector))
+        if simulated.thermal.name not in thermals:
+            thermals[simulated.thermal.name] = simulated.thermal
+    return stations, thermals, rig

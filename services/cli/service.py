@@ -168,17 +168,21 @@ def _exit_on_terminate(signum, frame) -> None:
 
 
 def _ensure_simulator_calibration(runtime) -> None:
-    """Out of the box the station's active calibration set is the simulated rig's true calibration."""
+    """Out of the box the station's active calibration set is the simulated rig's true calibration (the simulated
+    station's of ``THERMOFIELD_SIMULATED_STATION_HEADS`` heads, when set)."""
     from sqlalchemy import select
 
     from services.db.models import CalibrationSet
     from services.formats.rig import rig_to_json
-    from services.simulation.presets import forging_rig
+    from services.simulation.presets import forging_rig, station_rig
 
+    settings = runtime.settings
+    heads = settings.simulated_station_heads
+    rig = station_rig(settings.simulated_station_scale, heads) if heads else forging_rig()
     with runtime.sessions.begin() as session:
         if session.scalar(select(CalibrationSet).where(CalibrationSet.station == runtime.settings.station)):
             return
-        digest = runtime.store.put_bytes(rig_to_json(forging_rig()).encode())
+        digest = runtime.store.put_bytes(rig_to_json(rig).encode())
         session.add(CalibrationSet(name="simulated rig (true calibration)", station=runtime.settings.station,
                                    rig_sha256=digest, active=True, source="simulator"))
 

@@ -105,3 +105,26 @@ def job_params(sessions: sessionmaker[Session], job_id: str) -> dict[str, Any]:
         if row is None:
             raise LookupError(f"there is no job {job_id!r}")
         return dict(row.params)
+
+
+def job_results(sessions: sessionmaker[Session], job_ids: list[str]) -> dict[str, dict[str, Any]]:
+    """The results so far of jobs (a station scan's own, handed over; its heads'), by id; ``LookupError`` when one
+    is missing."""
+    with sessions() as session:
+        rows = {row.id: dict(row.result or {}) for row in session.scalars(select(Job).where(Job.id.in_(job_ids)))}
+    missing = [job_id for job_id in job_ids if job_id not in rows]
+    if missing:
+        raise LookupError(f"there is no job {missing[0]!r}")
+    return rows
+
+
+def add_child_jobs(sessions: sessionmaker[Session], kind: str, params: list[dict[str, Any]]) -> list[str]:
+    """Add queued jobs of ``kind`` that their creator sends itself (a station scan's heads, as one Dramatiq group):
+    marked dispatched, so that the outbox never sends them a second time outside their group. Their ids."""
+    from datetime import UTC, datetime
+
+    with sessions.begin() as session:
+        jobs = [Job(kind=kind, params=one, dispatched_at=datetime.now(UTC)) for one in params]
+        session.add_all(jobs)
+        session.flush()
+        return [job.id for job in jobs]

@@ -91,7 +91,7 @@ class Job(Base):
     __tablename__ = "jobs"
 
     id: Mapped[str] = mapped_column(String(32), primary_key=True, default=new_id)
-    kind: Mapped[str] = mapped_column(String(30), doc="calibrate, reconstruct, register, fuse or scan.")
+    kind: Mapped[str] = mapped_column(String(30), doc="calibrate, reconstruct, register, fuse, scan, scan_head or ...")
     status: Mapped[str] = mapped_column(String(20), default="queued", index=True)
     stage: Mapped[str] = mapped_column(String(50), default="queued")
     fraction: Mapped[float] = mapped_column(Float, default=0.0)
@@ -128,6 +128,16 @@ class Scan(Base):
     artifacts: Mapped[dict[str, Any]] = mapped_column(default=dict, doc="Artifact name -> SHA-256 digest.")
     summary: Mapped[dict[str, Any] | None] = mapped_column(JSON, default=None)
     created_at: Mapped[datetime] = mapped_column(default=utc_now)
+
+
+class GroupBarrier(Base):
+    """A Dramatiq group's completion barrier (``services.jobs.barrier``): the parties it still waits for."""
+
+    __tablename__ = "group_barriers"
+
+    key: Mapped[str] = mapped_column(String(100), primary_key=True)
+    value: Mapped[int] = mapped_column(Integer)
+    expires_at: Mapped[datetime] = mapped_column(index=True)
 
 
 class IdempotencyRecord(Base):

@@ -109,6 +109,51 @@ class GlowSummary(BaseModel):
     exposures_us: list[float | None] | None
 
 
+def head_artifact(head: str, name: str) -> str:
+    """The name under which a station scan keeps head ``head``'s file ``name`` (``frames.npy``, ``sequence.json``,
+    ``exposure.json``, ``cloud.ply``): ``heads/<head>/<name>``, the station capture layout's (docs/station.md)."""
+    return f"heads/{head}/{name}"
+
+
+def thermal_artifact(device: str) -> str:
+    """The name under which a station scan keeps thermal camera ``device``'s frames (float32 degrees C, ``.npy``)."""
+    return f"thermal/{device}.npy"
+
+
+class HeadSummary(BaseModel):
+    """One head of a station scan: its points, its time, its pose correction in the merge, or why it failed."""
+
+    head: str
+    measured_points: int = Field(description="Points the head's reconstruction measured.")
+    kept_points: int = Field(description="Points of the head the merged cloud keeps (the overlaps thinned).")
+    reconstruct_seconds: float | None = Field(description="The head's decoding and triangulation (its own message).")
+    correction_mm: float | None = Field(None, description="The merge's pose correction of the head: translation.")
+    correction_deg: float | None = Field(None, description="The merge's pose correction of the head: rotation.")
+    correction_applied: bool | None = Field(None, description="Whether the correction was applied (else why not in "
+                                                               "correction_note).")
+    correction_note: str = ""
+    error: str | None = Field(None, description="Why the head failed (a device lost, nothing decoded): the scan "
+                                                "is then NotDecidable, never judged from the heads left.")
+
+
+class OverlapSummary(BaseModel):
+    """The residual between two heads' surfaces where they overlap, after the merge (mm)."""
+
+    first: str
+    second: str
+    points: int
+    rms_mm: float = Field(description="Per point: each point's distance from the other head's surface.")
+    patch_rms_mm: float = Field(description="RMS over 4 mm patches of the mean distance: the misregistration.")
+
+
+class StationSummary(BaseModel):
+    """What the heads of a station scan did (docs/station.md, "The service")."""
+
+    heads: list[HeadSummary]
+    overlaps: list[OverlapSummary]
+    failed_heads: list[str] = Field(description="The heads that failed; a scan with any is NotDecidable.")
+
+
 class FieldSummary(BaseModel):
     """What the scan endpoint, MQTT and the demo report of a scan's field."""
 
@@ -118,3 +163,5 @@ class FieldSummary(BaseModel):
     bbox_max: list[float]
     temperature: TemperatureSummary | None
     glow: GlowSummary | None = Field(None, description="What a hot part's glow did (sequences closed by a black frame).")
+    station: StationSummary | None = Field(None, description="A station scan's heads: points, times, pose "
+                                                             "corrections, overlap residuals, failures.")

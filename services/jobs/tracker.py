@@ -26,6 +26,13 @@ LEASE_S = 10.0
 worker renews it every ``LEASE_S / 5``; the hosts' clocks must agree to well within it)."""
 
 
+CONTINUED = "continued"
+"""The key of a result that hands its job over to later messages (a station scan's heads, then its merge): the
+job stays ``running`` at the stage it names until a continuation message (:data:`CONTINUATION` in its options)
+takes it up and finishes it."""
+CONTINUATION = "continuation"
+
+
 class JobBusy(Exception):
     """The job runs elsewhere under a live lease: a redelivered message must wait (the broker's connection to
     that worker dropped, the worker did not)."""
@@ -73,7 +80,8 @@ class JobTracker:
         session.flush()
         return job
 
-    def start(self, job_id: str, worker: str | None = None, redelivered: bool = False) -> Job | None:
+    def start(self, job_id: str, worker: str | None = None, redelivered: bool = False,
+              continuation: bool = False) -> Job | None:
         """Mark an attempt as running (by ``worker``, host:pid) and take its lease; None when the job is
         unknown, already finished, or running and this message is not a redelivery.
 
@@ -88,18 +96,25 @@ class JobTracker:
         ------
         JobBusy
             For a redelivery while the job's lease is live.
+
+        A ``continuation`` message takes up a job handed over (:meth:`hand_over`) and waiting at its stage (the
+        same attempt); once taken up, another copy is skipped, and its retries and redeliveries are started as
+        any message's.
         """
         with self.sessions.begin() as session:
             job = session.get(Job, job_id, with_for_update=True)
-            if job is None or job.status in TERMINAL_STATUSES or (job.status == "running" and not redelivered):
-                return None
             now = datetime.now(UTC)
-            if job.status == "running" and job.heartbeat_at and job.heartbeat_at > now - timedelta(seconds=LEASE_S):
-                raise JobBusy(f"job {job_id} runs on {job.worker} (heartbeat {job.heartbeat_at.isoformat()})")
-            job.status, job.stage, job.fraction = "running", "starting", 0.0
-            job.attempts += 1
-            job.started_at = job.heartbeat_at = now
-            job.worker = worker
+            if continuation and job is not None and job.status == "running" and job.heartbeat_at is None:
+                job.stage, job.worker, job.heartbeat_at = "continuing", worker, now  # handed over: take it up
+            else:  # a first attempt, a retry (of a continuation too), a redelivery
+                if job is None or job.status in TERMINAL_STATUSES or (job.status == "running" and not redelivered):
+                    return None
+                if job.status == "running" and job.heartbeat_at and job.heartbeat_at > now - timedelta(seconds=LEASE_S):
+                    raise JobBusy(f"job {job_id} runs on {job.worker} (heartbeat {job.heartbeat_at.isoformat()})")
+                job.status, job.stage, job.fraction = "running", "starting", 0.0
+                job.attempts += 1
+                job.started_at = job.heartbeat_at = now
+                job.worker = worker
         self.announce(job)
         return job
 
@@ -129,18 +144,46 @@ class JobTracker:
                 scan.verdict, scan.features = result.get("verdict"), result.get("features")
         self.announce(job)
 
+    def hand_over(self, job_id: str, result: dict[str, Any]) -> None:
+        """The job's message handed its job over to later ones (its result holds :data:`CONTINUED`: the stage it
+        waits at, the fraction done): the job stays ``running`` at that stage without a lease, its partial
+        result kept; a scan job's artifacts so far go onto its scan (nothing stored is lost if it later fails)."""
+        waiting = result[CONTINUED]
+        with self.sessions.begin() as session:
+            job = session.get(Job, job_id)
+            if job is None:
+                raise KeyError(f"job {job_id} does not exist")
+            job.stage, job.fraction = waiting["stage"], waiting["fraction"]
+            job.result, job.heartbeat_at = {k: v for k, v in result.items() if k != CONTINUED}, None
+            scan = session.get(Scan, job.params["scan_id"]) if job.kind == "scan" and "scan_id" in job.params else None
+            if scan is not None:
+                scan.artifacts = result.get("artifacts", {})
+        self.announce(job)
+
     def fail(self, job_id: str, error: str, will_retry: bool) -> None:
         if will_retry:
             self._update(job_id, status="queued", stage="retrying", error=error)
         else:
             self._update(job_id, status="failed", stage="failed", error=error, finished_at=datetime.now(UTC))
+            with self.sessions() as session:
+                job = session.get(Job, job_id)
+                parent = None if job is None else job.params.get("parent_job_id")
+                head = None if job is None else job.params.get("head")
+            if parent is not None:  # a station scan's head: its scan cannot be finished without it
+                self._update(parent, status="failed", stage="failed", finished_at=datetime.now(UTC),
+                             error=f"head {head!r} failed: {error}")
 
     def recover(self) -> list[Job]:
         """Jobs a crash of the embedded service left unfinished (their messages died with its in-memory
-        broker), put back to ``queued`` and into the outbox to be sent again."""
+        broker), put back to ``queued`` and into the outbox to be sent again; a station scan's head jobs are
+        failed instead (their group died with the broker: their scan job, sent again, captures anew)."""
         with self.sessions.begin() as session:
             jobs = list(session.scalars(select(Job).where(Job.status.in_(("queued", "running")))))
             for job in jobs:
+                if job.params.get("parent_job_id"):  # a station scan's head: its scan job runs again, whole
+                    job.status, job.stage, job.finished_at = "failed", "failed", datetime.now(UTC)
+                    job.error = "interrupted by a restart (its scan job runs again)"
+                    continue
                 job.dispatched_at = None
                 if job.status == "running":
                     job.status, job.stage, job.error = "queued", "recovered", "interrupted by a restart"
@@ -150,7 +193,8 @@ class JobTracker:
 
     def announce(self, job: Job) -> None:
         """Publish the job's state, and its scan's when it is a scan job; the latter (or the job's) is also
-        the station's state, the one retained message. Then the listeners get the job's state."""
+        the station's state, the one retained message (a station scan's head job publishes its own state only).
+        Then the listeners get the job's state."""
         state = job_state(job)
         for listener in self.listeners:
             try:
@@ -161,6 +205,8 @@ class JobTracker:
             return
         prefix = self.publisher.prefix
         self.publisher.publish(job_topic(prefix, job.id), state)
+        if job.params.get("parent_job_id"):  # a station scan's head: its scan's and the station's state are the scan job's
+            return
         scan_id = job.params.get("scan_id")
         if scan_id is not None:
             if job.kind == "scan":

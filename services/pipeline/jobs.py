@@ -6,7 +6,9 @@ outputs, writes the rows it makes and returns the job's JSON-safe result (``{"ar
 the devices (a capture, the board views of a calibration capture) is given as a function, the gateway
 client's, so that this layer imports no shell.
 
-- :func:`scan_job`: capture, then :func:`services.pipeline.scan.scan_capture` and its result.
+- :func:`scan_job`: capture, then :func:`services.pipeline.scan.scan_capture` and its result; a station of
+  several heads: :func:`station_scan_job` (one :func:`scan_head_job` message per head, as a group whose
+  completion runs :func:`scan_merge_job`).
 - :func:`reconstruct_job`, :func:`fuse_job`, :func:`register_job`: one step again on a stored scan.
 - :func:`calibrate_job`: a device re-placed from paired board images (uploaded or filmed), stored as a new
   calibration set.
@@ -24,23 +26,28 @@ from typing import TYPE_CHECKING, Any, Protocol
 import numpy as np
 
 from services.db.calibrations import active_calibration, add_calibration_set, calibration_set
-from services.db.jobs import job_params
+from services.db.jobs import add_child_jobs, job_params, job_results
 from services.db.parts import part_type
 from services.db.scans import scan_artifacts
+from services.errors import InputError
 from services.formats.board import parse_board
 from services.formats.images import png_bytes
 from services.formats.ply import cloud_from_ply, cloud_to_ply
 from services.formats.registration import registration_json
 from services.formats.rig import Rig, rig_to_json
 from services.formats.sequence import Sequence, parse_sequence
-from services.formats.stored_scan import CLOUD, EXPOSURE, FIELD, FRAMES, SEQUENCE, THERMAL, exposure_from_bytes
+from services.formats.station_capture import HeadFrames
+from services.formats.stored_scan import (CLOUD, EXPOSURE, FIELD, FRAMES, SEQUENCE, THERMAL, exposure_from_bytes,
+                                          head_artifact, thermal_artifact)
+from services.jobs.tracker import CONTINUED
 from services.pipeline.calibrate import calibrate_station, place_device, thermal_board_image, uploaded_board_image
 from services.pipeline.field import fuse_field
 from services.pipeline.reconstruct import reconstruct_capture
 from services.pipeline.register import register_scan
 from services.pipeline.scan import StageClock, scan_capture, scan_result
+from services.pipeline.station import HeadScan, scan_head, station_capture_artifacts, store_station_scan
 from services.pipeline.summary import field_summary, glow_summary
-from services.storage.artifacts import ArtifactStore
+from services.storage.artifacts import ArtifactStore, ArtifactWriter
 
 if TYPE_CHECKING:
     from services.inspection.inspect import PreparedPart
@@ -64,13 +71,15 @@ class BoardViews(Protocol):
     thermal: np.ndarray
 
 
-def scan_job(*, runtime: Runtime, job_id: str, capture: Callable[[], Capture]) -> dict[str, Any]:
+def scan_job(*, runtime: Runtime, job_id: str, capture: Callable[[], Capture],
+             dispatch: Dispatch | None = None) -> dict[str, Any]:
     """Capture (``capture``: the gateway's, with the station's exposure), reconstruct, fuse, inspect against
     the scan's part type (if any), store the artifacts, stream to the station's live view, summarise.
 
     The result holds the artifact digests, the seconds each stage took and, when inspected, the verdict and
     the features (:func:`services.pipeline.scan.scan_result`); the job tracker writes the artifacts, the
-    summary and the verdict onto the scan when it records it.
+    summary and the verdict onto the scan when it records it. A station of several heads (the gateway's capture
+    has ``heads``) continues as :func:`station_scan_job`: its heads are sent with ``dispatch``.
     """
     params = job_params(runtime.sessions, job_id)
     rig = _calibration_rig(runtime, params["calibration_set_id"])
@@ -78,6 +87,14 @@ def scan_job(*, runtime: Runtime, job_id: str, capture: Callable[[], Capture]) -
     clock = StageClock(lambda stage, fraction: runtime.tracker.progress(job_id, stage, fraction))
     clock.start("capture", 0.05)
     captured = capture()
+    if hasattr(captured, "heads"):  # a station of several heads: one message per head, then the merge
+        if dispatch is None:
+            raise InputError("a station scan needs its heads dispatched as messages")
+        return station_scan_job(runtime=runtime, job_id=job_id, params=params, rig=rig, captured=captured,
+                                clock=clock, dispatch=dispatch)
+    if len(rig.heads) > 1:
+        raise InputError(f"calibration set {params['calibration_set_id']} is a station of {len(rig.heads)} heads but "
+                         "the gateway filmed one: the gateway and the active calibration are of different stations")
     captured_at = float(captured.frame_timestamps[0]) if len(captured.frame_timestamps) else None
     stored = scan_capture(scan_id=params["scan_id"], frames=captured.frames, sequence=captured.sequence,
                           thermal=captured.thermal, rig=rig, tables=runtime.tables, store=runtime.store,
@@ -85,6 +102,118 @@ def scan_job(*, runtime: Runtime, job_id: str, capture: Callable[[], Capture]) -
                           publish=runtime.station_view().publish)
     return scan_result(scan_id=params["scan_id"], stored=stored, part_type_id=params.get("part_type_id"),
                        stage_seconds=clock.seconds)
+
+
+Dispatch = Callable[[list[str], str], None]
+"""Sends a station scan's head jobs (their ids) as one group whose completion continues the scan job (its id)."""
+
+
+def station_scan_job(*, runtime: Runtime, job_id: str, params: dict[str, Any], rig: Rig, captured: Any,
+                     clock: StageClock, dispatch: Dispatch) -> dict[str, Any]:
+    """A station scan's first message, after its capture (``captured``: the gateway's ``StationCapture``): store
+    every head's frames and the thermal frames, add one ``scan_head`` job per head that filmed and send them as
+    one group (``dispatch``) whose completion runs :func:`scan_merge_job`. Returns the handed-over result (the
+    job waits at stage ``heads``): the capture's artifacts, per head its job or its capture's error, and
+    ``last_frame_at`` (wall-clock seconds of the capture's last frame, a head's or a thermal camera's).
+
+    A station whose every head failed is finished at once (:func:`scan_merge_job`'s outcome, NotDecidable).
+    """
+    names = [head.name for head in rig.heads]
+    filmed = [head.head for head in captured.heads]
+    if filmed != names:
+        raise InputError(f"the gateway filmed the heads {filmed} but calibration set {params['calibration_set_id']} "
+                         f"has the heads {names}: the gateway and the active calibration are of different stations")
+    clock.start("store capture", 0.2)
+    good = [head for head in captured.heads if head.error is None]
+    files = station_capture_artifacts(heads=[HeadFrames(h.head, captured.sequence, h.frames) for h in good],
+                                      exposures={h.head: h.exposure for h in good}, thermal=captured.thermal)
+    with ArtifactWriter(runtime.store) as writer:  # hashed, written and synced two at a time
+        writer.put(files)
+        artifacts = writer.digests()
+    head_params = [{"scan_id": params["scan_id"], "parent_job_id": job_id, "head": head.head,
+                    "calibration_set_id": params["calibration_set_id"],
+                    **{key: artifacts[head_artifact(head.head, key)]
+                       for key in ("frames.npy", "sequence.json", "exposure.json")}} for head in good]
+    head_jobs = add_child_jobs(runtime.sessions, "scan_head", head_params)
+    heads = {head.head: {"error": head.error} for head in captured.heads if head.error is not None}
+    heads |= {head.head: {"job_id": head_job} for head, head_job in zip(good, head_jobs)}
+    captured_at = next((float(h.frame_timestamps[0]) for h in good if len(h.frame_timestamps)), None)
+    stamps = [float(t) for h in good for t in h.frame_timestamps[-1:]] + [
+        float(t) for stamps in captured.thermal_timestamps.values() for t in stamps[-1:]]
+    clock.stop()
+    handed_over = {"scan_id": params["scan_id"], "artifacts": artifacts, "heads": heads, "captured_at": captured_at,
+                   "last_frame_at": max(stamps, default=None), "stage_seconds": clock.seconds}
+    if not head_jobs:
+        return _finish_station_scan(runtime=runtime, job_id=job_id, params=params, rig=rig, handed_over=handed_over,
+                                    head_results={})
+    dispatch(head_jobs, job_id)
+    return {**handed_over, CONTINUED: {"stage": "heads", "fraction": 0.3}}
+
+
+def scan_head_job(*, runtime: Runtime, job_id: str) -> dict[str, Any]:
+    """One head of a station scan (its own message): its stored frames reconstructed with its camera and
+    projector (:func:`services.pipeline.station.scan_head`), its cloud stored as ``heads/<head>/cloud.ply``.
+    The result holds the head, its points, seconds and, when it failed (nothing decoded), ``error``."""
+    params = job_params(runtime.sessions, job_id)
+    rig = _calibration_rig(runtime, params["calibration_set_id"])
+    store = runtime.store
+    runtime.tracker.progress(job_id, "reconstruct", 0.1)
+    exposure = exposure_from_bytes(store.read_bytes(params["exposure.json"]))
+    head = scan_head(frames=_load_npy(store, params["frames.npy"]), sequence=_load_sequence(store, params["sequence.json"]),
+                     rig=rig, head=params["head"], tables=runtime.tables, saturation_level=exposure.saturation_level)
+    artifacts = {} if head.cloud is None else {
+        head_artifact(head.head, CLOUD.name): store.put_bytes(cloud_to_ply(head.cloud))}
+    return {"head": head.head, "artifacts": artifacts, "points": 0 if head.cloud is None else len(head.cloud),
+            "seconds": head.seconds, "error": head.error}
+
+
+def scan_merge_job(*, runtime: Runtime, job_id: str) -> dict[str, Any]:
+    """The completion of a station scan job (``job_id``, taken up once every head's message finished): merge,
+    fuse from every thermal camera, inspect against the part type, store, stream
+    (:func:`services.pipeline.station.store_station_scan`). The result is the scan's
+    (:func:`services.pipeline.scan.scan_result`) with every artifact kept, the capture's and each head's."""
+    params = job_params(runtime.sessions, job_id)
+    rig = _calibration_rig(runtime, params["calibration_set_id"])
+    handed_over = job_results(runtime.sessions, [job_id])[job_id]
+    head_jobs = [entry["job_id"] for entry in handed_over["heads"].values() if "job_id" in entry]
+    return _finish_station_scan(runtime=runtime, job_id=job_id, params=params, rig=rig, handed_over=handed_over,
+                                head_results=job_results(runtime.sessions, head_jobs))
+
+
+def _finish_station_scan(*, runtime: Runtime, job_id: str, params: dict[str, Any], rig: Rig,
+                         handed_over: dict[str, Any], head_results: dict[str, dict[str, Any]]) -> dict[str, Any]:
+    store = runtime.store
+    part = _part_type(runtime, params["part_type_id"]) if params.get("part_type_id") else None
+    clock = StageClock(lambda stage, fraction: runtime.tracker.progress(job_id, stage, fraction))
+    clock.start("load heads", 0.5)
+    artifacts = dict(handed_over["artifacts"])
+    heads = []
+    for station_head in rig.heads:
+        entry = handed_over["heads"][station_head.name]
+        if "error" in entry:
+            heads.append(HeadScan(station_head.name, None, None, entry["error"]))
+            continue
+        result = head_results[entry["job_id"]]
+        artifacts |= result.get("artifacts", {})
+        digest = result.get("artifacts", {}).get(head_artifact(station_head.name, CLOUD.name))
+        if result.get("error") or digest is None:
+            heads.append(HeadScan(station_head.name, None, result.get("seconds"),
+                                  result.get("error") or f"head {station_head.name!r}: no cloud stored"))
+            continue
+        heads.append(HeadScan(station_head.name, cloud_from_ply(store.read_bytes(digest), f"artifact {digest}"),
+                              result.get("seconds")))
+    thermal = {name: _load_npy(store, artifacts[thermal_artifact(name)])
+               for name, device in rig.devices.items() if device.kind == "thermal"
+               and thermal_artifact(name) in artifacts}
+    stored = store_station_scan(scan_id=params["scan_id"], heads=heads, rig=rig, thermal=thermal, store=store,
+                                part=part, clock=clock, captured_at=handed_over.get("captured_at"),
+                                publish=runtime.station_view().publish)
+    stored = type(stored)(stored.outcome, {**artifacts, **stored.artifacts})
+    seconds = {**handed_over.get("stage_seconds", {}),
+               **{f"head {h.head}": h.seconds for h in heads if h.seconds is not None}, **clock.seconds}
+    result = scan_result(scan_id=params["scan_id"], stored=stored, part_type_id=params.get("part_type_id"),
+                         stage_seconds=seconds)
+    return {**result, "last_frame_at": handed_over.get("last_frame_at")}
 
 
 def reconstruct_job(*, runtime: Runtime, job_id: str) -> dict[str, Any]:

@@ -9,8 +9,9 @@ in ``rig.heads`` that measured the point.
 
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -26,6 +27,12 @@ from services.pipeline.reconstruct import reconstruct_capture
 from services.pipeline.tables import TriangulationTables
 from services.structured_light import defaults
 from services.structured_light.reconstruct import Reconstruction
+
+if TYPE_CHECKING:  # the service's stages load the inspection, the store and Rerun on first use, not the commands
+    from services.inspection.inspect import PreparedPart
+    from services.pipeline.scan import ScanOutcome, StageClock, StoredScan
+    from services.storage.artifacts import ArtifactStore
+    from services.streaming.field import FieldScene
 
 DEFAULT_POSE_UNCERTAINTY = PoseUncertainty(translation_mm=0.05, rotation_deg=0.01)
 """A head's pose uncertainty when the calibration gives none: the station calibration's target (issue 36)."""
@@ -66,6 +73,7 @@ class MergeReport:
     kept_points: tuple[int, ...]
     corrections: tuple[HeadCorrection, ...]
     residuals_before: tuple[OverlapResidual, ...]
+    """Before the refinement; empty when the merge was asked not to measure them."""
     residuals: tuple[OverlapResidual, ...]
 
 
@@ -121,7 +129,8 @@ def _spacing(points: np.ndarray) -> float:
 
 def merge_heads(*, clouds: Mapping[str, PointCloud], rig: Rig,
                 uncertainty: PoseUncertainty | Mapping[str, PoseUncertainty] = DEFAULT_POSE_UNCERTAINTY,
-                refine: bool = True, thin: bool = True, voxel_mm: float | None = None) -> MergedCloud:
+                refine: bool = True, thin: bool = True, voxel_mm: float | None = None,
+                residuals_before: bool = True) -> MergedCloud:
     """Merge the heads' clouds into one cloud in the world frame.
 
     Parameters
@@ -137,6 +146,9 @@ def merge_heads(*, clouds: Mapping[str, PointCloud], rig: Rig,
         Refine the heads' poses on the overlaps; thin the overlaps.
     voxel_mm : float, optional
         The thinning's voxel; default 2.5 times the points' median spacing.
+    residuals_before : bool
+        Also measure the overlaps' residuals before the refinement (``MergeReport.residuals_before``; a
+        third of the merge's time on the simulated station; empty when False).
 
     Returns
     -------
@@ -160,7 +172,7 @@ def merge_heads(*, clouds: Mapping[str, PointCloud], rig: Rig,
     ordered = [clouds[name] for name in names]
     points = [cloud.points for cloud in ordered]
     normals = [_normals(cloud) for cloud in ordered]
-    before = _named(overlap_residuals(points, normals), names)
+    before = _named(overlap_residuals(points, normals), names) if residuals_before or not refine else ()
     if refine and len(names) > 1:
         corrections = refine_head_poses(points, normals, [uncertainty[name] for name in names])
     else:
@@ -206,3 +218,172 @@ def reconstruct_station(*, heads: Sequence[HeadFrames], rig: Rig, tables: Triang
                                              source=f"{source}: head {capture.head!r}").cloud
               for capture in heads}
     return merge_heads(clouds=clouds, rig=rig, uncertainty=uncertainty)
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# The station scan in the service: one message per head (scan_head), then one that merges, fuses, inspects and
+# stores (scan_merge); embedded and scaled out alike (services/pipeline/jobs.py).
+
+
+@dataclass(frozen=True)
+class HeadScan:
+    """One head of a station scan: its cloud (world mm) and the seconds its reconstruction took, or ``error``
+    (a device lost in the capture, nothing decoded) and no cloud."""
+
+    head: str
+    cloud: PointCloud | None
+    seconds: float | None = None
+    error: str | None = None
+
+
+def station_capture_artifacts(*, heads: Sequence[HeadFrames], exposures: Mapping[str, dict],
+                              thermal: Mapping[str, np.ndarray]) -> dict[str, bytes]:
+    """The files of a station scan's capture, known before any processing (the station capture layout's names):
+    per head ``heads/<head>/frames.npy``, ``sequence.json`` and ``exposure.json``; per thermal camera
+    ``thermal/<device>.npy`` (float32 degrees C)."""
+    from services.formats.sequence import sequence_to_json
+    from services.formats.stored_scan import exposure_bytes, head_artifact, npy_bytes, thermal_artifact
+
+    files: dict[str, bytes] = {}
+    for capture in heads:
+        files[head_artifact(capture.head, "frames.npy")] = npy_bytes(capture.frames)
+        files[head_artifact(capture.head, "sequence.json")] = sequence_to_json(capture.sequence).encode()
+        files[head_artifact(capture.head, "exposure.json")] = exposure_bytes(exposures.get(capture.head))
+    for device, frames in thermal.items():
+        files[thermal_artifact(device)] = npy_bytes(np.asarray(frames, dtype=np.float32))
+    return files
+
+
+def scan_head(*, frames: np.ndarray, sequence: Manifest, rig: Rig, head: str, tables: TriangulationTables,
+              saturation_level: float | None = None) -> HeadScan:
+    """One head of a station scan (:func:`reconstruct_head`), its failure kept as the head's ``error`` rather than
+    raised: a head whose frames decode to nothing (bad frames, a part it does not see) fails the scan's verdict,
+    not the job, so that the other heads' results are kept."""
+    import time
+
+    started = time.perf_counter()
+    try:
+        cloud = reconstruct_head(frames=frames, sequence=sequence, rig=rig, head=head, tables=tables,
+                                 saturation_level=saturation_level).cloud
+    except InputError as error:
+        return HeadScan(head, None, round(time.perf_counter() - started, 3), f"head {head!r}: {error}")
+    seconds = round(time.perf_counter() - started, 3)
+    if len(cloud) == 0:
+        return HeadScan(head, None, seconds, f"head {head!r}: nothing decoded (no point measured)")
+    return HeadScan(head, cloud, seconds)
+
+
+@dataclass(frozen=True)
+class StationScanOutcome:
+    """A station scan's merged cloud and report (None when a head failed) and the scan's outcome."""
+
+    merged: MergedCloud | None
+    outcome: ScanOutcome
+
+
+def _station_summary(heads: Sequence[HeadScan], merged: MergedCloud | None):
+    from services.formats.stored_scan import HeadSummary, OverlapSummary, StationSummary
+
+    report = None if merged is None else merged.report
+    summaries = []
+    for index, head in enumerate(heads):
+        summary = HeadSummary(head=head.head, measured_points=0 if head.cloud is None else len(head.cloud),
+                              kept_points=0, reconstruct_seconds=head.seconds, error=head.error)
+        if report is not None:
+            correction = report.corrections[index]
+            summary = summary.model_copy(update={
+                "kept_points": report.kept_points[index], "correction_mm": round(correction.translation_mm, 5),
+                "correction_deg": round(correction.rotation_deg, 6), "correction_applied": correction.applied,
+                "correction_note": correction.reason})
+        summaries.append(summary)
+    overlaps = [] if report is None else [
+        OverlapSummary(first=r.first, second=r.second, points=r.points, rms_mm=round(r.rms_mm, 5),
+                       patch_rms_mm=round(r.patch_rms_mm, 5)) for r in report.residuals]
+    return StationSummary(heads=summaries, overlaps=overlaps,
+                          failed_heads=[head.head for head in heads if head.error is not None])
+
+
+def process_station_scan(*, heads: Sequence[HeadScan], rig: Rig, thermal: Mapping[str, np.ndarray],
+                         part: PreparedPart | None = None, clock: StageClock | None = None,
+                         uncertainty: PoseUncertainty | Mapping[str, PoseUncertainty] = DEFAULT_POSE_UNCERTAINTY,
+                         ) -> StationScanOutcome:
+    """Merge the heads' clouds (:func:`merge_heads`), fuse the field from every thermal camera
+    (:func:`services.pipeline.field.fuse_field`), summarise and, given the part type, inspect it all round.
+
+    ``heads`` are every head of ``rig`` in its order. When any head failed (its ``error``), nothing is merged
+    and the scan cannot be judged: the outcome has an empty field and ``inspection_error`` naming the heads
+    (NotDecidable with a part type), never a verdict from the heads left.
+    """
+    from services.geometry.cloud import PointCloud as Cloud
+    from services.pipeline.field import fuse_field
+    from services.pipeline.inspect import inspect_part
+    from services.pipeline.scan import ScanOutcome, StageClock
+    from services.pipeline.summary import field_summary
+
+    clock = clock or StageClock()
+    names = [head.name for head in rig.heads]
+    if [head.head for head in heads] != names:
+        raise InputError(f"a station scan needs one result per head of the rig, in its order ({names}); got "
+                         f"{[head.head for head in heads]}")
+    failed = [head for head in heads if head.error is not None]
+    if failed:
+        empty = Cloud({name: np.zeros(0, np.float32) for name in ("x", "y", "z", "temperature")})
+        reason = ("; ".join(head.error for head in failed)
+                  + f": the part is not judged from the other heads ({len(heads) - len(failed)} of {len(heads)})")
+        summary = field_summary(empty).model_copy(update={"station": _station_summary(heads, None)})
+        return StationScanOutcome(None, ScanOutcome(empty, empty, summary, None, reason))
+    clock.start("merge", 0.6)
+    merged = merge_heads(clouds={head.head: head.cloud for head in heads}, rig=rig, uncertainty=uncertainty,
+                         residuals_before=False)
+    clock.start("fuse", 0.7)
+    field_ = fuse_field(cloud=merged.cloud, rig=rig, thermal=list(thermal.items()), source="the station scan")
+    inspection, inspection_error = None, None
+    if part is not None:
+        clock.start("inspect", 0.75)
+        try:
+            inspection = inspect_part(field=field_, part=part,
+                                      source=f"the station scan's field (part type {part.part.name!r})")
+        except InputError as error:
+            inspection_error = str(error)
+    clock.stop()
+    summary = field_summary(field_).model_copy(update={"station": _station_summary(heads, merged)})
+    return StationScanOutcome(merged, ScanOutcome(merged.cloud, field_, summary, inspection, inspection_error))
+
+
+def store_station_scan(*, scan_id: str, heads: Sequence[HeadScan], rig: Rig, thermal: Mapping[str, np.ndarray],
+                       store: ArtifactStore, part: PreparedPart | None = None, clock: StageClock | None = None,
+                       captured_at: float | None = None,
+                       publish: Callable[[FieldScene, float | None], None] | None = None,
+                       uncertainty: PoseUncertainty | Mapping[str, PoseUncertainty] = DEFAULT_POSE_UNCERTAINTY,
+                       ) -> StoredScan:
+    """:func:`process_station_scan` with its files stored and the field streamed: the merged ``cloud.ply``, the
+    ``field.ply``, the inspection's files and the Rerun recording ``field.rrd`` (each head's cloud its own layer,
+    and the merged field; the scene also given to ``publish``). A scan with a failed head stores no field and
+    streams nothing. Returns a :class:`services.pipeline.scan.StoredScan` of the files stored here."""
+    from services.formats.stored_scan import RECORDING
+    from services.pipeline.scan import StageClock, StoredScan, cloud_artifacts, field_artifacts
+    from services.storage.artifacts import ArtifactWriter
+    from services.streaming.field import field_scene, verdict_markdown
+    from services.streaming.recording import scan_recording
+
+    clock = clock or StageClock()
+    with ArtifactWriter(store) as writer:
+        result = process_station_scan(heads=heads, rig=rig, thermal=thermal, part=part, clock=clock,
+                                      uncertainty=uncertainty)
+        outcome = result.outcome
+        if result.merged is not None:
+            writer.put_made(lambda: {**cloud_artifacts(outcome.cloud), **field_artifacts(outcome)})
+            clock.start("stream", 0.8)
+            deviation = None if outcome.inspection is None else outcome.inspection.deviation
+            verdict = None if outcome.inspection is None else verdict_markdown(outcome.inspection.report)
+            device, frames = next(iter(thermal.items()))
+            scene = field_scene(outcome.field, rig, np.asarray(frames)[0] if np.ndim(frames) == 3 else frames,
+                                thermal_device=device, deviation=deviation, verdict=verdict,
+                                heads={head.head: head.cloud for head in heads})
+            writer.put({RECORDING.name: scan_recording(scan_id, scene, captured_at)})
+            if publish is not None:
+                publish(scene, captured_at)
+        clock.start("store", 0.9)
+        artifacts = writer.digests()
+    clock.stop()
+    return StoredScan(outcome, artifacts)

@@ -58,7 +58,8 @@ def _plane_frames(camera: CameraModel, projector: CameraModel, patterns: np.ndar
 def warm_up(*, rig: Rig, sequence: Sequence, tables: TriangulationTables) -> dict[str, float]:
     """Build the rig's triangulation table for ``sequence`` and run a scan of a plane through every stage.
 
-    Returns the seconds each part took (``table``, ``stages``).
+    Returns the seconds each part took (``table``, ``stages``). A station of several heads gets every head's
+    table only.
     """
     from services.structured_light.patterns import render_patterns
     from services.streaming.field import field_scene
@@ -66,6 +67,12 @@ def warm_up(*, rig: Rig, sequence: Sequence, tables: TriangulationTables) -> dic
 
     seconds = {}
     start = time.perf_counter()
+    if len(rig.heads) > 1:  # a station: every head's table (its heads' messages may come to any worker)
+        for head in rig.heads:
+            camera, projector = rig.devices[head.camera], rig.devices[head.projector]
+            tables.get(camera, projector, coded_axis(sequence.coded_axes, camera, projector))
+        seconds["table"] = round(time.perf_counter() - start, 3)
+        return seconds
     _, camera = rig.device(None, "camera")
     _, projector = rig.device(None, "projector")
     tables.get(camera, projector, coded_axis(sequence.coded_axes, camera, projector))

@@ -8,6 +8,8 @@ Entity tree (world frame = the rig's world frame, OpenCV axes, millimetres):
 - ``world/deviation``: the inspected part's points (as measured, beside the field) coloured by their
   deviation from the nominal part (diverging map over the surface tolerance: blue missing material,
   red excess), with the per-point ``deviation`` (mm) alongside; cleared for a scan not inspected.
+- ``world/heads/<head>``: a station's heads' clouds, each its own layer (``Points3D`` in the head's colour
+  ``HEAD_COLORS``, as the head measured it before the merge); a single-head scan logs none.
 - ``verdict``: the inspection's verdict and features as a Markdown ``TextDocument``; cleared for a scan
   not inspected.
 - ``world/devices/<name>``: ``Transform3D`` of the device pose; our poses map world
@@ -32,6 +34,10 @@ FIELD_ENTITY = "world/field"
 DEVIATION_ENTITY = "world/deviation"
 DEVICES_ENTITY = "world/devices"
 VERDICT_ENTITY = "verdict"
+HEADS_ENTITY = "world/heads"
+HEAD_COLORS = ((230, 25, 75), (60, 180, 75), (0, 130, 200), (245, 130, 48), (145, 30, 180), (70, 240, 240),
+               (240, 50, 230), (210, 245, 60))
+"""Each head's layer colour, by its index in the rig's heads (repeating after eight)."""
 _DEVICE_COLORS = {"camera": (80, 160, 255), "projector": (255, 220, 80), "thermal": (255, 90, 60)}
 
 
@@ -63,6 +69,7 @@ def field_scene(
     thermal_device: str | None = None,
     deviation: Mapping[str, np.ndarray] | None = None,
     verdict: str | None = None,
+    heads: Mapping[str, PointCloud | Mapping[str, np.ndarray]] | None = None,
 ) -> FieldScene:
     """The field with the rig's device frusta and, optionally, the thermal frame it was fused from.
 
@@ -83,6 +90,8 @@ def field_scene(
         field's points with ``deviation`` (mm, NaN off the part) and its colours ``red, green, blue``.
     verdict : str, optional
         The inspection's verdict as Markdown (:func:`verdict_markdown`).
+    heads : mapping of head name to cloud, optional
+        A station's heads' clouds (``x, y, z``), each logged as its own layer ``world/heads/<head>``.
 
     Notes
     -----
@@ -106,6 +115,9 @@ def field_scene(
                 (DEVIATION_ENTITY, _deviation_layer(deviation)),
                 (VERDICT_ENTITY, (rr.Clear(recursive=False),) if verdict is None else
                  (rr.TextDocument(verdict, media_type=rr.MediaType.MARKDOWN),))]
+    for index, (head, cloud) in enumerate((heads or {}).items()):
+        points = np.column_stack([cloud["x"], cloud["y"], cloud["z"]]).astype(np.float32)
+        entities.append((f"{HEADS_ENTITY}/{head}", (rr.Points3D(points, colors=HEAD_COLORS[index % len(HEAD_COLORS)]),)))
     if thermal_image is not None:
         name, device = rig.device(thermal_device, "thermal")
         thermal_image = np.asarray(thermal_image, dtype=np.float32)

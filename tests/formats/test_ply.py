@@ -44,3 +44,30 @@ def test_bytes_round_trip_keeps_units_and_comments():
 def test_bytes_that_are_not_a_ply_name_their_source():
     with pytest.raises(InputError, match="artifact abc: not a readable PLY"):
         cloud_from_ply(b"junk", "artifact abc")
+
+
+def test_a_binary_cloud_is_read_from_bytes_as_plyfile_reads_it_from_a_file(tmp_path):
+    """The in-memory reader of the clouds this project writes (every property scalar) gives what plyfile gives
+    for the same file, big-endian too; other PLYs go through plyfile."""
+    import numpy as np
+    from plyfile import PlyData, PlyElement
+
+    from services.formats.ply import cloud_from_ply, cloud_to_ply
+    from services.geometry.cloud import PointCloud
+
+    rng = np.random.default_rng(3)
+    cloud = PointCloud({"x": rng.random(1000).astype(np.float32), "y": rng.random(1000), "head": np.arange(1000, dtype=np.int32),
+                        "red": rng.integers(0, 255, 1000).astype(np.uint8)}, {"x": "mm"}, ("made here",))
+    read = cloud_from_ply(cloud_to_ply(cloud))
+    assert dict(read.units) == dict(cloud.units) and read.comments == ("made here",)
+    for name, values in cloud.items():
+        assert read[name].dtype == values.dtype and np.array_equal(read[name], values)
+    vertices = np.array([(1.5, 7), (2.5, 9)], dtype=[("x", ">f8"), ("k", ">i2")])
+    path = tmp_path / "big.ply"
+    PlyData([PlyElement.describe(vertices, "vertex")], text=False, byte_order=">").write(str(path))
+    big = cloud_from_ply(path.read_bytes())
+    assert big["x"].tolist() == [1.5, 2.5] and big["k"].tolist() == [7, 9] and big["x"].dtype.isnative
+    faces = PlyElement.describe(np.array([([0, 1, 0],)], dtype=[("vertex_indices", "O")]), "face")
+    path = tmp_path / "mesh.ply"
+    PlyData([PlyElement.describe(vertices, "vertex"), faces], text=False).write(str(path))
+    assert cloud_from_ply(path.read_bytes())["k"].tolist() == [7, 9]
