@@ -115,27 +115,10 @@ class BoardHolder(Protocol):
         """Hold ``board`` in the pose of view number ``view`` (returns when it is in place); None takes it away."""
 
 
-class Station:
-    """The devices of one station, owned by the gateway process.
+class _Devices:
+    """Open, close and report the health of a station's ``devices`` (a property of the subclass)."""
 
-    ``board_holder`` moves the board between calibration views; None means a person does, given
-    ``interval_s`` seconds per view.
-    """
-
-    def __init__(self, camera: CameraDriver, thermal: ThermalDriver, projector: ProjectorDriver,
-                 settle_s: float | None = None, grab_timeout_s: float = 2.0,
-                 board_holder: BoardHolder | None = None) -> None:
-        self.camera = camera
-        self.thermal = thermal
-        self.projector = projector
-        self.board_holder = board_holder
-        self.settle_s = projector.settle_s if settle_s is None else settle_s
-        self.grab_timeout_s = grab_timeout_s
-        self._lock = threading.Lock()
-
-    @property
-    def devices(self) -> list[DeviceDriver]:
-        return [self.camera, self.thermal, self.projector]
+    devices: list[DeviceDriver]
 
     def open(self) -> None:
         """Open every device that is not open yet; :class:`DeviceUnavailable` names the first that fails (the
@@ -157,6 +140,29 @@ class Station:
     def health(self) -> dict[str, bool]:
         """Whether each device (by name) is open and usable."""
         return {device.info.name: device.is_open for device in self.devices}
+
+
+class Station(_Devices):
+    """The devices of one station, owned by the gateway process.
+
+    ``board_holder`` moves the board between calibration views; None means a person does, given
+    ``interval_s`` seconds per view.
+    """
+
+    def __init__(self, camera: CameraDriver, thermal: ThermalDriver, projector: ProjectorDriver,
+                 settle_s: float | None = None, grab_timeout_s: float = 2.0,
+                 board_holder: BoardHolder | None = None) -> None:
+        self.camera = camera
+        self.thermal = thermal
+        self.projector = projector
+        self.board_holder = board_holder
+        self.settle_s = projector.settle_s if settle_s is None else settle_s
+        self.grab_timeout_s = grab_timeout_s
+        self._lock = threading.Lock()
+
+    @property
+    def devices(self) -> list[DeviceDriver]:
+        return [self.camera, self.thermal, self.projector]
 
     def capture(self, sequence: Sequence, patterns: np.ndarray, thermal_frames: int = 1,
                 exposure: ExposureControl = ExposureControl()) -> Capture:
@@ -360,7 +366,7 @@ class StationHead:
     projector: ProjectorDriver
 
 
-class MultiHeadStation:
+class MultiHeadStation(_Devices):
     """The devices of a station of several heads (a version-2 rig's ``heads``) and its thermal cameras.
 
     A capture runs the heads one after another (time multiplexing: each head's projector shows the sequence,
@@ -389,25 +395,8 @@ class MultiHeadStation:
 
     @property
     def devices(self) -> list[DeviceDriver]:
-        return [device for head in self.heads for device in (head.camera, head.projector)] + list(self.thermals.values())
-
-    def open(self) -> None:
-        failure: DeviceUnavailable | None = None
-        for device in self.devices:
-            if not device.is_open:
-                try:
-                    device.open()
-                except DeviceUnavailable as error:
-                    failure = failure or error
-        if failure is not None:
-            raise failure
-
-    def close(self) -> None:
-        for device in self.devices:
-            device.close()
-
-    def health(self) -> dict[str, bool]:
-        return {device.info.name: device.is_open for device in self.devices}
+        heads = [device for head in self.heads for device in (head.camera, head.projector)]
+        return heads + list(self.thermals.values())
 
     def prepare(self, patterns: np.ndarray) -> None:
         """Let every head's camera prepare for ``patterns`` (the simulated ones render them ahead)."""

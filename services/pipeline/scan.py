@@ -18,7 +18,7 @@ from services.formats.stored_scan import (CLOUD, EXPOSURE, FIELD, FRAMES, RECORD
                                           exposure_bytes, npy_bytes)
 from services.geometry.cloud import PointCloud
 from services.inspection.inspect import PreparedPart
-from services.pipeline.field import fuse_field
+from services.pipeline.field import ThermalFrames, fuse_field
 from services.pipeline.inspect import InspectionOutcome, inspect_part, inspection_artifacts, report_digest
 from services.pipeline.reconstruct import reconstruct_capture
 from services.pipeline.summary import field_summary, glow_summary
@@ -82,19 +82,31 @@ def process_scan(*, frames: np.ndarray, sequence: Sequence, thermal: np.ndarray,
                                          saturation_level=exposure.get("saturation_level"), source="the scan")
     if on_cloud is not None:
         on_cloud(reconstruction.cloud)
-    clock.start("fuse", 0.55)
-    field_ = fuse_field(cloud=reconstruction.cloud, rig=rig, thermal=[(None, thermal)], source="the scan")
+    field_, inspection, inspection_error = fuse_and_inspect(
+        cloud=reconstruction.cloud, rig=rig, thermal=[(None, thermal)], part=part, clock=clock, source="the scan",
+        fractions=(0.55, 0.62))
+    summary = field_summary(field_).model_copy(update={"glow": glow_summary(reconstruction.glow, exposure)})
+    return ScanOutcome(reconstruction.cloud, field_, summary, inspection, inspection_error)
+
+
+def fuse_and_inspect(*, cloud: PointCloud, rig: Rig, thermal: ThermalFrames, part: PreparedPart | None,
+                     clock: StageClock, source: str, fractions: tuple[float, float]
+                     ) -> tuple[PointCloud, InspectionOutcome | None, str | None]:
+    """A scan's cloud fused (:func:`services.pipeline.field.fuse_field`) and, given its part type, inspected:
+    the field, the inspection and why it could not be made (``None`` when it was or no part type was
+    given). ``fractions`` are the job's progress at the two stages."""
+    clock.start("fuse", fractions[0])
+    field_ = fuse_field(cloud=cloud, rig=rig, thermal=thermal, source=source)
     inspection, inspection_error = None, None
     if part is not None:
-        clock.start("inspect", 0.62)
+        clock.start("inspect", fractions[1])
         try:
             inspection = inspect_part(field=field_, part=part,
-                                      source=f"the scan's field (part type {part.part.name!r})")
+                                      source=f"{source}'s field (part type {part.part.name!r})")
         except InputError as error:
             inspection_error = str(error)
     clock.stop()
-    summary = field_summary(field_).model_copy(update={"glow": glow_summary(reconstruction.glow, exposure)})
-    return ScanOutcome(reconstruction.cloud, field_, summary, inspection, inspection_error)
+    return field_, inspection, inspection_error
 
 
 @dataclass(frozen=True)

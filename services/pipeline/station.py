@@ -315,9 +315,7 @@ def process_station_scan(*, heads: Sequence[HeadScan], rig: Rig, thermal: Mappin
     (NotDecidable with a part type), never a verdict from the heads left.
     """
     from services.geometry.cloud import PointCloud as Cloud
-    from services.pipeline.field import fuse_field
-    from services.pipeline.inspect import inspect_part
-    from services.pipeline.scan import ScanOutcome, StageClock
+    from services.pipeline.scan import ScanOutcome, StageClock, fuse_and_inspect
     from services.pipeline.summary import field_summary
 
     clock = clock or StageClock()
@@ -335,17 +333,9 @@ def process_station_scan(*, heads: Sequence[HeadScan], rig: Rig, thermal: Mappin
     clock.start("merge", 0.6)
     merged = merge_heads(clouds={head.head: head.cloud for head in heads}, rig=rig, uncertainty=uncertainty,
                          residuals_before=False)
-    clock.start("fuse", 0.7)
-    field_ = fuse_field(cloud=merged.cloud, rig=rig, thermal=list(thermal.items()), source="the station scan")
-    inspection, inspection_error = None, None
-    if part is not None:
-        clock.start("inspect", 0.75)
-        try:
-            inspection = inspect_part(field=field_, part=part,
-                                      source=f"the station scan's field (part type {part.part.name!r})")
-        except InputError as error:
-            inspection_error = str(error)
-    clock.stop()
+    field_, inspection, inspection_error = fuse_and_inspect(
+        cloud=merged.cloud, rig=rig, thermal=list(thermal.items()), part=part, clock=clock,
+        source="the station scan", fractions=(0.7, 0.75))
     summary = field_summary(field_).model_copy(update={"station": _station_summary(heads, merged)})
     return StationScanOutcome(merged, ScanOutcome(merged.cloud, field_, summary, inspection, inspection_error))
 
