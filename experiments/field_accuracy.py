@@ -23,8 +23,8 @@ import numpy as np  # noqa: E402
 from services.geometry.camera_model import CameraModel  # noqa: E402
 from services.fusion.field import temperature_field  # noqa: E402
 from services.fusion.fuse import ThermalView  # noqa: E402
-from services.fusion.visibility import depth_buffer, seen_mask  # noqa: E402
-from services.geometry.camera import project_points  # noqa: E402
+from services.fusion.visibility import (fill_empty_pixels, nearest_pixel_index, splat_nearest,  # noqa: E402
+                                       within_tolerance)
 from services.simulation.presets import forging_rig, forging_scene, look_at_rotation  # noqa: E402
 from services.simulation.render import CameraEffects, render_frames, render_view  # noqa: E402
 from services.simulation.thermal import (  # noqa: E402
@@ -56,7 +56,7 @@ def evaluate(cloud, rig, scene, temperatures, truth, image) -> tuple[dict, dict]
     true_points = truth.points[row, column]
     on_surface = truth.surface[row, column] >= 0
     true_temperature = surface_temperature(temperatures, true_points, truth.surface[row, column])
-    pixels = project_points(true_points, thermal.K, thermal.dist, thermal.R, thermal.t)
+    pixels = thermal.project(true_points)
     in_image = on_surface & np.all((pixels > -0.5) & (pixels < [thermal.width - 0.5, thermal.height - 0.5]), axis=1)
     visible = np.zeros(len(row), dtype=bool)
     visible[in_image] = seen_by(scene, thermal, true_points[in_image])
@@ -97,10 +97,13 @@ def render_field_picture(field: dict, path: Path, title: str) -> None:
     """The coloured points seen from a virtual camera off the rig's axis, z-buffered and shaded by normal."""
     view = _virtual_camera((-260.0, -240.0, 100.0), (-10.0, 30.0, 660.0), 430.0, 520, 360)
     points = np.column_stack([field["x"], field["y"], field["z"]]).astype(np.float64)
-    pixels = project_points(points, view.K, view.dist, view.R, view.t)
+    pixels = view.project(points)
     depth = np.einsum("j,nj->n", view.R[2], points) + view.t[2]
-    buffer = depth_buffer(pixels, depth, view.width, view.height)
-    front = seen_mask(pixels, depth, buffer, np.full(len(depth), 3.0))
+    index = nearest_pixel_index(pixels[:, 0], pixels[:, 1], view.width, view.height)
+    buffer = np.full(view.width * view.height, np.inf)
+    splat_nearest(buffer, index, depth)
+    buffer = fill_empty_pixels(buffer.reshape(view.height, view.width))
+    front = within_tolerance(index, depth, buffer.ravel(), np.full(len(depth), 3.0))
     normals = np.column_stack([field["nx"], field["ny"], field["nz"]])
     light = np.array([-0.3, -0.6, -0.75]) / np.linalg.norm([-0.3, -0.6, -0.75])
     shade = 0.55 + 0.45 * np.clip(np.nan_to_num(np.abs(normals @ light), nan=1.0), 0, 1)

@@ -27,7 +27,7 @@ from services.formats.board import ChessboardSpec
 from services.formats.rig import load_rig
 from services.geometry.camera_model import CameraModel
 from services.formats.sequence import read_capture
-from services.geometry.camera import normalized_coordinates, project_points
+from services.geometry.camera import normalized_coordinates
 from services.structured_light.decode import Rejection, decode
 from services.structured_light.triangulate import triangulate
 
@@ -78,7 +78,7 @@ def displacement_at_depth(reference: tuple[CameraModel, CameraModel], other: tup
     rays = normalized_coordinates(pixels, camera.K, camera.dist)
     points_camera = np.column_stack([rays * depth, np.full(len(rays), depth)])
     points = (points_camera - camera.t) @ camera.R  # camera frame to world
-    columns = project_points(points, projector.K, projector.dist, projector.R, projector.t)
+    columns = projector.project(points)
     inside = (columns[:, 0] >= 0) & (columns[:, 0] <= projector.width - 1) & (columns[:, 1] >= 0) & \
         (columns[:, 1] <= projector.height - 1)
     rays_2 = normalized_coordinates(pixels[inside], camera_2.K, camera_2.dist)

@@ -330,7 +330,6 @@ def _inspect(seed: int, zoo, field) -> tuple[dict, None]:
 def _register(seed: int, zoo, filmed: Filmed) -> tuple[dict, None]:
     """``thermofield register`` of the thermal frame onto the white frame, against the true correspondences."""
     from services.errors import InputError
-    from services.geometry.camera import project_points
     from services.pipeline.register import register_pair, white_frame
     from services.simulation.thermal import seen_by
 
@@ -346,7 +345,7 @@ def _register(seed: int, zoo, filmed: Filmed) -> tuple[dict, None]:
     pick = np.random.default_rng(seed).permutation(len(rows))[:4000]
     world = filmed.points[rows[pick], columns[pick]]
     seen = seen_by(zoo.scene, thermal, world)
-    thermal_pixels = project_points(world[seen], thermal.K, thermal.dist, thermal.R, thermal.t)
+    thermal_pixels = thermal.project(world[seen])
     inside = ((thermal_pixels[:, 0] >= 0) & (thermal_pixels[:, 0] <= thermal.width - 1)
               & (thermal_pixels[:, 1] >= 0) & (thermal_pixels[:, 1] <= thermal.height - 1))
     visible_pixels = np.column_stack([columns[pick], rows[pick]])[seen][inside].astype(np.float64)
@@ -426,12 +425,10 @@ def registration_truth(zoo) -> dict[str, float]:
     the thermal image's width (12 %)."""
     import cv2
 
-    from services.geometry.camera import project_points
-
     camera, thermal = zoo.rig.devices["camera"], zoo.rig.devices["thermal"]
     points = np.asarray(zoo.scene.surfaces[0].vertices)[::7]
-    visible = project_points(points, camera.K, camera.dist, camera.R, camera.t)
-    infrared = project_points(points, thermal.K, thermal.dist, thermal.R, thermal.t)
+    visible = camera.project(points)
+    infrared = thermal.project(points)
     matrix, _ = cv2.estimateAffinePartial2D(infrared.astype(np.float32), visible.astype(np.float32))
     scale = float(np.hypot(matrix[0, 0], matrix[1, 0]))
     nominal = min(camera.width / thermal.width, camera.height / thermal.height)

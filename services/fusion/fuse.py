@@ -21,7 +21,6 @@ from services.fusion.visibility import (
     SAMPLE_FOOTPRINTS, background_depth, depth_gradient, depth_tolerance, fill_empty_pixels, footprint_radius,
     nearest_depth_around, nearest_pixel_index, splat_nearest, within_tolerance,
 )
-from services.geometry.camera import project_points
 from services.structured_light.row_bands import map_bands, row_bands
 
 DEFAULT_MAX_VIEW_ANGLE_DEG = 75.0
@@ -111,41 +110,16 @@ def _view_cosines(points: np.ndarray, normals: np.ndarray, centre: np.ndarray) -
     return np.clip(cosine, -1.0, 1.0, out=cosine)
 
 
-def _project(points: np.ndarray, device: CameraModel) -> np.ndarray:
-    """Distorted pixel coordinates of world points in the device."""
-    return project_points(points, device.K, device.dist, device.R, device.t)
-
-
-def _bilinear_samples(
-    frames: np.ndarray, pixels: np.ndarray, depth: np.ndarray, buffer: np.ndarray, tolerance: np.ndarray
-) -> np.ndarray:
-    """Depth-aware bilinear samples (F, N) of the frames at the points' pixels.
-
-    Each of the four neighbouring pixel centres counts only if its z-buffer depth
-    shows the point's own surface there (not a nearer occluder or empty space)
-    and the frame is finite there; the bilinear weights of the counted corners
-    are renormalised. NaN where no corner counts, and where a corner of non-zero
-    weight on the point's surface has no finite value: a point beside a pixel
-    without a temperature (saturated, beyond the range) gets none rather than the
-    lower temperature of its other neighbours.
-    """
-    frames = np.asarray(frames, dtype=np.float64)
-    pixels = np.asarray(pixels, dtype=np.float64)
-    depth = np.asarray(depth, dtype=np.float64)
-    tolerance = np.asarray(tolerance, dtype=np.float64)
-    buffer = np.ascontiguousarray(buffer, dtype=np.float64)
-    samples = np.empty((len(frames), len(depth)))
-
-    def chunk(rows: slice) -> None:
-        samples[:, rows] = _bilinear(frames, pixels[rows, 0], pixels[rows, 1], depth[rows], buffer, tolerance[rows])
-
-    map_bands(chunk, _chunks(len(depth)))
-    return samples
-
-
 def _bilinear(frames: np.ndarray, u: np.ndarray, v: np.ndarray, depth: np.ndarray, buffer: np.ndarray,
               tolerance: np.ndarray) -> np.ndarray:
-    """:func:`_bilinear_samples` of one chunk of points at pixels (u, v)."""
+    """Depth-aware bilinear samples (F, n) of the frames at one chunk of points' pixels (u, v).
+
+    Each of the four neighbouring pixel centres counts only if its z-buffer depth shows the point's own
+    surface there (not a nearer occluder or empty space) and the frame is finite there; the bilinear
+    weights of the counted corners are renormalised. NaN where no corner counts, and where a corner of
+    non-zero weight on the point's surface has no finite value: a point beside a pixel without a temperature
+    (saturated, beyond the range) gets none rather than the lower temperature of its other neighbours.
+    """
     count, height, width = frames.shape
     values_of = frames.reshape(count, -1)
     surface_of = buffer.reshape(-1)
@@ -187,45 +161,6 @@ def _bilinear(frames: np.ndarray, u: np.ndarray, v: np.ndarray, depth: np.ndarra
     return total
 
 
-def sample_view(
-    points: np.ndarray,
-    normals: np.ndarray,
-    view: ThermalView,
-    max_view_angle_deg: float = DEFAULT_MAX_VIEW_ANGLE_DEG,
-    depth_tolerance_mm: float = DEFAULT_DEPTH_TOLERANCE_MM,
-    occlusion_margin_px: int = DEFAULT_OCCLUSION_MARGIN_PX,
-    thermal_blur_px: float = DEFAULT_THERMAL_BLUR_PX,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Temperature of each point in one thermal view, averaged over the view's frames.
-
-    See :func:`fuse_temperature` for the parameters.
-
-    Returns
-    -------
-    temperature : (N,) float64 array
-        NaN where the view does not see the point, sees it beyond the angle
-        limit, its pixels mix its surface with another (see :func:`fuse_temperature`),
-        or the frames have no finite value there.
-    view_angle : (N,) float64 array
-        Radians, for points the view sees (in the image and not occluded); NaN
-        otherwise.
-    weight : (N,) float64 array
-        cos(view angle) (f / d)^2 times the number of frames that gave a value (f the focal length in
-        pixels, d the distance from the camera centre in mm); 0 where ``temperature`` is NaN.
-    """
-    points, normals = _as_float(points), _as_float(normals)
-    temperature = np.empty(len(points))
-    angle = np.empty(len(points))
-    weight = np.empty(len(points))
-
-    def keep(rows: slice, chunk_temperature: np.ndarray, chunk_angle: np.ndarray, chunk_weight: np.ndarray) -> None:
-        temperature[rows], angle[rows], weight[rows] = chunk_temperature, chunk_angle, chunk_weight
-
-    _sample_view(len(points), rows_of(points), rows_of(normals), view, max_view_angle_deg, depth_tolerance_mm,
-                 occlusion_margin_px, keep, thermal_blur_px)
-    return temperature, angle, weight
-
-
 Rows = Callable[[slice], np.ndarray]
 """A chunk's rows of an (N, 3) array, as float64 (n, 3)."""
 _ChunkResult = Callable[[slice, np.ndarray, np.ndarray, np.ndarray], None]
@@ -239,8 +174,15 @@ def rows_of(array: np.ndarray) -> Rows:
 def _sample_view(count: int, points_of: Rows, normals_of: Rows, view: ThermalView, max_view_angle_deg: float,
                  depth_tolerance_mm: float, occlusion_margin_px: int, result: _ChunkResult,
                  thermal_blur_px: float = DEFAULT_THERMAL_BLUR_PX) -> None:
-    """:func:`sample_view` of ``count`` points chunk by chunk: ``result(rows, temperature, view_angle, weight)``
-    for each chunk of rows (called on the pool's threads; each chunk's rows are its own)."""
+    """The temperature of ``count`` points in one thermal view, averaged over the view's frames, chunk by chunk:
+    ``result(rows, temperature, view_angle, weight)`` for each chunk of rows (called on the pool's threads; each
+    chunk's rows are its own). See :func:`fuse_temperature` for the parameters.
+
+    ``temperature`` is NaN where the view does not see the point, sees it beyond the angle limit, its pixels
+    mix its surface with another, or the frames have no finite value there; ``view_angle`` (radians) is NaN
+    where the view does not see the point (outside the image or occluded); ``weight`` is cos(view angle)
+    (f / d)^2 times the number of frames that gave a value (f the focal length in pixels, d the distance from
+    the camera centre in mm), 0 where ``temperature`` is NaN."""
     device = view.device
     max_angle = np.deg2rad(max_view_angle_deg)
     K = np.asarray(device.K, dtype=np.float64)
@@ -376,7 +318,7 @@ def fuse_temperature(
     -----
     Each point X projects to distorted pixel coordinates p = pi(K, dist, R X + t)
     in each thermal camera. It is seen if its depth z is within a tolerance of the
-    z-buffer of the cloud at p (see :func:`services.fusion.visibility.depth_buffer`),
+    z-buffer of the cloud at p (see :func:`services.fusion.visibility.splat_nearest`),
     so that a hidden point gets NaN rather than its occluder's temperature, and
     no surface nearer by more than the slope-scaled tolerance (over the
     window's reach) lies within the occlusion margin (a guard band at depth discontinuities [2]_).

@@ -15,49 +15,22 @@ import numpy as np
 SAMPLE_FOOTPRINTS = 1.5
 
 
-def depth_buffer(pixels: np.ndarray, depth: np.ndarray, width: int, height: int) -> np.ndarray:
-    """Nearest depth of the cloud in each pixel of a view (a z-buffer of point splats).
-
-    Parameters
-    ----------
-    pixels : (N, 2) array
-        Pixel coordinates (u, v) of the points in the view; NaN for points that
-        do not project.
-    depth : (N,) array
-        Depth of each point along the view's optical axis, millimetres.
-    width, height : int
-        Size of the view in pixels.
-
-    Returns
-    -------
-    buffer : (height, width) float64 array
-        Smallest depth of the points whose nearest pixel centre it is; +inf where
-        no point falls. An empty pixel takes the smallest depth of its 3x3
-        neighbours, so that gaps between sparse splats do not let hidden points
-        show through.
+def splat_nearest(buffer: np.ndarray, index: np.ndarray, depth: np.ndarray) -> None:
+    """Lower the flat ``buffer`` to each point's depth at its pixel ``index`` (-1: outside; depth <= 0 or NaN:
+    not drawn), in place: a z-buffer of point splats, +inf where no point falls (``buffer``'s start).
 
     Notes
     -----
     The classic z-buffer [1]_ with points as one-pixel splats,
-    Z(i, j) = min {z_k : round(u_k, v_k) = (i, j)}.
+    Z(i, j) = min {z_k : round(u_k, v_k) = (i, j)}; :func:`fill_empty_pixels` then gives each empty pixel the
+    smallest depth of its 3x3 neighbours, so that gaps between sparse splats do not let hidden points show
+    through.
 
     References
     ----------
     .. [1] E. Catmull, "A Subdivision Algorithm for Computer Display of Curved
        Surfaces", PhD thesis, University of Utah, 1974.
     """
-    pixels = np.asarray(pixels, dtype=np.float64)
-    depth = np.asarray(depth, dtype=np.float64)
-    if pixels.ndim != 2 or pixels.shape[1] != 2 or depth.shape != (pixels.shape[0],):
-        raise ValueError(f"pixels must be (N, 2) and depth (N,); got {pixels.shape} and {depth.shape}.")
-    buffer = np.full(height * width, np.inf)
-    splat_nearest(buffer, _nearest_pixel_index(pixels, width, height), depth)
-    return fill_empty_pixels(buffer.reshape(height, width))
-
-
-def splat_nearest(buffer: np.ndarray, index: np.ndarray, depth: np.ndarray) -> None:
-    """Lower the flat ``buffer`` to each point's depth at its pixel ``index`` (-1: outside; depth <= 0 or NaN:
-    not drawn), in place."""
     drawn = (index >= 0) & (depth > 0)
     np.minimum.at(buffer, index[drawn], depth[drawn])
 
@@ -193,15 +166,6 @@ def nearest_depth_around(buffer: np.ndarray, radius_px: int) -> np.ndarray:
     return cv2.erode(np.ascontiguousarray(buffer), np.ones((size, size), np.uint8), borderType=cv2.BORDER_REPLICATE)
 
 
-def seen_mask(
-    pixels: np.ndarray, depth: np.ndarray, buffer: np.ndarray, tolerance: np.ndarray
-) -> np.ndarray:
-    """Points in the view whose depth is within ``tolerance`` of the z-buffer at their nearest pixel."""
-    height, width = buffer.shape
-    return within_tolerance(_nearest_pixel_index(pixels, width, height), np.asarray(depth, dtype=np.float64),
-                            np.ascontiguousarray(buffer).ravel(), np.asarray(tolerance, dtype=np.float64))
-
-
 def within_tolerance(index: np.ndarray, depth: np.ndarray, buffer: np.ndarray, tolerance: np.ndarray) -> np.ndarray:
     """Points at flat pixel ``index`` (-1: outside) with 0 < depth <= buffer + tolerance there."""
     limit = buffer[np.maximum(index, 0)]
@@ -210,12 +174,6 @@ def within_tolerance(index: np.ndarray, depth: np.ndarray, buffer: np.ndarray, t
     seen &= depth > 0
     seen &= index >= 0
     return seen
-
-
-def _nearest_pixel_index(pixels: np.ndarray, width: int, height: int) -> np.ndarray:
-    """Flat index row * width + column of each point's nearest pixel centre; -1 outside the view (or NaN)."""
-    pixels = np.asarray(pixels, dtype=np.float64)
-    return nearest_pixel_index(pixels[:, 0], pixels[:, 1], width, height)
 
 
 def nearest_pixel_index(u: np.ndarray, v: np.ndarray, width: int, height: int) -> np.ndarray:

@@ -21,7 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
-from services.geometry.camera import normalized_coordinates, pixel_grid, project_points
+from services.geometry.camera import normalized_coordinates, pixel_grid
 from services.geometry.camera_model import CameraModel
 from services.inspection.materials import Material
 from services.open3d_loader import open3d
@@ -402,7 +402,7 @@ def _reaches(scene: _Raycaster, device: CameraModel, points: np.ndarray, normals
     centre = device.centre
     toward = centre - points
     facing = np.einsum("ij,ij->i", normals, toward) > 0
-    pixels = project_points(points, device.K, device.dist, device.R, device.t)
+    pixels = device.project(points)
     inside = ((pixels[:, 0] >= -0.5) & (pixels[:, 0] <= device.width - 0.5)
               & (pixels[:, 1] >= -0.5) & (pixels[:, 1] <= device.height - 0.5))
     distance = np.linalg.norm(toward, axis=1)

@@ -1,13 +1,21 @@
 import numpy as np
 import pytest
 
-from services.fusion.visibility import depth_buffer, depth_gradient, nearest_depth_around, seen_mask
+from services.fusion.visibility import (depth_gradient, fill_empty_pixels, nearest_depth_around, nearest_pixel_index,
+                                       splat_nearest, within_tolerance)
+
+
+def _z_buffer(pixels, depth, width, height):
+    """The z-buffer as the fusion makes it: splats at the nearest pixels, empty pixels filled from their 3x3."""
+    buffer = np.full(width * height, np.inf)
+    splat_nearest(buffer, nearest_pixel_index(pixels[:, 0], pixels[:, 1], width, height), depth)
+    return fill_empty_pixels(buffer.reshape(height, width))
 
 
 def test_buffer_keeps_the_nearest_depth_per_pixel_and_fills_isolated_holes():
     pixels = np.array([[1.2, 1.4], [0.8, 0.6], [3.0, 3.0], [10.0, 1.0], [np.nan, 0.0]])
     depth = np.array([500.0, 400.0, 600.0, 100.0, 50.0])
-    buffer = depth_buffer(pixels, depth, width=6, height=5)
+    buffer = _z_buffer(pixels, depth, width=6, height=5)
     assert buffer[1, 1] == 400.0
     assert buffer[3, 3] == 600.0
     assert buffer[2, 2] == 400.0  # empty, takes its nearest 3x3 neighbour
@@ -18,8 +26,9 @@ def test_buffer_keeps_the_nearest_depth_per_pixel_and_fills_isolated_holes():
 def test_hidden_points_fail_the_depth_test_and_seen_ones_pass():
     pixels = np.array([[2.0, 2.0], [2.1, 1.9], [4.0, 4.0]])
     depth = np.array([300.0, 500.0, 500.0])
-    buffer = depth_buffer(pixels, depth, 8, 8)
-    np.testing.assert_array_equal(seen_mask(pixels, depth, buffer, np.full(3, 2.0)), [True, False, True])
+    buffer = _z_buffer(pixels, depth, 8, 8)
+    index = nearest_pixel_index(pixels[:, 0], pixels[:, 1], 8, 8)
+    np.testing.assert_array_equal(within_tolerance(index, depth, buffer.ravel(), np.full(3, 2.0)), [True, False, True])
 
 
 def test_depth_gradient_of_a_tilted_plane_matches_finite_differences():
@@ -41,11 +50,6 @@ def test_unknown_normals_use_the_angle_limit_and_window_minimum():
     buffer[0, 0] = 1.0
     around = nearest_depth_around(buffer, 1)
     assert around[1, 1] == 1.0 and around[2, 2] == 10.0
-
-
-def test_bad_shapes_are_refused():
-    with pytest.raises(ValueError, match=r"\(N, 2\)"):
-        depth_buffer(np.zeros((3, 3)), np.zeros(3), 4, 4)
 
 
 def test_footprint_radius_covers_the_stencil_the_pixel_and_the_blur():
