@@ -141,6 +141,13 @@ class _Devices:
         """Whether each device (by name) is open and usable."""
         return {device.info.name: device.is_open for device in self.devices}
 
+    def _reopen(self) -> None:
+        self.close()
+        try:
+            self.open()
+        except DeviceUnavailable as error:
+            logger.warning("device not back after a loss, will retry on the next capture: %s", error)
+
 
 class Station(_Devices):
     """The devices of one station, owned by the gateway process.
@@ -322,13 +329,6 @@ class Station(_Devices):
                           timestamps=np.array([frame.timestamp for frame in camera]),
                           devices=[device.info for device in self.devices])
 
-    def _reopen(self) -> None:
-        self.close()
-        try:
-            self.open()
-        except DeviceUnavailable as error:
-            logger.warning("device not back after a loss, will retry on the next capture: %s", error)
-
 
 @dataclass(frozen=True)
 class HeadCapture:
@@ -462,9 +462,3 @@ class MultiHeadStation(_Devices):
                            [{**frame.metadata, "head": head.name, "file": entry.file}
                             for frame, entry in zip(camera_frames, sequence.frames)], metadata)
 
-    def _reopen(self) -> None:
-        self.close()
-        try:
-            self.open()
-        except DeviceUnavailable as error:
-            logger.warning("device not back after a loss, will retry on the next capture: %s", error)
