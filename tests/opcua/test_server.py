@@ -463,6 +463,8 @@ def test_no_security_only_when_set_and_still_with_an_api_key(tmp_path):
     assert not (tmp_path / "pki" / "server-certificate.der").exists()  # no certificate made
 
 
+# The endpoint's checks touch no row: one database is enough.
+@pytest.mark.parametrize("engine", ["sqlite"], indirect=True)
 def test_a_bad_endpoint_or_a_taken_port_is_a_clear_error(engine, tmp_path):
     station = Station(make_sessions(engine), STATION, JobTracker(make_sessions(engine)), None)
     with pytest.raises(InputError, match="not an opc.tcp://host:port"):
