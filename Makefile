@@ -62,6 +62,7 @@ test-reliability: install-test
 		$(BIN)/python -m pytest -m 'reliability or schemathesis' -k 'not soak' -p no:cacheprovider -s \
 		tests/api/test_schemathesis.py tests/integration/test_load.py tests/integration/test_station_faults.py \
 		tests/reliability/test_faults.py tests/reliability/test_hostile.py tests/integration/test_scaled_out.py \
+		tests/integration/test_station_service.py \
 		tests/device_gateway/test_genicam_gigevision.py
 
 test-soak: install-test

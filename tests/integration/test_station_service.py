@@ -127,6 +127,7 @@ def read_cloud_bytes(data: bytes, directory):
 
 
 @pytest.mark.postgres
+@pytest.mark.reliability  # half a minute: in make test-reliability (also in .ci/run), not make test
 def test_a_station_scan_scaled_out_runs_its_heads_on_two_workers(e2e, deployment, tmp_path):
     env = deployment | STATION
     api_url = f"http://127.0.0.1:{env['THERMOFIELD_API_PORT']}"
