@@ -120,6 +120,13 @@ def thermal_artifact(device: str) -> str:
     return f"thermal/{device}.npy"
 
 
+def is_raw(name: str) -> bool:
+    """Whether the artifact (or a head job's parameter) ``name`` is part of the capture, expired first by retention:
+    a single-head scan's :data:`RAW` files, a station head's ``heads/<head>/frames.npy`` and ``sequence.json`` (and
+    a head job's ``frames.npy`` and ``sequence.json`` parameters), a thermal camera's ``thermal/<device>.npy``."""
+    return name.rsplit("/", 1)[-1] in RAW or (name.startswith("thermal/") and name.endswith(".npy"))
+
+
 class HeadSummary(BaseModel):
     """One head of a station scan: its points, its time, its pose correction in the merge, or why it failed."""
 

@@ -3,8 +3,11 @@
 A scan takes about 100 MB (mostly its raw frames). Per station, a scan keeps its
 fields (cloud, field, recording) while it is among the newest ``keep_scans`` **or**
 younger than ``keep_days``; its raw frames (``frames.npy``, ``thermal.npy``,
-``sequence.json``) go after ``raw_frames_days`` already. Expiry removes the
-digests from the scan's and its jobs' rows (the rows, summary and history stay);
+``sequence.json``; a station scan's per head and per thermal camera,
+:func:`services.formats.stored_scan.is_raw`) go after ``raw_frames_days``
+already. Expiry removes the digests from the scan's and its jobs' rows (the
+rows, summary and history stay; a station head's job loses its frames' digests
+from its parameters);
 the blobs themselves are removed by a mark-and-sweep of the store: every blob
 that no row references and that is older than a grace period (so that a blob a
 running job has just written, before its row names it, survives) is deleted.
@@ -27,11 +30,10 @@ from sqlalchemy import delete, select
 from sqlalchemy.orm import Session, sessionmaker
 
 from services.db.models import CalibrationSet, IdempotencyRecord, Job, PartType, Scan
-from services.formats.stored_scan import RAW
+from services.formats.stored_scan import is_raw
 from services.storage.artifacts import ArtifactStore
 
 logger = logging.getLogger(__name__)
-RAW_FRAME_ARTIFACTS = RAW  # the capture's own files (services/formats/stored_scan.py)
 _DIGEST = re.compile(r"^[0-9a-f]{64}$")
 
 
@@ -59,8 +61,9 @@ def _aware(moment: datetime) -> datetime:
     return moment if moment.tzinfo else moment.replace(tzinfo=UTC)  # SQLite returns naive UTC
 
 
-def _without(artifacts: dict[str, Any], names) -> dict[str, Any]:
-    return {name: digest for name, digest in artifacts.items() if names is not None and name not in names}
+def _without(artifacts: dict[str, Any], raw_only: bool) -> dict[str, Any]:
+    """``artifacts`` without the raw ones (``raw_only``) or without any."""
+    return {name: digest for name, digest in artifacts.items() if raw_only and not is_raw(name)}
 
 
 def expire_scans(session: Session, policy: RetentionPolicy, now: datetime) -> tuple[int, int]:
@@ -88,13 +91,14 @@ def expire_scans(session: Session, policy: RetentionPolicy, now: datetime) -> tu
         keeps_raw = keeps_fields and age < timedelta(days=policy.raw_frames_days)
         if keeps_raw:
             continue
-        names = RAW_FRAME_ARTIFACTS if keeps_fields else None  # None: every artifact
-        if keeps_fields and not any(name in scan.artifacts for name in RAW_FRAME_ARTIFACTS):
+        if keeps_fields and not any(is_raw(name) for name in scan.artifacts):
             continue
-        scan.artifacts = _without(scan.artifacts, names)
+        scan.artifacts = _without(scan.artifacts, raw_only=keeps_fields)
         for job in jobs_by_scan.get(scan.id, []):
             if job.result.get("artifacts"):
-                job.result = {**job.result, "artifacts": _without(job.result["artifacts"], names)}
+                job.result = {**job.result, "artifacts": _without(job.result["artifacts"], raw_only=keeps_fields)}
+            if any(is_raw(name) for name in job.params):  # a station head's job names its frames
+                job.params = {name: value for name, value in job.params.items() if not is_raw(name)}
         if keeps_fields:
             raw_only += 1
         else:

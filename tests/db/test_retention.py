@@ -168,3 +168,43 @@ def test_the_blob_grace_period_is_the_settings(engine, tmp_path):
         os.utime(store.path(digest), (time.time() - age, time.time() - age))
     run_maintenance(sessions, store, policy)
     assert store.exists(young) and not store.exists(old)
+
+
+def test_a_station_scans_raw_files_per_head_and_thermal_camera_expire_with_its_head_jobs_parameters(engine, tmp_path):
+    """A station scan keeps its capture per head (heads/<head>/frames.npy, sequence.json) and per thermal camera
+    (thermal/<device>.npy), and each head's job names its head's frames in its parameters: all of it is raw."""
+    sessions, store = make_sessions(engine), ArtifactStore(tmp_path / "artifacts")
+    heads = ("north", "south")
+    raw = [f"heads/{head}/{name}" for head in heads for name in ("frames.npy", "sequence.json")] + ["thermal/ir.npy"]
+    kept = [f"heads/{head}/{name}" for head in heads for name in ("exposure.json", "cloud.ply")] + list(FIELDS)
+    with sessions.begin() as session:
+        calibration = CalibrationSet(name="rig", station="s1", source="upload", rig_sha256=store.put_bytes(b"rig"))
+        session.add(calibration)
+        session.flush()
+        created = NOW - timedelta(days=2)
+        artifacts = {name: store.put_bytes(name.encode() * 100) for name in raw + kept}
+        parent = Job(kind="scan", status="succeeded", params={"scan_id": "station"}, created_at=created,
+                     result={"scan_id": "station", "artifacts": dict(artifacts)})
+        head_jobs = [Job(kind="scan_head", status="succeeded", created_at=created, params={
+            "scan_id": "station", "head": head, **{name: artifacts[f"heads/{head}/{name}"]
+                                                   for name in ("frames.npy", "sequence.json", "exposure.json")}},
+            result={"head": head, "artifacts": {f"heads/{head}/cloud.ply": artifacts[f"heads/{head}/cloud.ply"]}})
+            for head in heads]
+        session.add_all([parent, *head_jobs])
+        session.flush()
+        session.add(Scan(id="station", station="s1", job_id=parent.id, calibration_set_id=calibration.id,
+                         artifacts=artifacts, summary={"point_count": 1}, created_at=created))
+    for _, path in store.blobs():
+        os.utime(path, (time.time() - 7200, time.time() - 7200))
+
+    report = run_maintenance(sessions, store, RetentionPolicy(keep_scans=5, keep_days=3.0, raw_frames_days=1.0),
+                             now=NOW)
+
+    assert report.raw_frames_expired == 1 and report.scans_expired == 0
+    assert _kept(sessions)["station"] == set(kept)
+    with sessions() as session:
+        for job in session.query(Job).filter(Job.kind == "scan_head"):
+            assert set(job.params) == {"scan_id", "head", "exposure.json"}  # the frames' digests are gone
+            assert len(job.result["artifacts"]) == 1  # the head's cloud stays
+    assert not any(store.exists(artifacts[name]) for name in raw)
+    assert all(store.exists(artifacts[name]) for name in kept)
