@@ -102,6 +102,8 @@ class GlowSummary(BaseModel):
                                              "buries, even over a window of neighbours (surfaces the projector "
                                              "does not light are not counted).")
     lost_to_glow: float = Field(description="saturated_fraction + lost_fraction.")
+    measured_fraction: float = Field(1.0, description="Share of the glowing pixels measured (given a projector "
+                                                      "coordinate); below 1 % the scan is refused.")
     glow_level: float = Field(description="99th percentile of the glow, as a fraction of full scale.")
     drift: float = Field(description="Median relative change of the glow over the sequence (negative: cooling).")
     hint: str | None = Field(description="What to change when the glow costs more than 5 % of the part.")

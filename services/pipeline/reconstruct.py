@@ -46,7 +46,8 @@ def reconstruct_capture(*, frames: np.ndarray, sequence: Sequence, rig: Rig, tab
     ------
     InputError
         When the manifest's projector or the frames do not match the rig, the saturation level is
-        impossible, or no point is reconstructed.
+        impossible, no point is reconstructed, or a glowing part is measured on less than 1 % of its pixels
+        (:meth:`services.structured_light.glow.GlowReport.refusal`).
     """
     _, camera_model = rig.device(camera, "camera")
     _, projector_model = rig.device(projector, "projector")
@@ -75,6 +76,9 @@ def reconstruct_capture(*, frames: np.ndarray, sequence: Sequence, rig: Rig, tab
     reconstruction = reconstruct_scan(frames, sequence, camera_model, projector_model, table=table,
                                       saturation_level=saturation_level, max_indirect=max_indirect,
                                       consistency=consistency)
+    refusal = None if reconstruction.glow is None else reconstruction.glow.refusal()
+    if refusal is not None:
+        raise InputError(f"{source}: {refusal}")
     if len(reconstruction.cloud) == 0:
         counts = np.bincount(decode(frames, sequence).rejection.ravel())
         reasons = ", ".join(f"code {code}: {count} px" for code, count in enumerate(counts) if count)

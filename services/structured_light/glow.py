@@ -38,6 +38,12 @@ _UNLIT_SIGMAS = 3.0  # a glowing pixel whose windowed pattern is below this many
 _LOG_LEVELS = 255  # noise variances are median-filtered as 8-bit codes of log2(variance)
 _LOG_RANGE = (-8.0, 40.0)
 _HINT_SHARE = 0.05  # the scan result carries a hint when the glow costs more than this share of the part
+MIN_MEASURED_SHARE = 0.01
+"""A glowing part of which less than this share of the pixels is measured is refused (issue 34's "where the glow
+leaves less than 1 % of a part": what is left would be judged as the part). Not tuned: the issue's number."""
+MIN_GLOWING_SHARE = 0.001
+"""...and only when it glows on at least this share of the camera's pixels (a part, not a glint: 1,024 px of a
+1280 x 800 camera), so a few hot pixels in a cold scene never refuse it."""
 _JUMP_OF_PERIOD = 0.5  # a coordinate step of half the finest period between neighbours: a depth step (mixed pixels)
 
 
@@ -98,6 +104,9 @@ class GlowReport:
         Shares of those glowing pixels rejected because the glow saturated their pattern
         (``GLOW_SATURATED``) or buried it in its shot noise (``GLOW_NOISE`` where a windowed average
         still detects projector light).
+    measured_fraction : float
+        Share of those glowing pixels that got a projector coordinate (were measured), counted 2 px inside the
+        glowing region's outline (its silhouette's pixels mix the part with the background).
     glow_level : float
         99th percentile of the glow, as a fraction of full scale.
     drift : float
@@ -113,9 +122,21 @@ class GlowReport:
     glow_level: float
     drift: float
     hint: str | None
+    measured_fraction: float = 1.0
 
     def as_dict(self) -> dict:
         return {key: (round(value, 5) if isinstance(value, float) else value) for key, value in asdict(self).items()}
+
+    def refusal(self) -> str | None:
+        """Why a capture must not be measured at all (less than :data:`MIN_MEASURED_SHARE` of a glowing part
+        measured), or None."""
+        if self.glowing_fraction < MIN_GLOWING_SHARE or self.measured_fraction >= MIN_MEASURED_SHARE:
+            return None
+        hint = self.hint or _hint(self.saturated_fraction, 1.0 - self.saturated_fraction)
+        return (f"the part's glow leaves {self.measured_fraction:.2%} of it measured (less than "
+                f"{MIN_MEASURED_SHARE:.0%}: {self.saturated_fraction:.0%} of its glowing pixels saturated, the rest "
+                f"buried in the glow's shot noise or unlit); no cloud is made, since the points left would be "
+                f"judged as the part: {hint}")
 
 
 def _hint(saturated: float, lost: float) -> str | None:
@@ -306,9 +327,14 @@ def decode_glowing(
     decoded = _glow_outline(decoded, glowing)
     rejection = decoded.rejection
 
-    saturated_share, lost_share, drift = 0.0, 0.0, 0.0
+    saturated_share, lost_share, drift, measured_share = 0.0, 0.0, 0.0, 1.0
     if glowing.any():
         codes_glowing = rejection[glowing]
+        # measured on the part: its silhouette's ring, where the camera's blur mixes it with the background, is left out
+        size = 2 * _GLOW_OUTLINE_PX + 1
+        inner = cv2.erode(glowing.astype(np.uint8), np.ones((size, size), np.uint8)).astype(bool)
+        inner = inner if inner.any() else glowing
+        measured_share = float(np.mean(rejection[inner] == Rejection.VALID))
         saturated_share = float(np.mean(codes_glowing == Rejection.GLOW_SATURATED))
         lost_share = float(np.mean((codes_glowing == Rejection.GLOW_NOISE) & ~unlit[glowing]))
         opening = offset[sequence.black_index][glowing]
@@ -316,5 +342,5 @@ def decode_glowing(
         drift = float(np.median((closing - opening) / np.maximum(opening, 1.0)))
     report = GlowReport(glowing_fraction=float(glowing.mean()), saturated_fraction=saturated_share,
                         lost_fraction=lost_share, glow_level=float(np.percentile(glow, 99)) / full_scale,
-                        drift=drift, hint=_hint(saturated_share, lost_share))
+                        drift=drift, hint=_hint(saturated_share, lost_share), measured_fraction=measured_share)
     return decoded, noise, report

@@ -1,6 +1,9 @@
 import numpy as np
 import pytest
 
+from services.errors import InputError
+from services.pipeline.reconstruct import reconstruct_capture
+from services.pipeline.tables import TriangulationTables
 from services.structured_light.decode import Rejection
 from services.structured_light.glow import decode_glowing, glow_offset, pixel_noise
 from services.structured_light.patterns import generate_sequence
@@ -144,7 +147,8 @@ def test_a_cool_pixel_beside_a_lost_glowing_one_is_an_edge():
 def test_a_part_the_glow_buries_gets_no_wrong_point_and_a_refusal_that_says_why():
     """Issue 34's tuning scene at 1250 C under the unfiltered white projector (half size): the glow is 88 times
     the pattern, so less than 1 % of the part may be kept; none of it may be off by 1 mm, and the scan says
-    why the part is missing."""
+    why the part is missing: ``reconstruct_capture`` (every command's and the service's reconstruction)
+    refuses it in a sentence, as a scene of the same part at 1000 C, where the glow costs a sixth, is not."""
     from device_gateway.drivers.simulated import SimulatedStation, SimulationOptions
     from device_gateway.station import ExposureControl, Station
     from services.formats.rig import Rig
@@ -176,3 +180,22 @@ def test_a_part_the_glow_buries_gets_no_wrong_point_and_a_refusal_that_says_why(
     assert on_part.sum() < 0.01 * part_pixels.sum()
     assert not np.any(error[on_part] > 1.0)
     assert "blue projector and a band-pass filter" in scan.glow.hint
+    assert scan.glow.measured_fraction < 0.01 <= scan.glow.glowing_fraction
+    with pytest.raises(InputError, match=r"^the test capture: the part's glow leaves 0\.\d\d% of it measured "
+                                         r"\(less than 1%.*blue projector and a band-pass filter"):
+        reconstruct_capture(frames=capture.frames, sequence=sequence, rig=rig, tables=TriangulationTables(),
+                            saturation_level=capture.exposure["saturation_level"], source="the test capture")
+
+
+def test_a_glowing_part_measured_on_more_than_1_percent_of_its_pixels_is_not_refused():
+    """The refusal is for a part the glow leaves less than 1 % of: a report of 2 % measured is not refused, nor
+    one of 0 % measured where fewer than 0.1 % of the camera's pixels glow (a glint, not a part)."""
+    from services.structured_light.glow import GlowReport
+
+    def report(glowing, measured):
+        return GlowReport(glowing_fraction=glowing, saturated_fraction=0.1, lost_fraction=0.5, glow_level=0.8,
+                          drift=0.0, hint=None, measured_fraction=measured)
+
+    assert report(0.2, 0.02).refusal() is None
+    assert report(0.0005, 0.0).refusal() is None
+    assert "shot noise" in report(0.2, 0.005).refusal()
