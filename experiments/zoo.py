@@ -268,6 +268,7 @@ def _reconstruct(seed: int, zoo, filmed: Filmed) -> tuple[dict, object]:
     point_surface = filmed.surface[v, u]
     wrong = error > WRONG_MM
     return {"glow_hint": glow.hint if glow is not None else None,
+            "glow_measured": glow.measured_fraction if glow is not None and glow.glowing_fraction else None,
             "points": int(len(points)), "error": _stats(error), "wrong_rate": float(wrong.mean()),
             "wrong": int(wrong.sum()),
             "coverage": float(has_point[interior].mean()) if interior.any() else None,

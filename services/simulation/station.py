@@ -91,7 +91,8 @@ def station_optics() -> Optics:
 
 
 def station_scene(*, heads: int = 4, scale: float = 1.0, dent_depth_mm: float = 0.0,
-                  temperature_c: float = SHAFT_TEMPERATURE_C) -> StationScene:
+                  temperature_c: float = SHAFT_TEMPERATURE_C, diameter_mm: float = 2 * STATION_SHAFT_RADIUS_MM,
+                  length_mm: float = STATION_SHAFT_LENGTH_MM) -> StationScene:
     """The simulated station: ``presets.station_rig(scale, heads)`` around the hot shaft.
 
     Parameters
@@ -105,6 +106,8 @@ def station_scene(*, heads: int = 4, scale: float = 1.0, dent_depth_mm: float = 
         from the centre along the axis; 0 for none.
     temperature_c : float
         The shaft's temperature at its centre; it rises by 0.1 K/mm along +x.
+    diameter_mm, length_mm : float
+        The true cold shaft's size (a part made off its nominal 90 x 300 mm).
 
     Returns
     -------
@@ -112,12 +115,14 @@ def station_scene(*, heads: int = 4, scale: float = 1.0, dent_depth_mm: float = 
     """
     if dent_depth_mm < 0:
         raise ValueError(f"A dent's depth is positive (or 0 for none); got {dent_depth_mm} mm.")
+    if not (diameter_mm > 0 and length_mm > 0):
+        raise ValueError(f"The shaft's diameter and length are positive; got {diameter_mm} and {length_mm} mm.")
     rig = station_rig(scale, heads)
-    vertices, triangles = cylinder_mesh(STATION_SHAFT_RADIUS_MM, STATION_SHAFT_LENGTH_MM, _SEGMENTS)
+    vertices, triangles = cylinder_mesh(diameter_mm / 2, length_mm, _SEGMENTS)
     dent = None
     if dent_depth_mm > 0:
         away = -station_head_meridian(0, heads)
-        centre = np.array([DENT_AXIAL_MM, 0.0, 0.0]) + STATION_SHAFT_RADIUS_MM * away
+        centre = np.array([DENT_AXIAL_MM, 0.0, 0.0]) + diameter_mm / 2 * away
         dent = Bump(center=tuple(float(c) for c in centre), sigma_mm=DENT_SIGMA_MM, height_mm=-dent_depth_mm)
     temperature = SurfaceTemperature(base=temperature_c, gradient=[SHAFT_GRADIENT_K_PER_MM, 0.0, 0.0])
     part = HotPart(vertices, triangles, builtin_material("carbon-steel"), temperature,
@@ -125,7 +130,7 @@ def station_scene(*, heads: int = 4, scale: float = 1.0, dent_depth_mm: float = 
     albedo = Albedo(base=1 - HOT_STEEL_EMISSIVITY, texture_amplitude=0.02, feature_size=25.0, seed=7)
     scene = Scene(surfaces=[part.surface().model_copy(update={"albedo": albedo})], ambient=0.01,
                   temperature=TemperatureScene(background=25.0, surfaces=[temperature]), optics=station_optics())
-    truth = ShaftTruth(diameter_mm=2 * STATION_SHAFT_RADIUS_MM, length_mm=STATION_SHAFT_LENGTH_MM, dent=dent)
+    truth = ShaftTruth(diameter_mm=diameter_mm, length_mm=length_mm, dent=dent)
     return StationScene(rig=rig, part=part, scene=scene, truth=truth)
 
 

@@ -11,7 +11,7 @@ whose pattern the glow saturates or buries even there gets a rejection code of i
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass, replace
+from dataclasses import dataclass, field, fields, replace
 
 import cv2
 import numpy as np
@@ -105,8 +105,11 @@ class GlowReport:
         (``GLOW_SATURATED``) or buried it in its shot noise (``GLOW_NOISE`` where a windowed average
         still detects projector light).
     measured_fraction : float
-        Share of those glowing pixels that got a projector coordinate (were measured), counted 2 px inside the
-        glowing region's outline (its silhouette's pixels mix the part with the background).
+        Share of those glowing pixels that were measured, counted 2 px inside the glowing region's outline
+        (its silhouette's pixels mix the part with the background): by ``decode_glowing``, those given a
+        projector coordinate; by ``reconstruct_scan``, those that kept a point (:meth:`measured`).
+    inner_glowing : (H, W) bool array or None
+        Those glowing pixels 2 px inside the outline (not serialised).
     glow_level : float
         99th percentile of the glow, as a fraction of full scale.
     drift : float
@@ -123,9 +126,17 @@ class GlowReport:
     drift: float
     hint: str | None
     measured_fraction: float = 1.0
+    inner_glowing: np.ndarray | None = field(default=None, repr=False, compare=False)
 
     def as_dict(self) -> dict:
-        return {key: (round(value, 5) if isinstance(value, float) else value) for key, value in asdict(self).items()}
+        values = {item.name: getattr(self, item.name) for item in fields(self) if item.name != "inner_glowing"}
+        return {key: (round(value, 5) if isinstance(value, float) else value) for key, value in values.items()}
+
+    def measured(self, has_point: np.ndarray) -> GlowReport:
+        """The report with ``measured_fraction`` of the glowing pixels that have a point (``has_point``, (H, W))."""
+        if self.inner_glowing is None or not self.inner_glowing.any():
+            return self
+        return replace(self, measured_fraction=float(np.mean(has_point[self.inner_glowing])))
 
     def refusal(self) -> str | None:
         """Why a capture must not be measured at all (less than :data:`MIN_MEASURED_SHARE` of a glowing part
@@ -327,7 +338,7 @@ def decode_glowing(
     decoded = _glow_outline(decoded, glowing)
     rejection = decoded.rejection
 
-    saturated_share, lost_share, drift, measured_share = 0.0, 0.0, 0.0, 1.0
+    saturated_share, lost_share, drift, measured_share, inner = 0.0, 0.0, 0.0, 1.0, None
     if glowing.any():
         codes_glowing = rejection[glowing]
         # measured on the part: its silhouette's ring, where the camera's blur mixes it with the background, is left out
@@ -342,5 +353,6 @@ def decode_glowing(
         drift = float(np.median((closing - opening) / np.maximum(opening, 1.0)))
     report = GlowReport(glowing_fraction=float(glowing.mean()), saturated_fraction=saturated_share,
                         lost_fraction=lost_share, glow_level=float(np.percentile(glow, 99)) / full_scale,
-                        drift=drift, hint=_hint(saturated_share, lost_share), measured_fraction=measured_share)
+                        drift=drift, hint=_hint(saturated_share, lost_share), measured_fraction=measured_share,
+                        inner_glowing=inner)
     return decoded, noise, report

@@ -332,6 +332,8 @@ def reconstruct_scan(
     coordinates = _refined_coordinates(decoded, sequence, axis, noise, gray_boundaries)
     coordinates = remove_speckles(coordinates, _coordinate_step_limit(sequence, axis))
     points_map = triangulate_map(table, coordinates)
+    if report is not None:
+        report = report.measured(np.isfinite(points_map).all(axis=-1))
     return Reconstruction(cloud=_cloud(points_map, table.centre_world, coordinates, decoded), glow=report)
 
 

@@ -52,7 +52,7 @@ def _hot_pixels_in_browser(url: str, timeout_s: float = 420.0) -> int:
             page.goto(url, timeout=120_000)
             deadline = time.monotonic() + timeout_s
             while time.monotonic() < deadline:
-                time.sleep(10)
+                time.sleep(2)  # a screenshot costs about 0.2 s; the viewer shows the part some seconds after load
                 try:
                     shot = page.screenshot(timeout=60_000)
                 except Exception:  # the viewer's WebAssembly is still compiling on a loaded machine
