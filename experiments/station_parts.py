@@ -96,11 +96,22 @@ def run_part(seed: int, scale: float, nominal_part) -> dict:
             "length_uncertainty": features["length"]["uncertainty"],
             "length_verdict": features["length"]["verdict"],
             "dent_found": deepest is not None,
-            "dent_error": None if deepest is None else -deepest["depth"] - drawn["dent"],
+            "dent_deviation": None if deepest is None else deepest["depth"],
             "other_defects": len(report["surface"]["defects"]) - (1 if deepest is not None else 0),
             "surface_verdict": report["surface"]["verdict"],
             "not_ok": [f"{name} {item['verdict']}" for name, item in features.items() if item["verdict"] != "OK"],
             "seconds": round(time.perf_counter() - started, 1)}
+
+
+def dent_error(row: dict) -> float | None:
+    """The deepest dent's deviation from the nominal surface less the truth's there: the true radius's offset
+    from the nominal less the dent's depth (mm)."""
+    deviation = row.get("dent_deviation")
+    if deviation is None and row.get("dent_error") is not None:  # rows of a run before this field was kept
+        deviation = -(row["dent_error"] + row["dent"])
+    if deviation is None:
+        return None
+    return deviation - ((row["diameter"] - NOMINAL["diameter"]) / 2 - row["dent"])
 
 
 def _stats(values) -> str:
@@ -110,6 +121,11 @@ def _stats(values) -> str:
     return f"{np.median(values):.3f} / {np.percentile(values, 95):.3f} / {values.max():.3f}"
 
 
+def _covered(rows: list[dict]) -> str:
+    covered = 100 * np.asarray([row["coverage"] for row in rows])
+    return f"{np.median(covered):.1f} / {np.percentile(covered, 5):.1f} / {covered.min():.1f}"
+
+
 def summarise(rows: list[dict], command: str) -> str:
     seeds = [row["seed"] for row in rows]
     inside = [row for row in rows if row["in_tolerance"]]
@@ -117,14 +133,13 @@ def summarise(rows: list[dict], command: str) -> str:
     lines = [f"Own simulated station, held out: seeds {min(seeds)}..{max(seeds)} ({len(rows)} shafts, "
              f"{len(inside)} in and {len(outside)} out of tolerance), calibration off by 1 sigma; `{command}`", "",
              "| measure (every part) | median / 95th percentile / worst | target |", "|---|---|---|",
-             f"| lateral surface covered | {_stats([1 - row['coverage'] for row in rows])} (uncovered share) | "
-             "<= 5 % uncovered |",
+             f"| lateral surface covered, % (median / 5th percentile / lowest) | {_covered(rows)} | >= 95 % |",
              f"| overlap residual after the merge, worst pair, mm | {_stats([row['overlap_residual_max_mm'] for row in rows])} | 0.03 |",
              f"| point error, 95th percentile of the part's points, mm | {_stats([row['point_error_p95_mm'] for row in rows])} | |",
              f"| cold diameter error, mm | {_stats([row['diameter_error'] for row in rows])} | 0.05 |",
              f"| cold length error, mm | {_stats([row['length_error'] for row in rows])} | 0.1 |",
              f"| dent depth error, mm ({sum(row['dent_found'] for row in rows)} of {len(rows)} dents found) | "
-             f"{_stats([row['dent_error'] for row in rows])} | 0.05 |",
+             f"{_stats([dent_error(row) for row in rows])} | 0.05 |",
              f"| other surface defects listed (none in the truth) | "
              f"{_stats([row['other_defects'] for row in rows])} | 0 |", "",
              "| truth | OK | NotOK | NotDecidable |", "|---|---|---|---|"]
@@ -158,9 +173,9 @@ def main() -> None:
             if seed in rows:
                 continue
             rows[seed] = run_part(seed, args.scale, nominal)
-            print(json.dumps({key: rows[seed][key] for key in ("seed", "defect", "verdict", "diameter_error",
-                                                                "length_error", "dent_error", "seconds")}),
-                  flush=True)
+            print(json.dumps({**{key: rows[seed][key] for key in ("seed", "defect", "verdict", "diameter_error",
+                                                                   "length_error", "seconds")},
+                              "dent_error": dent_error(rows[seed])}), flush=True)
             args.json.parent.mkdir(parents=True, exist_ok=True)
             args.json.write_text(json.dumps(sorted(rows.values(), key=lambda row: row["seed"]), indent=1))
     done = [rows[seed] for seed in seeds if seed in rows]
