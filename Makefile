@@ -9,7 +9,7 @@ BIN := $(VENV)/bin
 DEMO_DIR ?= demo-output
 PIP_INSTALL = python -m pip install --quiet --constraint constraints.txt
 
-.PHONY: install install-test demo test test-fast test-py312 test-containers test-reliability test-soak images podman \
+.PHONY: install install-test demo test test-fast test-long test-py312 test-containers test-reliability test-soak images podman \
 	constraints clean docker-compose system-libraries exiftool browser
 
 install: $(VENV)/.installed
@@ -64,6 +64,10 @@ test-reliability: install-test
 		tests/reliability/test_faults.py tests/reliability/test_hostile.py tests/integration/test_scaled_out.py \
 		tests/integration/test_station_service.py \
 		tests/device_gateway/test_genicam_gigevision.py
+
+# The longest checks of documented figures beyond the issues' targets (the `long` marker; .ci/run runs them).
+test-long: install-test
+	$(BIN)/python -m pytest -m long -p no:cacheprovider
 
 test-soak: install-test
 	THERMOFIELD_RELIABILITY_OUT=$(abspath $(RELIABILITY_OUT)) THERMOFIELD_SOAK_SECONDS=600 \
