@@ -360,25 +360,26 @@ class _Candidates:
     def __init__(self, trees: list[cKDTree | None], reach: float, margin: float) -> None:
         self.trees, self.reach, self.margin = trees, reach, margin
         self.rows: dict[tuple[int, int], np.ndarray] = {}
-        self.found_at: list[np.ndarray] | None = None
+        self.found_at: dict[tuple[int, int], tuple[np.ndarray, np.ndarray]] = {}
 
     def update(self, moved: list[np.ndarray], to_frame: list) -> None:
-        """Find the candidates again when any two heads moved by ``margin`` together since they were found."""
-        if self.found_at is not None:
-            shift = [float(np.sqrt(((m - f) ** 2).sum(axis=1).max())) if len(m) else 0.0
-                     for m, f in zip(moved, self.found_at)]
-            if max(a + b for a in shift for b in shift) <= self.margin:
-                return
-        self.found_at = [m.copy() for m in moved]
+        """Find a pair's candidates again when its two heads moved by ``margin`` together since they were found."""
+        def shift(now: np.ndarray, then: np.ndarray) -> float:
+            return float(np.sqrt(((now - then) ** 2).sum(axis=1).max())) if len(now) else 0.0
+
         boxes = [(m.min(axis=0), m.max(axis=0)) if len(m) else None for m in moved]
         for k in range(len(moved)):
             for j in range(len(moved)):
                 if j == k or self.trees[j] is None or not len(moved[k]):
                     continue
+                then = self.found_at.get((k, j))
+                if then is not None and shift(moved[k], then[0]) + shift(moved[j], then[1]) <= self.margin:
+                    continue
                 near = _near_box(moved[k], boxes[j], self.reach)
                 distance, _ = self.trees[j].query(to_frame[j](moved[k][near]), k=1,
                                                   distance_upper_bound=self.reach, workers=-1)
                 self.rows[k, j] = near[np.isfinite(distance)]
+                self.found_at[k, j] = (moved[k], moved[j])
 
 
 def _correspondences(k: int, moved: list[np.ndarray], to_frame: list, trees: list[cKDTree | None],
@@ -392,21 +393,29 @@ def _correspondences(k: int, moved: list[np.ndarray], to_frame: list, trees: lis
     if not others:
         return np.zeros(0, dtype=np.int64), np.zeros((0, _NEIGHBOURS)), np.zeros((0, _NEIGHBOURS), dtype=np.int64), \
             np.zeros((0, _NEIGHBOURS), dtype=np.int64)
-    rows = np.unique(np.concatenate([candidates.rows[k, j] for j in others]))
+    member = np.zeros(len(moved[k]), dtype=bool)
+    for j in others:
+        member[candidates.rows[k, j]] = True
+    rows = np.flatnonzero(member)
+    position = np.cumsum(member) - 1  # a candidate's row in ``rows``
     distance = np.full((len(rows), _NEIGHBOURS * len(others)), np.inf)
     owner = np.zeros(distance.shape, dtype=np.int64)
     local = np.zeros(distance.shape, dtype=np.int64)
     for column, j in enumerate(others):
         mine = candidates.rows[k, j]
-        at = np.searchsorted(rows, mine)
         d, i = trees[j].query(to_frame[j](moved[k][mine]), k=_NEIGHBOURS, distance_upper_bound=max_distance,
                               workers=-1)
         span = slice(column * _NEIGHBOURS, (column + 1) * _NEIGHBOURS)
+        at = position[mine]
         distance[at, span], owner[at, span], local[at, span] = d, j, np.where(np.isfinite(d), i, 0)
     if len(others) > 1:  # the nearest of all the other heads' nearest
-        order = np.argsort(distance, axis=1, kind="stable")[:, :_NEIGHBOURS]
-        distance = np.take_along_axis(distance, order, axis=1)
-        owner, local = np.take_along_axis(owner, order, axis=1), np.take_along_axis(local, order, axis=1)
+        heads_near = np.isfinite(distance[:, ::_NEIGHBOURS])
+        first = np.argmax(heads_near, axis=1)  # the one head near, for most points
+        columns = first[:, None] * _NEIGHBOURS + np.arange(_NEIGHBOURS)
+        several = np.flatnonzero(heads_near.sum(axis=1) > 1)
+        columns[several] = np.argsort(distance[several], axis=1, kind="stable")[:, :_NEIGHBOURS]
+        distance = np.take_along_axis(distance, columns, axis=1)
+        owner, local = np.take_along_axis(owner, columns, axis=1), np.take_along_axis(local, columns, axis=1)
     return rows, distance, owner, local
 
 
