@@ -228,14 +228,15 @@ def reconstruct_station(*, heads: Sequence[HeadFrames], rig: Rig, tables: Triang
 @dataclass(frozen=True)
 class HeadScan:
     """One head of a station scan: its cloud (world mm), the seconds its reconstruction took, and the cloud's
-    :class:`~services.geometry.merge.OverlapSample` for the merge (None: the merge makes it); or ``error`` (a
-    device lost in the capture, nothing decoded) and no cloud."""
+    :class:`~services.geometry.merge.OverlapSample` for the merge (None: the merge makes it) and the seconds it
+    took; or ``error`` (a device lost in the capture, nothing decoded) and no cloud."""
 
     head: str
     cloud: PointCloud | None
     seconds: float | None = None
     error: str | None = None
     sample: OverlapSample | None = None
+    sample_seconds: float | None = None
 
 
 def station_capture_artifacts(*, heads: Sequence[HeadFrames], exposures: Mapping[str, dict],
@@ -262,7 +263,7 @@ def scan_head(*, frames: np.ndarray, sequence: Manifest, rig: Rig, head: str, ta
     (:func:`services.geometry.merge.overlap_sample`: made here, in the head's own message, the heads' in
     parallel when there are several workers); its failure kept as the head's ``error`` rather than raised: a
     head whose frames decode to nothing (bad frames, a part it does not see) fails the scan's verdict, not the
-    job, so that the other heads' results are kept. ``seconds`` covers both."""
+    job, so that the other heads' results are kept."""
     import time
 
     started = time.perf_counter()
@@ -274,8 +275,10 @@ def scan_head(*, frames: np.ndarray, sequence: Manifest, rig: Rig, head: str, ta
     if len(cloud) == 0:
         return HeadScan(head, None, round(time.perf_counter() - started, 3),
                         f"head {head!r}: nothing decoded (no point measured)")
+    seconds = round(time.perf_counter() - started, 3)
+    started = time.perf_counter()
     sample = overlap_sample(cloud.points, _normals(cloud))
-    return HeadScan(head, cloud, round(time.perf_counter() - started, 3), sample=sample)
+    return HeadScan(head, cloud, seconds, sample=sample, sample_seconds=round(time.perf_counter() - started, 3))
 
 
 @dataclass(frozen=True)
