@@ -136,8 +136,8 @@ def merge_heads(*, clouds: Mapping[str, PointCloud], rig: Rig,
     voxel_mm : float, optional
         The thinning's voxel; default 2.5 times the points' median spacing.
     residuals_before : bool
-        Also measure the overlaps' residuals before the refinement (``MergeReport.residuals_before``; a
-        third of the merge's time on the simulated station; empty when False).
+        Also measure the overlaps' residuals before the refinement (``MergeReport.residuals_before``: as
+        long as the residual after it; empty when False).
     samples : mapping of head name to OverlapSample, optional
         Each head's :func:`services.geometry.merge.overlap_sample` of its cloud, when made already (the
         service makes it in the head's own message: :func:`scan_head`); made here otherwise.
