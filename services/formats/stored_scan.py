@@ -11,10 +11,13 @@ from __future__ import annotations
 import io
 import json
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from pydantic import BaseModel, Field
+
+if TYPE_CHECKING:
+    from services.geometry.merge import OverlapSample
 
 OCTET_STREAM = "application/octet-stream"
 
@@ -61,6 +64,28 @@ def npy_bytes(array: np.ndarray) -> bytes:
     buffer = io.BytesIO()
     np.save(buffer, array, allow_pickle=False)
     return buffer.getvalue()
+
+
+OVERLAP_SAMPLE = "overlap.npz"
+"""A station head's file (``heads/<head>/overlap.npz``) of its cloud's sample the merge works on
+(``services.geometry.merge.OverlapSample``): one uncompressed ``.npz`` of float64 arrays, read without pickle."""
+_OVERLAP_ARRAYS = ("refine_points", "refine_normals", "residual_points", "residual_normals")
+
+
+def overlap_sample_bytes(sample: OverlapSample) -> bytes:
+    """A head's overlap sample as :data:`OVERLAP_SAMPLE`'s bytes."""
+    buffer = io.BytesIO()
+    np.savez(buffer, **{name: getattr(sample, name) for name in _OVERLAP_ARRAYS},
+             spacing_mm=np.float64(sample.spacing_mm))
+    return buffer.getvalue()
+
+
+def overlap_sample_from_bytes(data: bytes) -> OverlapSample:
+    """A head's overlap sample read back from :data:`OVERLAP_SAMPLE`'s bytes."""
+    from services.geometry.merge import OverlapSample
+
+    with np.load(io.BytesIO(data), allow_pickle=False) as arrays:
+        return OverlapSample(*(arrays[name] for name in _OVERLAP_ARRAYS), float(arrays["spacing_mm"]))
 
 
 class Exposure(BaseModel):
@@ -113,7 +138,7 @@ class GlowSummary(BaseModel):
 
 def head_artifact(head: str, name: str) -> str:
     """The name under which a station scan keeps head ``head``'s file ``name`` (``frames.npy``, ``sequence.json``,
-    ``exposure.json``, ``cloud.ply``): ``heads/<head>/<name>``, the station capture layout's (docs/station.md)."""
+    ``exposure.json``, ``cloud.ply``, ``overlap.npz``): ``heads/<head>/<name>``, the station capture layout's (docs/station.md)."""
     return f"heads/{head}/{name}"
 
 

@@ -37,8 +37,9 @@ from services.formats.registration import registration_json
 from services.formats.rig import Rig, rig_to_json
 from services.formats.sequence import Sequence, parse_sequence
 from services.formats.station_capture import HeadFrames
-from services.formats.stored_scan import (CLOUD, EXPOSURE, FIELD, FRAMES, SEQUENCE, THERMAL, exposure_from_bytes,
-                                          head_artifact, thermal_artifact)
+from services.formats.stored_scan import (CLOUD, EXPOSURE, FIELD, FRAMES, OVERLAP_SAMPLE, SEQUENCE, THERMAL,
+                                          exposure_from_bytes, head_artifact, overlap_sample_bytes,
+                                          overlap_sample_from_bytes, thermal_artifact)
 from services.jobs.tracker import CONTINUED
 from services.pipeline.calibrate import calibrate_station, place_device, thermal_board_image, uploaded_board_image
 from services.pipeline.field import fuse_field
@@ -162,9 +163,10 @@ def scan_head_job(*, runtime: Runtime, job_id: str) -> dict[str, Any]:
     head = scan_head(frames=_load_npy(store, params["frames.npy"]), sequence=_load_sequence(store, params["sequence.json"]),
                      rig=rig, head=params["head"], tables=runtime.tables, saturation_level=exposure.saturation_level)
     artifacts = {} if head.cloud is None else {
-        head_artifact(head.head, CLOUD.name): store.put_bytes(cloud_to_ply(head.cloud))}
+        head_artifact(head.head, CLOUD.name): store.put_bytes(cloud_to_ply(head.cloud)),
+        head_artifact(head.head, OVERLAP_SAMPLE): store.put_bytes(overlap_sample_bytes(head.sample))}
     return {"head": head.head, "artifacts": artifacts, "points": 0 if head.cloud is None else len(head.cloud),
-            "seconds": head.seconds, "error": head.error}
+            "seconds": head.seconds, "sample_seconds": head.sample_seconds, "error": head.error}
 
 
 def scan_merge_job(*, runtime: Runtime, job_id: str) -> dict[str, Any]:
@@ -200,8 +202,11 @@ def _finish_station_scan(*, runtime: Runtime, job_id: str, params: dict[str, Any
             heads.append(HeadScan(station_head.name, None, result.get("seconds"),
                                   result.get("error") or f"head {station_head.name!r}: no cloud stored"))
             continue
+        sample = result["artifacts"].get(head_artifact(station_head.name, OVERLAP_SAMPLE))
         heads.append(HeadScan(station_head.name, cloud_from_ply(store.read_bytes(digest), f"artifact {digest}"),
-                              result.get("seconds")))
+                              result.get("seconds"),
+                              sample=None if sample is None else overlap_sample_from_bytes(store.read_bytes(sample)),
+                              sample_seconds=result.get("sample_seconds")))
     thermal = {name: _load_npy(store, artifacts[thermal_artifact(name)])
                for name, device in rig.devices.items() if device.kind == "thermal"
                and thermal_artifact(name) in artifacts}
@@ -210,7 +215,9 @@ def _finish_station_scan(*, runtime: Runtime, job_id: str, params: dict[str, Any
                                 publish=runtime.station_view().publish)
     stored = type(stored)(stored.outcome, {**artifacts, **stored.artifacts})
     seconds = {**handed_over.get("stage_seconds", {}),
-               **{f"head {h.head}": h.seconds for h in heads if h.seconds is not None}, **clock.seconds}
+               **{f"head {h.head}": h.seconds for h in heads if h.seconds is not None},
+               **{f"head {h.head} sample": h.sample_seconds for h in heads if h.sample_seconds is not None},
+               **clock.seconds}
     result = scan_result(scan_id=params["scan_id"], stored=stored, part_type_id=params.get("part_type_id"),
                          stage_seconds=seconds)
     return {**result, "last_frame_at": handed_over.get("last_frame_at")}

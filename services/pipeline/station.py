@@ -14,15 +14,14 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 from services.errors import InputError
 from services.formats.rig import Rig
 from services.formats.sequence import Sequence as Manifest
 from services.formats.station_capture import HeadFrames
 from services.geometry.cloud import PointCloud
-from services.geometry.merge import (PairResidual, PoseCorrection, PoseUncertainty, overlap_residuals,
-                                     refine_head_poses, thin_overlaps)
+from services.geometry.merge import (OverlapSample, PairResidual, PoseCorrection, PoseUncertainty, overlap_residuals,
+                                     overlap_sample, refine_head_poses, thin_overlaps)
 from services.pipeline.reconstruct import reconstruct_capture
 from services.pipeline.tables import TriangulationTables
 from services.structured_light import defaults
@@ -117,20 +116,10 @@ def _named(residuals: list[PairResidual], names: Sequence[str]) -> tuple[Overlap
                  for r in residuals)
 
 
-def _spacing(points: np.ndarray) -> float:
-    """The median distance from a point to its nearest neighbour (on up to 5000 points)."""
-    finite = points[np.isfinite(points).all(axis=1)]
-    if len(finite) < 2:
-        return 1.0
-    sample = finite[:: max(1, len(finite) // 5000)]
-    distance, _ = cKDTree(finite).query(sample, k=2)
-    return float(np.median(distance[:, 1]))
-
-
 def merge_heads(*, clouds: Mapping[str, PointCloud], rig: Rig,
                 uncertainty: PoseUncertainty | Mapping[str, PoseUncertainty] = DEFAULT_POSE_UNCERTAINTY,
                 refine: bool = True, thin: bool = True, voxel_mm: float | None = None,
-                residuals_before: bool = True) -> MergedCloud:
+                residuals_before: bool = True, samples: Mapping[str, OverlapSample] | None = None) -> MergedCloud:
     """Merge the heads' clouds into one cloud in the world frame.
 
     Parameters
@@ -147,8 +136,11 @@ def merge_heads(*, clouds: Mapping[str, PointCloud], rig: Rig,
     voxel_mm : float, optional
         The thinning's voxel; default 2.5 times the points' median spacing.
     residuals_before : bool
-        Also measure the overlaps' residuals before the refinement (``MergeReport.residuals_before``; a
-        third of the merge's time on the simulated station; empty when False).
+        Also measure the overlaps' residuals before the refinement (``MergeReport.residuals_before``: as
+        long as the residual after it; empty when False).
+    samples : mapping of head name to OverlapSample, optional
+        Each head's :func:`services.geometry.merge.overlap_sample` of its cloud, when made already (the
+        service makes it in the head's own message: :func:`scan_head`); made here otherwise.
 
     Returns
     -------
@@ -172,14 +164,22 @@ def merge_heads(*, clouds: Mapping[str, PointCloud], rig: Rig,
     ordered = [clouds[name] for name in names]
     points = [cloud.points for cloud in ordered]
     normals = [_normals(cloud) for cloud in ordered]
-    before = _named(overlap_residuals(points, normals), names) if residuals_before or not refine else ()
+    sampled = [samples[name] if samples is not None and name in samples else overlap_sample(p, n)
+               for name, p, n in zip(names, points, normals)]
+
+    def residuals(heads: list[OverlapSample]) -> tuple[OverlapResidual, ...]:
+        return _named(overlap_residuals([h.residual_points for h in heads], [h.residual_normals for h in heads],
+                                        sampled=True), names)
+
+    before = residuals(sampled) if residuals_before or not refine else ()
     if refine and len(names) > 1:
-        corrections = refine_head_poses(points, normals, [uncertainty[name] for name in names])
+        corrections = refine_head_poses([h.refine_points for h in sampled], [h.refine_normals for h in sampled],
+                                        [uncertainty[name] for name in names], sampled=True)
     else:
         corrections = [PoseCorrection(np.eye(3), np.zeros(3), np.zeros(3), False, 0, "not refined")
                        for _ in names]
     moved = [correction.apply(p, n) for correction, p, n in zip(corrections, points, normals)]
-    after = _named(overlap_residuals([m[0] for m in moved], [m[1] for m in moved]), names) if refine else before
+    after = residuals([h.moved(c) for h, c in zip(sampled, corrections)]) if refine else before
     shared = [name for name in ordered[0] if all(name in cloud for cloud in ordered)]
     columns = {name: np.concatenate([cloud[name] for cloud in ordered]) for name in shared}
     all_points = np.concatenate([m[0] for m in moved])
@@ -194,7 +194,7 @@ def merge_heads(*, clouds: Mapping[str, PointCloud], rig: Rig,
     if thin and len(names) > 1 and len(head):
         angle = np.concatenate([_view_angles(m[0], m[1], rig.devices[h.camera].centre)
                                 for m, h in zip(moved, rig.heads)])
-        voxel = voxel_mm or _THINNING_SPACINGS * _spacing(points[0])
+        voxel = voxel_mm or _THINNING_SPACINGS * sampled[0].spacing_mm
         keep = thin_overlaps(all_points, head, angle, voxel)
     cloud = PointCloud({name: values[keep] for name, values in columns.items()} | {HEAD_PROPERTY: head[keep]},
                        ordered[0].units)
@@ -227,13 +227,16 @@ def reconstruct_station(*, heads: Sequence[HeadFrames], rig: Rig, tables: Triang
 
 @dataclass(frozen=True)
 class HeadScan:
-    """One head of a station scan: its cloud (world mm) and the seconds its reconstruction took, or ``error``
-    (a device lost in the capture, nothing decoded) and no cloud."""
+    """One head of a station scan: its cloud (world mm), the seconds its reconstruction took, and the cloud's
+    :class:`~services.geometry.merge.OverlapSample` for the merge (None: the merge makes it) and the seconds it
+    took; or ``error`` (a device lost in the capture, nothing decoded) and no cloud."""
 
     head: str
     cloud: PointCloud | None
     seconds: float | None = None
     error: str | None = None
+    sample: OverlapSample | None = None
+    sample_seconds: float | None = None
 
 
 def station_capture_artifacts(*, heads: Sequence[HeadFrames], exposures: Mapping[str, dict],
@@ -256,9 +259,11 @@ def station_capture_artifacts(*, heads: Sequence[HeadFrames], exposures: Mapping
 
 def scan_head(*, frames: np.ndarray, sequence: Manifest, rig: Rig, head: str, tables: TriangulationTables,
               saturation_level: float | None = None) -> HeadScan:
-    """One head of a station scan (:func:`reconstruct_head`), its failure kept as the head's ``error`` rather than
-    raised: a head whose frames decode to nothing (bad frames, a part it does not see) fails the scan's verdict,
-    not the job, so that the other heads' results are kept."""
+    """One head of a station scan (:func:`reconstruct_head`) and the sample of its cloud the merge works on
+    (:func:`services.geometry.merge.overlap_sample`: made here, in the head's own message, the heads' in
+    parallel when there are several workers); its failure kept as the head's ``error`` rather than raised: a
+    head whose frames decode to nothing (bad frames, a part it does not see) fails the scan's verdict, not the
+    job, so that the other heads' results are kept."""
     import time
 
     started = time.perf_counter()
@@ -267,10 +272,13 @@ def scan_head(*, frames: np.ndarray, sequence: Manifest, rig: Rig, head: str, ta
                                  saturation_level=saturation_level).cloud
     except InputError as error:
         return HeadScan(head, None, round(time.perf_counter() - started, 3), f"head {head!r}: {error}")
-    seconds = round(time.perf_counter() - started, 3)
     if len(cloud) == 0:
-        return HeadScan(head, None, seconds, f"head {head!r}: nothing decoded (no point measured)")
-    return HeadScan(head, cloud, seconds)
+        return HeadScan(head, None, round(time.perf_counter() - started, 3),
+                        f"head {head!r}: nothing decoded (no point measured)")
+    seconds = round(time.perf_counter() - started, 3)
+    started = time.perf_counter()
+    sample = overlap_sample(cloud.points, _normals(cloud))
+    return HeadScan(head, cloud, seconds, sample=sample, sample_seconds=round(time.perf_counter() - started, 3))
 
 
 @dataclass(frozen=True)
@@ -332,7 +340,8 @@ def process_station_scan(*, heads: Sequence[HeadScan], rig: Rig, thermal: Mappin
         return StationScanOutcome(None, ScanOutcome(empty, empty, summary, None, reason))
     clock.start("merge", 0.6)
     merged = merge_heads(clouds={head.head: head.cloud for head in heads}, rig=rig, uncertainty=uncertainty,
-                         residuals_before=False)
+                         residuals_before=False,
+                         samples={head.head: head.sample for head in heads if head.sample is not None})
     field_, inspection, inspection_error = fuse_and_inspect(
         cloud=merged.cloud, rig=rig, thermal=list(thermal.items()), part=part, clock=clock,
         source="the station scan", fractions=(0.7, 0.75))

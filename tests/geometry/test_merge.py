@@ -4,8 +4,9 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from services.geometry.merge import (PoseCorrection, PoseUncertainty, overlap_residuals, refine_head_poses,
-                                     thin_overlaps)
+from services.formats.stored_scan import overlap_sample_bytes, overlap_sample_from_bytes
+from services.geometry.merge import (PoseCorrection, PoseUncertainty, overlap_residuals, overlap_sample,
+                                     refine_head_poses, thin_overlaps)
 
 RADIUS, HALF = 45.0, 150.0
 SPACING = 1.5
@@ -79,6 +80,29 @@ def test_known_pose_errors_are_undone_within_the_prior():
     assert abs(end_offset[2] - end_offset[0]) < 0.012
     assert abs(end_offset[1] - end_offset[3]) < 0.012
     assert abs(end_offset[1]) < 3 * 0.05
+
+
+def test_each_heads_overlap_sample_made_apart_and_stored_gives_the_merge_what_its_cloud_does():
+    rng = np.random.default_rng(6)
+    first, second = (_cylinder_patch(angles, rng, ends=(1,)) for angles in ((-90.0, 30.0), (-30.0, 90.0)))
+    disturbed = [first, _moved(second, (0.01, 0.0, -0.008), (0.05, -0.04, 0.03), second[0].mean(axis=0))]
+    samples = [overlap_sample_from_bytes(overlap_sample_bytes(overlap_sample(*cloud))) for cloud in disturbed]
+    uncertainty = [PoseUncertainty(0.05, 0.01)] * 2
+    direct = refine_head_poses(*zip(*disturbed), uncertainty)
+    sampled = refine_head_poses([s.refine_points for s in samples], [s.refine_normals for s in samples], uncertainty,
+                                sampled=True)
+    assert direct[1].translation_mm > 0.02
+    for a, b in zip(direct, sampled):
+        np.testing.assert_allclose(b.translation, a.translation, atol=1e-12)
+        np.testing.assert_allclose(b.rotation, a.rotation, atol=1e-12)
+    moved = [c.apply(*cloud) for c, cloud in zip(direct, disturbed)]
+    moved_samples = [s.moved(c) for s, c in zip(samples, direct)]
+    for a, b in zip(overlap_residuals(*zip(*moved)), overlap_residuals(
+            [s.residual_points for s in moved_samples], [s.residual_normals for s in moved_samples], sampled=True),
+            strict=True):
+        assert (b.first, b.second, b.points) == (a.first, a.second, a.points)
+        assert (b.rms_mm, b.patch_rms_mm) == pytest.approx((a.rms_mm, a.patch_rms_mm), rel=1e-9)
+    assert samples[0].spacing_mm == pytest.approx(SPACING, rel=0.1)
 
 
 def test_a_correction_beyond_the_calibrations_uncertainty_is_refused_not_applied():
