@@ -79,12 +79,18 @@ def corners(seed: int, thermal16: bool, cache: Path) -> dict:
 
 
 def distortion_error_px(K_true, dist_true, K, dist, size) -> float:
-    """Largest difference of the lens displacement over the image, in pixels of the true focal length."""
+    """Largest difference of the lens displacement over the image, in pixels of the true focal length.
+
+    Only over the pixels the true lens reaches: a strong barrel lens (k1 < 0, k2 = 0) folds back beyond some
+    radius, and an image corner outside that radius has no ray (its undistortion does not return to it).
+    """
     width, height = size
     u, v = np.meshgrid(np.linspace(0, width - 1, 17), np.linspace(0, height - 1, 15))
     pixels = np.column_stack([u.ravel(), v.ravel()]).astype(np.float64)
     normal = cv2.undistortPoints(pixels.reshape(-1, 1, 2), K_true, dist_true).reshape(-1, 2)
     rays = np.column_stack([normal, np.ones(len(normal))])
+    back = cv2.projectPoints(rays, np.zeros(3), np.zeros(3), K_true, dist_true)[0].reshape(-1, 2)
+    rays = rays[np.linalg.norm(back - pixels, axis=1) < 0.01]
     true = cv2.projectPoints(rays, np.zeros(3), np.zeros(3), np.eye(3), dist_true)[0].reshape(-1, 2)
     estimated = cv2.projectPoints(rays, np.zeros(3), np.zeros(3), np.eye(3), np.asarray(dist, float))[0].reshape(-1, 2)
     return float(np.max(np.linalg.norm(estimated - true, axis=1)) * K_true[0, 0])
