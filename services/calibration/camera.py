@@ -52,7 +52,9 @@ class CameraCalibration:
     std : dict of str to float
         One standard deviation of each estimated intrinsic parameter: the jackknife over views, never less
         than the Jacobian's (see ``view_jackknife``); when ``distortion="auto"`` chose a model simpler than
-        the standard one, never less than the standard model's jackknife either (the choice is uncertain too).
+        the standard one, never less than the standard model's jackknife either; and when it chose any model but
+        the standard one, fx, fy, cx and cy also carry the spread to the standard model's estimate
+        (``std_model_choice``): the choice is uncertain too.
     views : (V,) int array
         Indices (into the input lists) of the views kept.
     per_view_rms : (V,) array
@@ -74,6 +76,10 @@ class CameraCalibration:
         residuals.
     correlation : (P, P) array or None
         Correlation matrix of the estimated intrinsics (the order of ``std``) from the jackknife.
+    std_model_choice : dict of str to float or None
+        When ``distortion="auto"`` chose a model other than the standard one: |theta_standard - theta_chosen| of
+        fx, fy, cx and cy (``model_choice_spread``), the uncertainty of the choice, added to their ``std`` in
+        quadrature.
     """
 
     image_size: tuple[int, int]
@@ -92,6 +98,7 @@ class CameraCalibration:
     model_selection: ModelSelection | None = None
     std_jacobian: dict[str, float] | None = None
     correlation: np.ndarray | None = None
+    std_model_choice: dict[str, float] | None = None
 
 
 def calibrate_camera(
@@ -133,7 +140,9 @@ def calibrate_camera(
     Standard deviations: the Jacobian's sqrt(diag((J^T J)^-1) sigma^2), sigma^2 the residual variance
     per coordinate, assumes independent corner errors; blur and a bent or unevenly lit board make the
     errors of a view's corners shared, so the delete-one-view jackknife (``view_jackknife``) is reported,
-    never below the Jacobian's. Outlier views replace the paper's removal of gross errors by
+    never below the Jacobian's. When ``distortion="auto"`` chose a model other than the standard one, the focal
+    lengths' and principal point's variances add the squared difference to the standard model's estimates
+    (``model_choice_spread``): unconditional on the choice. Outlier views replace the paper's removal of gross errors by
     hand: while the worst view's RMS exceeds both median + 4 * 1.4826 * MAD and twice the
     median of the per-view RMS, it is dropped and the calibration repeated, never going
     below three views.
@@ -184,7 +193,7 @@ def calibrate_camera(
     distortion = fitted
     std_jacobian = {name: float(value) for name, value in zip(INTRINSIC_NAMES, result["std_intrinsics"])
                     if name in _ESTIMATED[distortion]}
-    std, correlation = dict(std_jacobian), None
+    std, correlation, model_choice = dict(std_jacobian), None, None
     if jackknife and len(kept) > MIN_VIEWS:
         covariance = view_jackknife([objects[i] for i in kept], [images[i] for i in kept], image_size, distortion,
                                     result)
@@ -196,6 +205,9 @@ def calibrate_camera(
             for name, value in zip(_ESTIMATED["standard"], np.sqrt(np.diag(general))):
                 if name in std:
                     std[name] = max(std[name], float(value))
+        if candidates and distortion != "standard":  # the choice itself: the standard model's estimate differs by d
+            model_choice = model_choice_spread(result, candidates["standard"])
+            std.update({name: float(np.hypot(std[name], value)) for name, value in model_choice.items()})
         with np.errstate(divide="ignore", invalid="ignore"):
             correlation = np.nan_to_num(covariance / np.outer(jackknife, jackknife))
     return CameraCalibration(
@@ -215,7 +227,51 @@ def calibrate_camera(
         model_selection=selection,
         std_jacobian=std_jacobian,
         correlation=correlation,
+        std_model_choice=model_choice,
     )
+
+
+def model_choice_spread(chosen: dict, general: dict) -> dict[str, float]:
+    """How far the standard lens model's focal lengths and principal point lie from the chosen model's.
+
+    Parameters
+    ----------
+    chosen, general : dict
+        The calibration with the chosen lens model and with the standard one (``K`` and ``dist``).
+
+    Returns
+    -------
+    dict of str to float
+        ``|theta_standard - theta_chosen|`` of fx, fy, cx and cy.
+
+    Notes
+    -----
+    A model chosen by a criterion gives estimates conditional on the choice being right; the reported
+    variance must also carry the uncertainty of the choice [1]_. With the standard model as the reference, the
+    unconditional variance of a chosen estimate is taken as ``sigma^2 + (theta_standard - theta_chosen)^2``: the
+    difference estimates the bias of the chosen (simpler) model when the omitted terms are not zero [2]_. The
+    principal point needs it most: a decentred lens (tangential p1, p2) moves the image almost as a shift of
+    the principal point does, so the criterion cannot see the tangential terms while the simpler model's
+    principal point absorbs them. Only the pinhole parameters get the term: they mean the same in every lens
+    model, whereas a distortion coefficient does not (k1 trades against k3 when k3 is free, and sits in a ratio
+    in the rational model), so its spread between models is no error of the chosen one.
+
+    References
+    ----------
+    .. [1] S. T. Buckland, K. P. Burnham, N. H. Augustin, "Model selection: an integral part of inference",
+       Biometrics 53(2), 603-618 (1997).
+    .. [2] J. A. Hausman, "Specification tests in econometrics", Econometrica 46(6), 1251-1271 (1978).
+    """
+    difference = np.abs(_intrinsic_values(general)[:4] - _intrinsic_values(chosen)[:4])
+    return {name: float(value) for name, value in zip(INTRINSIC_NAMES[:4], difference)}
+
+
+def _intrinsic_values(result: dict) -> np.ndarray:
+    """fx, fy, cx, cy and the distortion coefficients in the order of ``INTRINSIC_NAMES`` (zeros beyond ``dist``)."""
+    K, dist = result["K"], np.asarray(result["dist"], np.float64).ravel()[:14]
+    values = np.concatenate([[K[0, 0], K[1, 1], K[0, 2], K[1, 2]], np.zeros(14)])
+    values[4:4 + dist.size] = dist
+    return values
 
 
 def view_jackknife(objects: list[np.ndarray], images: list[np.ndarray], image_size: tuple[int, int],
@@ -266,9 +322,7 @@ def view_jackknife(objects: list[np.ndarray], images: list[np.ndarray], image_si
         _, K, dist, _, _ = cv2.calibrateCamera([objects[i] for i in kept], [images[i] for i in kept],
                                                tuple(int(s) for s in image_size), K0, dist0, flags=flags,
                                                criteria=_CRITERIA)
-        values = np.concatenate([[K[0, 0], K[1, 1], K[0, 2], K[1, 2]], np.zeros(14)])
-        values[4:4 + dist.size] = dist.ravel()[:14]
-        estimates.append(values[indices])
+        estimates.append(_intrinsic_values({"K": K, "dist": dist})[indices])
     estimates = np.array(estimates)
     deviations = estimates - estimates.mean(axis=0)
     return (len(objects) - 1) / len(objects) * deviations.T @ deviations

@@ -88,3 +88,25 @@ def test_few_blurry_thermal_views_meet_the_targets_with_the_chosen_model():
         principal.append(np.abs(result.K[:2, 2] - THERMAL_K[:2, 2]).max())
     assert np.median(focal) <= 1e-3
     assert np.median(principal) <= 0.5
+
+
+def test_the_sigma_of_a_simpler_chosen_model_carries_the_choice():
+    """A decentred lens (p1, p2 = +-0.001) under noisy corners: the criterion picks k1 k2, whose principal point
+    absorbs the tangential terms; the sigma conditional on that choice misses the error, the reported one
+    (with the spread to the standard model) covers it."""
+    dist = np.array([-0.2, 0.1, 0.001, -0.001, 0.0])
+    rng = np.random.default_rng(2)
+    points = [cv2.projectPoints(THERMAL_BOARD.object_points(), cv2.Rodrigues(R)[0], t, THERMAL_K, dist)[0].reshape(-1, 2)
+              + rng.normal(0.0, 0.1, (35, 2)) for R, t in _poses(rng, THERMAL_BOARD, THERMAL_K, dist, THERMAL_SIZE, 16,
+                                                                 300, 600)]
+    objects = [THERMAL_BOARD.object_points()] * len(points)
+    result = calibrate_camera(objects, points, THERMAL_SIZE, "auto")
+    assert result.distortion_model == "radial"
+    standard = calibrate_camera(objects, points, THERMAL_SIZE, "standard", jackknife=False)
+    assert result.std_model_choice["cx"] == pytest.approx(abs(standard.K[0, 2] - result.K[0, 2]), rel=1e-6)
+    assert set(result.std_model_choice) == {"fx", "fy", "cx", "cy"}
+    error = abs(result.K[0, 2] - THERMAL_K[0, 2])
+    conditional = math.sqrt(result.std["cx"] ** 2 - result.std_model_choice["cx"] ** 2)
+    assert error > 1.645 * conditional
+    assert error <= 1.645 * result.std["cx"]
+    assert standard.std_model_choice is None
