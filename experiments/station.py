@@ -19,9 +19,9 @@ overlap residual of each head pair before and after the refinement (RMS over 4 m
 mean distance along the normal: the misregistration; and per point, with the noise), the pose
 corrections, each head's point error (distance from the true hot surface: median, p95, worst),
 and, for the calibrated run, the temperature error of the fused field against the true surface
-temperature (median, p95, worst) and the share of points given a temperature. The cold diameter,
-length and dent depth need the all-round inspection (services/inspection, another branch) and are
-reported as pending.
+temperature (median, p95, worst) and the share of points given a temperature; then the calibrated
+run's field inspected against the nominal shaft: cold diameter, length, ovality, the dent's depth and the
+verdict. ``experiments/station_parts.py`` makes the distribution over twenty shafts.
 """
 
 from __future__ import annotations
