@@ -235,7 +235,7 @@ def _nearest_point(a: CameraModel, b: CameraModel) -> np.ndarray:
     return (centres[0] + s * d1 + centres[1] + u * d2) / 2
 
 
-def _shared_poses(a: CameraModel, b: CameraModel, board, outline, rng, count, attempts: int = 300):
+def _shared_poses(a: CameraModel, b: CameraModel, board, outline, rng, count, attempts: int = 3000):
     middle = _nearest_point(a, b)
     towards = [(c.centre - middle) / np.linalg.norm(c.centre - middle) for c in (a, b)]
     if towards[0] @ towards[1] < np.cos(np.radians(120)):
@@ -251,7 +251,7 @@ def _shared_poses(a: CameraModel, b: CameraModel, board, outline, rng, count, at
     return poses
 
 
-def _own_poses(camera: CameraModel, board, outline, rng, count, attempts: int = 300):
+def _own_poses(camera: CameraModel, board, outline, rng, count, attempts: int = 3000):
     poses = []
     for _ in range(attempts):
         if len(poses) == count:
