@@ -148,7 +148,7 @@ def summarise(rows: list[dict], command: str) -> str:
              f"| dent depth error, mm ({sum(row['dent_found'] for row in rows)} of {len(rows)} dents found) | "
              f"{_stats([dent_error(row) for row in rows])} | 0.05 |",
              f"| other surface defects listed (the truth's: its end faces, half its length's deviation off) | "
-             f"{_stats([row['other_defects'] for row in rows])} | 0 |", "",
+             f"{_stats([row['other_defects'] for row in rows])} | |", "",
              "| truth | OK | NotOK | NotDecidable |", "|---|---|---|---|"]
     for title, group in (("in tolerance", inside), ("out of tolerance", outside)):
         counts = [sum(row["verdict"] == verdict for row in group) for verdict in ("OK", "NotOK", "NotDecidable")]
