@@ -30,9 +30,10 @@ def setup_broker(settings: Settings) -> dramatiq.Broker:
 
     broker = job_broker(settings)
     broker.add_middleware(ComputeThreads(settings.compute_threads))
-    broker.add_middleware(JobBookkeeping())
-    # after the bookkeeping: a group's last message has its job recorded before its completion callback is sent
+    # Dramatiq runs the after_* hooks in the reverse order of the list (Broker.emit_after): with the group callbacks
+    # before the bookkeeping, a group's last message has its job recorded before its completion callback is sent
     broker.add_middleware(GroupCallbacks(DatabaseBarrierBackend(lambda: current_runtime().sessions)))
+    broker.add_middleware(JobBookkeeping())
     if settings.warm_up:
         broker.add_middleware(WarmUp())
     if settings.broker_url:

@@ -1,6 +1,8 @@
 """A station scan's heads as a Dramatiq group: the barrier in the database clears once, at the last head; the
 scan job handed over waits at its stage, is taken up once by its continuation, and fails with a head that fails."""
 
+import time
+
 import dramatiq
 import pytest
 from dramatiq import Worker
@@ -55,10 +57,21 @@ def test_a_head_that_fails_for_good_fails_its_scan(engine):
         assert failed.status == "failed" and failed.error == "head 'head-2' failed: StorageFull: no space"
 
 
-def test_a_group_of_jobs_sends_its_completion_once_after_every_member_is_recorded(broker):
+def test_a_group_of_jobs_sends_its_completion_once_after_every_member_is_recorded(broker, monkeypatch):
+    """Even when recording a member's result is slow: Dramatiq runs the middleware's after-hooks in reverse, so the
+    group callbacks must come before the bookkeeping in the list, or another worker thread runs the completion
+    while the last member is still ``running``."""
     from services.runtime import current_runtime
 
     sessions = current_runtime().sessions
+    tracker = current_runtime().tracker
+    recorded = tracker.succeed
+
+    def slowly_recorded(job_id, result):
+        time.sleep(0.3)
+        return recorded(job_id, result)
+
+    monkeypatch.setattr(tracker, "succeed", slowly_recorded)
     seen: list[tuple[str, list[str]]] = []
 
     @dramatiq.actor(actor_name="member", broker=broker, queue_name="default")
@@ -77,7 +90,6 @@ def test_a_group_of_jobs_sends_its_completion_once_after_every_member_is_recorde
         for job in session.query(Job).filter(Job.id.in_(members)):
             job.kind = "member"
     parent = _job(sessions)
-    tracker = current_runtime().tracker
     tracker.start(parent, "w:1")
     tracker.hand_over(parent, {CONTINUED: {"stage": "heads", "fraction": 0.3}})
     group = dramatiq.group([member.message(job) for job in members])
