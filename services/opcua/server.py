@@ -184,6 +184,9 @@ class VisionSystem:
         self.vision_state = "Preoperational"
         self.automatic_state: str | None = None
         self.prepared: Recipe | None = None
+        # held while the prepared recipe is read from or written to the database, so that the periodic refresh
+        # never replaces a recipe prepared during its read with the stale one it read
+        self.recipe_lock = asyncio.Lock()
         self.acquiring: dict[str, str] = {}  # scan job id -> its OPC UA job id, while queued or capturing
         self.continuous: dict[str, Any] | None = None  # the continuous run: its job id, arguments, current scan job
         self.last_job = ""  # the OPC UA job whose acquisition ended last
@@ -287,9 +290,10 @@ class VisionSystem:
         configuration."""
         from asyncua import ua
 
-        recipes, configurations = await asyncio.gather(asyncio.to_thread(self.station.recipes),
-                                                       asyncio.to_thread(self.station.configurations))
-        self.prepared = next((recipe for recipe in recipes if recipe.prepared), None)
+        async with self.recipe_lock:
+            recipes, configurations = await asyncio.gather(asyncio.to_thread(self.station.recipes),
+                                                           asyncio.to_thread(self.station.configurations))
+            self.prepared = next((recipe for recipe in recipes if recipe.prepared), None)
         await self._settle()
         active = next((c for c in configurations if c.active), None)
         if active is not None:
@@ -515,8 +519,9 @@ class VisionSystem:
     async def prepare_recipe(self, ExternalId, InternalIdIn) -> dict[str, Any]:
         self._require("Initialized", "Ready")
         recipe = await self._recipe(ExternalId, InternalIdIn)
-        await asyncio.to_thread(self.station.prepare, recipe)
-        self.prepared = replace(recipe, prepared=True)
+        async with self.recipe_lock:
+            await asyncio.to_thread(self.station.prepare, recipe)
+            self.prepared = replace(recipe, prepared=True)
         await self._fire("RecipePrepared", ExternalId=_external_recipe(recipe), InternalId=_internal_recipe(recipe),
                          ProductId=None)
         if self.automatic_state == "Initialized":
@@ -527,8 +532,9 @@ class VisionSystem:
         self._require("Initialized", "Ready")
         recipe = await self._recipe(ExternalId, InternalIdIn)
         if recipe.prepared:
-            await asyncio.to_thread(self.station.unprepare, recipe)
-            self.prepared = None
+            async with self.recipe_lock:
+                await asyncio.to_thread(self.station.unprepare, recipe)
+                self.prepared = None
             if self.automatic_state == "Ready":
                 await self._transition("Operational", "Initialized", "ReadyToInitializedRecipe")
         return {"InternalIdOut": _internal_recipe(recipe)}

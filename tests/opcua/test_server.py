@@ -7,6 +7,7 @@ worker is played by the job tracker (``start``, ``progress``, ``succeed``), as t
 import asyncio
 import socket
 import threading
+import time
 import uuid
 import xml.etree.ElementTree as ET
 from pathlib import Path
@@ -461,6 +462,45 @@ def test_no_security_only_when_set_and_still_with_an_api_key(tmp_path):
         assert plant.server.certificate is None
         asyncio.run(mes_side())
     assert not (tmp_path / "pki" / "server-certificate.der").exists()  # no certificate made
+
+
+class _SlowStation(Station):
+    """A station whose next recipe list, once ``slow`` is set, is read and then returned a second later (a
+    database under load): the read is stale by the time the server gets it."""
+
+    def __init__(self, *args, **kwargs) -> None:
+        super().__init__(*args, **kwargs)
+        self.slow, self.reading = False, threading.Event()
+
+    def recipes(self):
+        rows = super().recipes()
+        if self.slow:  # once: the refresh's read, not the method's own
+            self.slow = False
+            self.reading.set()
+            time.sleep(1.0)
+        return rows
+
+
+def test_a_recipe_prepared_while_the_periodic_refresh_reads_stays_prepared(tmp_path):
+    engine = make_engine(f"sqlite:///{tmp_path / 'service.db'}")
+    migrate(engine)
+    plant = Plant(make_sessions(engine), tmp_path, security_policy="None")
+    station = _SlowStation(plant.sessions, STATION, plant.tracker, None, queue_bound=5)
+    plant.server = OpcUaServer(plant.options, station)
+
+    async def mes_side():
+        async with Mes(plant.options.endpoint, plant.keys["admin"]) as mes:
+            await _restart(mes)
+            station.slow = True
+            assert await asyncio.to_thread(station.reading.wait, 10)  # the refresh (every 2 s) is reading
+            await mes.call("PrepareRecipe", _id("RecipeIdExternalDataType", "billet-90"), None)
+            await asyncio.sleep(1.5)  # the stale read has come back
+            assert await mes.state() == ("Operational", "Ready")
+            _, error = await mes.call("StartSingleJob", *_start_args())
+            assert error == 0
+
+    with plant.server:
+        asyncio.run(mes_side())
 
 
 # The endpoint's checks touch no row: one database is enough.
