@@ -29,8 +29,12 @@ $(VENV)/.installed-test: pyproject.toml constraints.txt | system-libraries exift
 demo: install
 	$(BIN)/thermofield demo --data-dir $(DEMO_DIR)
 
+# The suite on TEST_WORKERS processes (pytest-xdist); each takes a whole test file at a time, so a file's
+# module-scoped servers are started once. Much of the suite waits on servers and subprocesses, so two processes
+# take about half the time on two cores.
+TEST_WORKERS ?= 2
 test: install-test docker-compose browser
-	$(BIN)/python -m pytest
+	$(BIN)/python -m pytest -n $(TEST_WORKERS) --dist loadfile
 
 # Open3D (the inspection's meshes and distance queries) loads libusb, libGL and libEGL from the system. The
 # GenICam driver (device_gateway/drivers/genicam.py) needs Aravis 0.8's introspection data, its fake GigE Vision

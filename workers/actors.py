@@ -19,6 +19,7 @@ are not.
 from __future__ import annotations
 
 import logging
+import threading
 from typing import Any
 
 import dramatiq
@@ -133,6 +134,9 @@ def warm_up_runtime(runtime: Runtime) -> None:
         seconds = warm_up(rig=rig, sequence=sequence, tables=runtime.tables)
         logger.info("warmed up in %s s", seconds)
     except Exception:  # a failed warm-up only costs the first scan its speed
-        logger.exception("warm-up failed; the first scan will compile what it needs")
+        if not threading.main_thread().is_alive():  # the process is exiting (Ctrl+C): its pools refuse work
+            logger.info("warm-up stopped: the process is exiting")
+        else:
+            logger.exception("warm-up failed; the first scan will compile what it needs")
     finally:
         runtime.ready.set()

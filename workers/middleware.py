@@ -27,7 +27,8 @@ class ComputeThreads(Middleware):
     def before_worker_boot(self, broker, worker) -> None:
         cv2.setNumThreads(self.threads)
         limit_threads(self.threads)
-        os.environ["NUMBA_NUM_THREADS"] = str(self.threads)  # read by numba when first imported
+        if "numba" not in sys.modules:  # read by numba when first imported; once loaded, numba refuses a change
+            os.environ["NUMBA_NUM_THREADS"] = str(self.threads)
 
     def after_worker_thread_boot(self, broker, thread) -> None:
         # numba (only the Gray-code-only refinement and the simulator use it) sets its count per calling thread

@@ -3,10 +3,13 @@ Aravis' fake GenICam cameras."""
 
 from __future__ import annotations
 
+import fcntl
 import shutil
 import socket
 import subprocess
+import tempfile
 import time
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -127,6 +130,8 @@ def aravis_fake_ramp():
 
 
 GV_FAKE_ADDRESS = "127.0.0.1"  # its GigE Vision control port, 3956, is fixed: one fake camera at a time
+# ... across the test processes too (make test runs two): a camera holds this file's lock from start to close
+GV_FAKE_LOCK = Path(tempfile.gettempdir()) / "thermofield-fake-gv-camera.lock"
 
 
 def _answers_discovery(address: str, timeout_s: float) -> bool:
@@ -149,10 +154,14 @@ class FakeGigEVisionCamera:
     def __init__(self, address: str = GV_FAKE_ADDRESS, lost_per_thousand: int = 0) -> None:
         self.address, self.lost_per_thousand = address, lost_per_thousand
         self.process: subprocess.Popen | None = None
+        self._lock = None
 
     def start(self) -> FakeGigEVisionCamera:
         executable = shutil.which("arv-fake-gv-camera-0.8")
         assert executable, "arv-fake-gv-camera-0.8 is missing: make system-libraries installs aravis-tools"
+        if self._lock is None:  # the port is this camera's until close(), across kill() and start()
+            self._lock = open(GV_FAKE_LOCK, "w")
+            fcntl.flock(self._lock, fcntl.LOCK_EX)
         assert not _answers_discovery(self.address, 0.2), f"a GigE Vision device already answers at {self.address}"
         arguments = [executable, "-i", self.address, "-s", "GV01"]
         if self.lost_per_thousand:
@@ -169,13 +178,20 @@ class FakeGigEVisionCamera:
             self.process.kill()
             self.process.wait(timeout=10)
 
+    def close(self) -> None:
+        """Kill it and give the port to the next camera."""
+        self.kill()
+        if self._lock is not None:
+            self._lock.close()  # releases the lock
+            self._lock = None
+
 
 @pytest.fixture
 def fake_gv_camera():
     """A fresh ``arv-fake-gv-camera-0.8 -i 127.0.0.1`` (id ``Aravis-Fake-GV01``), stopped after the test."""
     camera = FakeGigEVisionCamera().start()
     yield camera
-    camera.kill()
+    camera.close()
 
 
 @pytest.fixture
@@ -183,4 +199,4 @@ def lossy_gv_camera():
     """The fake GigE Vision camera dropping 300 of every 1000 stream packets."""
     camera = FakeGigEVisionCamera(lost_per_thousand=300).start()
     yield camera
-    camera.kill()
+    camera.close()

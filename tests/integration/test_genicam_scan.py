@@ -81,7 +81,7 @@ def test_a_scan_captured_by_a_gigevision_camera_through_the_gateway_scaled_out(e
         with httpx.Client(base_url=api_url, headers={"Authorization": f"Bearer {admin}"}, timeout=60) as client:
             frames = _scan_frames(client)
     finally:
-        camera.kill()
+        camera.close()
     _assert_the_cameras_frames(frames)
 
 
@@ -98,5 +98,5 @@ def test_a_scan_captured_by_a_gigevision_camera_embedded(e2e, tmp_path):
                           timeout=60) as client:
             frames = _scan_frames(client)
     finally:
-        camera.kill()
+        camera.close()
     _assert_the_cameras_frames(frames)

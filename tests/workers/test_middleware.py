@@ -119,3 +119,23 @@ def test_worker_threads_use_the_configured_numeric_thread_count(broker):
     (job,) = run_jobs(broker, threads, 1)
     assert job.result == {"numba": 1, "row_bands": 1, "opencv": 1}  # the fixture's compute_threads
 
+
+
+def test_a_second_worker_in_a_process_whose_numba_runs_leaves_numbas_thread_count_alone():
+    """The embedded service and the tests boot several workers in one process: once numba has launched its
+    threads it refuses another NUMBA_NUM_THREADS at its next configuration reload (a compile), so a later
+    worker's boot must not set a different one."""
+    import subprocess
+    import sys
+
+    program = (
+        "import os; os.environ['NUMBA_NUM_THREADS'] = '1'\n"
+        "import numba, numpy as np\n"
+        "numba.njit(parallel=True)(lambda a: a.sum())(np.ones(4))\n"  # launches numba's threads
+        "from workers.middleware import ComputeThreads\n"
+        "ComputeThreads(2).before_worker_boot(None, None)\n"
+        "numba.core.config.reload_config()\n"  # what numba's next compile does
+        "print(numba.config.NUMBA_NUM_THREADS)\n")
+    done = subprocess.run([sys.executable, "-c", program], capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0, done.stderr[-1000:]
+    assert done.stdout.strip() == "1"
