@@ -17,6 +17,9 @@ pairs of the ratios of the per-pair medians. Run the two versions alternately in
     done
     .venv/bin/python experiments/registration_equivalence.py --ratio before_*.json -- after_*.json
 
+``--evaluations`` instead counts the objective evaluations of default registrations (one thread) of each pair
+of the chosen half, whole and moved: at the coarsest pyramid level and at all levels.
+
 ``--synthetic N`` instead registers N rendered scenes and N photographs with known matrices
 (experiments/registration_accuracy.py's pairs, seed 0) with default options and saves (``--save``) or compares
 (``--compare``) each pair's corner error against the truth: whether a change of method makes any pair worse.
@@ -30,6 +33,7 @@ Usage: .venv/bin/python experiments/registration_equivalence.py --save base.json
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import sys
 import time
@@ -134,6 +138,43 @@ def timings(numbers: list[int], repeats: int) -> dict:
     return times
 
 
+def evaluations(numbers: list[int]) -> dict:
+    """Objective evaluations of default registrations (one thread) of each pair, whole and moved: at the coarsest
+    level and at all levels, counted by wrapping each level's objective (``register._build_pyramid``)."""
+    from services.registration import register as module
+
+    counts = {"coarsest": 0, "all": 0}
+    build = module._build_pyramid
+
+    def counted_pyramid(*args, **kwargs):
+        pyramid = build(*args, **kwargs)
+
+        def counted(level, factory):
+            def objective():
+                function = factory()
+
+                def evaluate(samples):
+                    counts["all"] += 1
+                    counts["coarsest"] += level == pyramid.coarsest
+                    return function(samples)
+                return evaluate
+            return objective
+
+        return dataclasses.replace(pyramid, objectives=[counted(level, factory)
+                                                        for level, factory in enumerate(pyramid.objectives)])
+
+    module._build_pyramid = counted_pyramid
+    try:
+        for number in numbers:
+            visible, infrared = load_pair(number)
+            moved, _, _ = moved_image(np.random.default_rng([0, number]), infrared)
+            for image in (infrared, moved):
+                module.register(visible, image, threads=1)
+    finally:
+        module._build_pyramid = build
+    return counts
+
+
 def ratio(before: list[Path], after: list[Path]) -> None:
     """The median over pairs of after / before, each the median of all its runs."""
     def pooled(paths: list[Path]) -> dict:
@@ -165,6 +206,8 @@ def main() -> None:
     parser.add_argument("--synthetic", type=int, metavar="N",
                         help="corner errors of N rendered scenes and N photographs with default options instead")
     parser.add_argument("--time", action="store_true", help="time default registrations of the moved pairs")
+    parser.add_argument("--evaluations", action="store_true",
+                        help="count the objective evaluations of default registrations, whole and moved")
     parser.add_argument("--repeats", type=int, default=1)
     parser.add_argument("--rows-out", type=Path)
     parser.add_argument("--ratio", type=Path, nargs="+", metavar="JSON",
@@ -174,6 +217,11 @@ def main() -> None:
     if args.ratio:
         after = [Path(item) for item in rest if item != "--"]
         ratio(args.ratio, after)
+        return
+    if args.evaluations:
+        counts = evaluations(numbers)
+        print(f"{len(numbers)} pairs, whole and moved, default options, one thread: {counts['coarsest']} objective "
+              f"evaluations at the coarsest level, {counts['all']} at all levels")
         return
     if args.time:
         times = timings(numbers, args.repeats)

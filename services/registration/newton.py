@@ -73,6 +73,7 @@ def maximize(
     relative_gain: float = 1e-5,
     max_iterations: int = 20,
     evaluate_many: Callable[[list[np.ndarray]], list[float]] | None = None,
+    stop: Callable[[np.ndarray], bool] | None = None,
 ) -> tuple[np.ndarray, float]:
     """Maximise ``function`` of ``count`` parameters from the origin.
 
@@ -97,6 +98,10 @@ def maximize(
         Maps a list of points to their ``function`` values, in order (by default one after the other):
         a stencil's points are independent, so a caller may spread them over threads. The result does
         not depend on it.
+    stop : callable, optional
+        Called with the start and with every point the iteration moves to; when it returns true the
+        iteration ends there at once (a caller that knows where this start leads, e.g. a maximum that
+        another start already reached, need not climb it again).
 
     Returns
     -------
@@ -145,6 +150,8 @@ def maximize(
 
     parameters = np.zeros(count)
     value = finite(parameters)
+    if stop is not None and stop(parameters):
+        return parameters, value
     radius = 2.0 * step
     kept = None  # the Hessian whose mixed derivatives the next model reuses
     for _ in range(max_iterations):
@@ -162,6 +169,8 @@ def maximize(
         if trial > value and trial >= stencil_value:
             gain = trial - value
             parameters, value = parameters + move, trial
+            if stop is not None and stop(parameters):
+                break
             length = float(np.linalg.norm(move))
             radius = max(step, 4.0 * length)
             if length < tolerance or gain < relative_gain * abs(value):
@@ -170,6 +179,8 @@ def maximize(
                 step, radius, kept = 0.5 * step, step, None  # converged at this scale: refine with a smaller model
         elif stencil_value > value:
             parameters, value, kept = stencil_point, stencil_value, None
+            if stop is not None and stop(parameters):
+                break
         elif step > min_step:  # no better point at this scale: fit a smaller model
             step, radius = 0.5 * step, step
         else:

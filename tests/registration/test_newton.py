@@ -83,3 +83,27 @@ def test_a_batch_evaluator_changes_neither_the_path_nor_the_result():
                        evaluate_many=evaluate_many)
     assert np.array_equal(alone[0], batched[0]) and alone[1] == batched[1]
     assert batches[0] == 8 and 6 in batches  # the axis points, then the mixed points, as batches
+
+
+def test_the_climb_stops_where_the_caller_says_and_costs_fewer_evaluations():
+    peak = np.array([3.0, -2.0])
+    calls = {"free": 0, "stopped": 0}
+
+    def counted(name):
+        def function(p):
+            calls[name] += 1
+            return float(np.exp(-0.05 * np.sum((p - peak) ** 2)))
+        return function
+
+    free, _ = maximize(counted("free"), 2, step=1.0, min_step=0.25, tolerance=1e-3, max_iterations=30)
+    stopped, value = maximize(counted("stopped"), 2, step=1.0, min_step=0.25, tolerance=1e-3, max_iterations=30,
+                              stop=lambda p: np.linalg.norm(p - free) <= 0.5)
+    assert np.linalg.norm(stopped - free) <= 0.5 < np.linalg.norm(free)  # it stopped on arriving, not at the start
+    assert value == pytest.approx(np.exp(-0.05 * np.sum((stopped - peak) ** 2)))
+    assert calls["stopped"] < calls["free"]
+
+
+def test_a_start_that_already_satisfies_the_stop_is_not_climbed():
+    calls = []
+    parameters, value = maximize(lambda p: calls.append(p) or -float(p @ p), 2, stop=lambda p: True)
+    assert np.array_equal(parameters, np.zeros(2)) and value == 0.0 and len(calls) == 1

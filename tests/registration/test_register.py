@@ -208,3 +208,26 @@ def test_the_gradient_field_choice_is_among_distinct_maxima_not_the_first_five_p
 
     assert error(decoys[:5]) > 20.0  # the decoys' maximum is wrong
     assert error(decoys + [near]) < 1.0  # before the descent to full resolution
+
+
+def test_refinements_that_reach_a_maximum_found_before_stop_there_and_change_nothing(monkeypatch):
+    # Most of NGF's proposals climb to a maximum an earlier one found; stopped within half a coarse pixel of it,
+    # they cost fewer evaluations and the registration ends where the full climbs would have taken it, to the bit.
+    from services.registration import register as module
+
+    evaluations = []
+
+    class CountingSampler(module.FixedSampler):
+        def __call__(self, matrix):
+            evaluations[-1] += 1
+            return super().__call__(matrix)
+
+    monkeypatch.setattr(module, "FixedSampler", CountingSampler)
+    visible, infrared, _ = scene_pair(24)
+    evaluations.append(0)
+    stopped = register(visible, infrared, "similarity", threads=1)
+    monkeypatch.setattr(module, "_JOINED", -1.0)  # no refinement ever joins another's maximum
+    evaluations.append(0)
+    climbed = register(visible, infrared, "similarity", threads=1)
+    assert np.array_equal(stopped.matrix, climbed.matrix)
+    assert evaluations[0] < 0.8 * evaluations[1], evaluations
