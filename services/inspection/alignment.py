@@ -19,9 +19,9 @@ _FINE_POINTS = 10000
 _COARSE_KEEP = 3
 _PRUNED_STARTS = 6
 _RANK_TOLERANCE = 1e-9
-_FACING_MIN_COSINE = -0.5
-"""A point is not matched to nominal surface whose outward normal makes more than 120 degrees with its own:
-clearly turned away from its camera (a matched sample on the other face of an edge makes about 90)."""
+_FACING_CANDIDATES = 8
+"""Nearest samples searched for one that faces a point's camera (beside an edge the nearest may lie on the
+other face, about 90 degrees off)."""
 
 
 @dataclass(frozen=True)
@@ -148,13 +148,37 @@ def _moved(points: np.ndarray, transforms: np.ndarray) -> np.ndarray:
 
 
 def _facing(seen: np.ndarray | None, transforms: np.ndarray, normal: np.ndarray) -> np.ndarray | bool:
-    """Whether each point's nominal outward normal (S, N, 3, part frame) makes at most 120 degrees with its
-    measured normal ``seen`` (N, 3, world, toward the camera that measured it; NaN: unknown, which passes)
-    under each transform (S, 4, 4): a nominal surface facing away from the camera cannot be what it saw."""
+    """Whether each point's nominal outward normal (S, N, 3, or S, N, K, 3 for K candidates; part frame) makes
+    less than 90 degrees with its measured normal ``seen`` (N, 3, world, toward the camera that measured it;
+    NaN: unknown, which passes) under each transform (S, 4, 4): a nominal surface facing away from the
+    camera cannot be what it saw."""
     if seen is None:
         return True
     turned = np.einsum("sij,nj->sni", transforms[:, :3, :3], seen)
-    return ~(np.einsum("sni,sni->sn", turned, normal) < _FACING_MIN_COSINE)
+    if normal.ndim == 4:
+        return ~(np.einsum("sni,snki->snk", turned, normal) <= 0.0)
+    return ~(np.einsum("sni,sni->sn", turned, normal) <= 0.0)
+
+
+def _nearest_facing(tree, sample_normals: np.ndarray, moved: np.ndarray, cut_off: float, seen: np.ndarray | None,
+                    transforms: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per point of ``moved`` (S, N, 3): the distance to and index of its nearest sample within ``cut_off``
+    (of the ``_FACING_CANDIDATES`` nearest, the nearest facing its measured normal ``seen`` when given), and
+    whether it has one."""
+    # bounded: a far query visits much of the tree, and beyond the cut-off its weight is 0 anyway
+    k = 1 if seen is None else _FACING_CANDIDATES
+    distance, index = tree.query(moved.reshape(-1, 3), k=k, distance_upper_bound=cut_off)
+    shape = moved.shape[:2]
+    if seen is None:
+        near = np.isfinite(distance).reshape(shape)
+        return distance.reshape(shape), np.where(near, index.reshape(shape), 0), near
+    distance, index = distance.reshape(*shape, k), index.reshape(*shape, k)
+    index = np.where(np.isfinite(distance), index, 0)
+    valid = np.isfinite(distance) & _facing(seen, transforms, sample_normals[index])
+    first = np.argmax(valid, axis=2)[..., None]
+    near = valid.any(axis=2)
+    return (np.take_along_axis(distance, first, axis=2)[..., 0], np.take_along_axis(index, first, axis=2)[..., 0],
+            near)
 
 
 def _correspondences(moved: np.ndarray, nominal: NominalSurface, matching: str, cut_off: float,
@@ -170,12 +194,8 @@ def _correspondences(moved: np.ndarray, nominal: NominalSurface, matching: str, 
         tree, samples, sample_normals = nominal.coarse_tree, nominal.coarse_samples, nominal.coarse_normals
     else:
         tree, samples, sample_normals = nominal.sample_tree, nominal.samples, nominal.sample_normals
-    # bounded: a far query visits much of the tree, and beyond the cut-off its weight is 0 anyway
-    distance, index = tree.query(moved.reshape(-1, 3), distance_upper_bound=cut_off)
-    near = np.isfinite(distance).reshape(moved.shape[:2])
-    index = np.where(near, index.reshape(near.shape), 0)
+    _, index, near = _nearest_facing(tree, sample_normals, moved, cut_off, seen, transforms)
     normal = sample_normals[index]
-    near &= _facing(seen, transforms, normal)
     return np.einsum("sni,sni->sn", moved - samples[index], normal), normal, near
 
 
@@ -221,11 +241,8 @@ def _near_order(points: np.ndarray, nominal: NominalSurface, transforms: np.ndar
                 seen: np.ndarray | None = None) -> np.ndarray:
     """Indices of the transforms (S, 4, 4), best first: most points within ``cut_off`` of a sparse nominal
     sample facing their measured normal ``seen`` (to the hundredth), then the lowest median distance of those."""
-    moved = _moved(points, transforms)
-    distance, index = nominal.coarse_tree.query(moved.reshape(-1, 3), distance_upper_bound=cut_off)
-    distance, index = distance.reshape(moved.shape[:2]), index.reshape(moved.shape[:2])
-    near = np.isfinite(distance)
-    near &= _facing(seen, transforms, nominal.coarse_normals[np.where(near, index, 0)])
+    distance, _, near = _nearest_facing(nominal.coarse_tree, nominal.coarse_normals, _moved(points, transforms),
+                                        cut_off, seen, transforms)
     fraction = np.round(near.mean(axis=1), 2)
     with np.errstate(all="ignore"):
         median = np.where(near.any(axis=1), np.nanmedian(np.where(near, distance, np.nan), axis=1), np.inf)
@@ -274,7 +291,7 @@ def align_nominal(points: np.ndarray, nominal: NominalSurface, max_distance_mm: 
     normals : (N, 3) array, optional
         The measured points' unit normals, turned toward the camera that measured each (the cloud's
         ``nx, ny, nz``; NaN where unknown). A point is then matched only to nominal surface whose outward
-        normal makes at most 120 degrees with its own.
+        normal makes less than 90 degrees with its own.
 
     Returns
     -------
@@ -307,15 +324,14 @@ def align_nominal(points: np.ndarray, nominal: NominalSurface, max_distance_mm: 
     was along them, which no measure depends on.
 
     Given ``normals`` (which face the camera that measured each point), a point counts, in every ICP step
-    and every ranking of the starts, only where the nominal's outward normal at its match makes at most
-    120 degrees with its own normal: a camera cannot see a face turned away from it, nor a point inside the
-    solid. This is the normal-compatibility test of ICP's correspondence rejection [4]_. The physical bound
-    is 90 degrees; the 30 degrees beyond it (``_FACING_MIN_COSINE``, chosen on the zoo's tuning seeds) let a
-    point beside an edge keep its nearest sample on the other face (about 90 degrees off; at 90 the true pose
-    of a stepped shaft lost 2 % of its coarse matches and its start was pruned). It rules out the poses that
-    fit a one-sided view as well as the truth does, whose matched normals are opposite (180 degrees): a
-    tube's seen outer wall on its inner wall (moved by the wall's thickness), a box's seen faces on the faces
-    opposite them. The reported ``rms_mm`` and ``inlier_fraction`` count every point, as without normals.
+    and every ranking of the starts, only where the nominal's outward normal at its match makes less than
+    90 degrees with its own normal: a camera cannot see a face turned away from it, nor a point inside the
+    solid (the normal-compatibility test of ICP's correspondence rejection [4]_, at the physical bound).
+    Matched to samples, a point takes the nearest of its 8 nearest samples that faces it: beside an edge
+    the nearest may lie on the other face, about 90 degrees off (rejecting those lost the true pose of a
+    stepped shaft 2 % of its coarse matches, and the start was pruned). It rules out the poses that fit a
+    one-sided view as well as the truth does, whose matched normals are opposite: a tube's seen outer wall on
+    its inner wall (moved by the wall's thickness), a box's seen faces on the faces opposite them. The reported ``rms_mm`` and ``inlier_fraction`` count every point, as without normals.
 
     References
     ----------
