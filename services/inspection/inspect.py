@@ -131,7 +131,8 @@ def inspect_field(*, field: dict[str, np.ndarray], part: Part | PreparedPart) ->
     -----
     1. Points at least ``segmentation.min_temperature_c`` hot, and the points without a temperature
        within 25 mm of them (``NEIGHBOURHOOD_MM``), seed the part; their cold equivalents
-       (``cold_equivalent``) are aligned to the nominal (``align_nominal``).
+       (``cold_equivalent``) are aligned to the nominal (``align_nominal``), each matched only to nominal
+       surface that faces the camera which measured it (the field's normals ``nx, ny, nz``, when it has them).
     2. The expansion's fixed point is moved to the nominal's volume centroid as aligned, every
        point with a temperature at least that hot or none is made cold-equivalent, the alignment is
        refined, and the points within ``segmentation.max_distance_mm`` of the nominal surface are
@@ -148,7 +149,7 @@ def inspect_field(*, field: dict[str, np.ndarray], part: Part | PreparedPart) ->
     part = prepared.part
     definition = part.definition
     points, temperature, finite, hot = _field_points(field, definition.segmentation.min_temperature_c)
-    located = _locate_part(points, temperature, finite, hot, prepared)
+    located = _locate_part(points, temperature, finite, hot, prepared, _field_normals(field))
     member, candidates = located.member, located.candidates
 
     n = len(points)
@@ -172,6 +173,13 @@ def inspect_field(*, field: dict[str, np.ndarray], part: Part | PreparedPart) ->
         report["heads"] = [asdict(head) for head in heads]
     return Inspection(report=report, cold_points=cold_points, deviation=deviation_out, fallback=fallback,
                       alignment=located.alignment, heads=heads)
+
+
+def _field_normals(field: dict[str, np.ndarray]) -> np.ndarray | None:
+    """The field's point normals (``nx, ny, nz``, toward the camera that measured each point), None without them."""
+    if not all(name in field for name in ("nx", "ny", "nz")):
+        return None
+    return np.column_stack([field["nx"], field["ny"], field["nz"]]).astype(np.float64)
 
 
 def _field_points(field: dict[str, np.ndarray], min_temperature_c: float):
@@ -226,7 +234,7 @@ class _LocatedPart:
 
 
 def _locate_part(points: np.ndarray, temperature: np.ndarray, finite: np.ndarray, hot: np.ndarray,
-                 prepared: PreparedPart) -> _LocatedPart:
+                 prepared: PreparedPart, normals: np.ndarray | None = None) -> _LocatedPart:
     """Steps 1 and 2 of :func:`inspect_field`: seed, make cold-equivalent, align, and keep the points near the
     nominal surface; too few of them is no part."""
     part = prepared.part
@@ -235,7 +243,8 @@ def _locate_part(points: np.ndarray, temperature: np.ndarray, finite: np.ndarray
     # pixels, the thermal camera's blind spots), which a one-sided view of a thin part may need to pin its pose
     seed = even_subset(np.flatnonzero(hot | _beside(points, hot, finite & ~np.isfinite(temperature))), _SEED_POINTS)
     first = cold_equivalent(points[seed], temperature[seed], part.material)
-    coarse = align_nominal(first.points, prepared.nominal, max_distance_mm=max_distance, polish=False)
+    coarse = align_nominal(first.points, prepared.nominal, max_distance_mm=max_distance, polish=False,
+                           normals=None if normals is None else normals[seed])
     centre = coarse.to_world(prepared.nominal.centroid[None])[0]
 
     candidates = np.flatnonzero(finite & (hot | ~np.isfinite(temperature)))
@@ -244,7 +253,7 @@ def _locate_part(points: np.ndarray, temperature: np.ndarray, finite: np.ndarray
     is_seed[seed] = True
     hot_seed = is_seed[candidates]
     alignment = align_nominal(cold.points[hot_seed], prepared.nominal, max_distance_mm=max_distance,
-                              start=coarse.matrix)
+                              start=coarse.matrix, normals=None if normals is None else normals[candidates[hot_seed]])
     cold_part_frame = alignment.to_part(cold.points)
     deviation = surface_deviation(cold_part_frame, prepared.nominal)
     member = np.abs(deviation) <= max_distance
