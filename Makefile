@@ -31,7 +31,7 @@ demo: install
 
 # The suite on TEST_WORKERS processes (pytest-xdist); each takes a whole test file at a time, so a file's
 # module-scoped servers are started once. Much of the suite waits on servers and subprocesses, so two processes
-# take about half the time on two cores.
+# take 9 minutes where one takes about 25 on this 2-core machine (docs/reliability.md).
 TEST_WORKERS ?= 2
 test: install-test docker-compose browser
 	$(BIN)/python -m pytest -n $(TEST_WORKERS) --dist loadfile
