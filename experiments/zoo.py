@@ -543,6 +543,44 @@ def _seeds(group: list[dict]) -> str:
     return ", ".join(str(r["seed"]) for r in group) or "none"
 
 
+def undecided_reason(result: dict) -> str:
+    """Why a NotDecidable verdict came, against the truth: ``"limit"`` where an item judged NotDecidable has its
+    true value within its expanded uncertainty of a tolerance limit (what the issue allows), ``"covered"`` where
+    none has but each such item's uncertainty covers its error (the measurement, within its stated uncertainty,
+    put a limit within reach), ``"error"`` where an item's error exceeds its uncertainty (a measurement error,
+    I5), ``"unknown"`` where no undecided item has a known truth.
+
+    A feature's truth is the zoo's true cold value (left out where a dent or bulge changes what it measures);
+    the surface's true extremes are the drawn dent or bulge and half of each feature's true size offset (the
+    surface of a diameter off by d lies d/2 off), against the part file's surface tolerance and the report's
+    cell extremes.
+    """
+    zoo = zoo_scene(result["seed"])
+    found: list[tuple[bool, bool]] = []  # per undecided item: (true value within U of a limit, U covers the error)
+    for feature in zoo.part_file["features"]:
+        entry = result.get("features", {}).get(feature["name"], {})
+        true = zoo.truth.features.get(feature["name"])
+        if entry.get("verdict") == "NotDecidable" and true is not None and entry.get("uncertainty") is not None:
+            low, high = (feature["nominal"] + limit for limit in feature["tolerance"])
+            u = entry["uncertainty"]
+            found.append((min(abs(true - low), abs(true - high)) <= u, abs(entry["cold"] - true) <= u))
+    surface = result.get("surface") or {}
+    if surface.get("verdict") == "NotDecidable" and surface.get("uncertainty") is not None:
+        offsets = [bump.height_mm for bump in zoo.part.bumps]
+        offsets += [(zoo.truth.features[f["name"]] - f["nominal"]) / 2 for f in zoo.part_file["features"]
+                    if f["name"] in zoo.truth.features]
+        upper, lower = max([0.0, *offsets]), min([0.0, *offsets])
+        low, high = zoo.part_file["surface_tolerance"]
+        u = surface["uncertainty"]
+        found.append((min(high - upper, lower - low) <= u,
+                      surface["cell_max"] - upper <= u and lower - surface["cell_min"] <= u))
+    if not found:
+        return "unknown"
+    if any(within for within, _ in found):
+        return "limit"
+    return "covered" if all(covered for _, covered in found) else "error"
+
+
 def failure_classes(results: list[dict]) -> list[str]:
     """Where the wrong points lie and which scenes each wrong verdict comes from (markdown lines)."""
     scored = [r for r in results if "refused" not in r]
@@ -560,6 +598,9 @@ def failure_classes(results: list[dict]) -> list[str]:
     false_not_ok = [r for r in results if r["in_tolerance"] and r.get("verdict") == "NotOK"]
     false_ok = [r for r in results if not r["in_tolerance"] and r.get("verdict") == "OK"]
     undecided = [r for r in results if r.get("verdict") == "NotDecidable"]
+    reasons = {r["seed"]: undecided_reason(r) for r in undecided}
+    because = {reason: [r for r in undecided if reasons[r["seed"]] == reason]
+               for reason in ("limit", "covered", "error", "unknown")}
     refused = [r for r in results if r.get("verdict") == "refused"]
     unseen = [r for r in results if (r.get("part_points") or 0) < 100 and r.get("verdict") in ("OK", "NotOK")]
     far = [r for r in false_not_ok if r.get("surface") and r["surface"].get("cell_min") is not None
@@ -570,7 +611,12 @@ def failure_classes(results: list[dict]) -> list[str]:
               f"segmentation, not a dent): {_seeds(far)}; {len(size_wrong)} with a size feature NotOK: "
               f"{_seeds(size_wrong)}.",
               f"- false OK (out of tolerance, passed): {len(false_ok)}: seeds {_seeds(false_ok)}.",
-              f"- NotDecidable: {len(undecided)}: seeds {_seeds(undecided)}.",
+              f"- NotDecidable: {len(undecided)}: seeds {_seeds(undecided)}; of them, against the truth: "
+              f"{len(because['limit'])} with a true value within the expanded uncertainty of a limit (what the "
+              f"issue allows): {_seeds(because['limit'])}; {len(because['covered'])} with the true value further, "
+              f"the uncertainty covering the error: {_seeds(because['covered'])}; {len(because['error'])} with an "
+              f"error beyond the uncertainty (I5): {_seeds(because['error'])}; {len(because['unknown'])} with no "
+              f"known truth for the undecided item: {_seeds(because['unknown'])}.",
               f"- inspect refused (an error): {len(refused)}: seeds {_seeds(refused)}.",
               f"- a verdict on a part with fewer than 100 reconstructed points: {len(unseen)}: seeds {_seeds(unseen)}."]
     hot_off = [r for r in scored if r.get("hot_readings_off_part", 0) >= 100]

@@ -159,3 +159,26 @@ def test_the_zoo_command_refuses_bad_seeds_and_reporting_tuning_seeds(tmp_path, 
         assert exit_.value.code == 2
     assert "never reported" in capsys.readouterr().err
     assert not (tmp_path / "z.md").exists()
+
+
+def test_a_not_decidable_verdict_is_classed_by_the_truth_of_its_undecided_feature():
+    sys.path.insert(0, str(ROOT))
+    from experiments.zoo import undecided_reason
+
+    seed = next(s for s in TUNING_SEEDS if zoo_scene(s).truth.features)
+    zoo = zoo_scene(seed)
+    feature = next(f for f in zoo.part_file["features"] if f["name"] in zoo.truth.features)
+    true = zoo.truth.features[feature["name"]]
+    margin = min(abs(true - (feature["nominal"] + limit)) for limit in feature["tolerance"])
+    assert margin > 0.05  # the zoo draws in-tolerance sizes within 0.4 of their tolerance, out ones beyond 1.5
+
+    def result(cold: float, uncertainty: float) -> dict:
+        return {"seed": seed, "verdict": "NotDecidable", "surface": {"verdict": "OK"},
+                "features": {feature["name"]: {"verdict": "NotDecidable", "cold": cold, "uncertainty": uncertainty}}}
+
+    assert undecided_reason(result(true, margin + 0.01)) == "limit"
+    assert undecided_reason(result(true + 0.5 * (margin - 0.01), margin - 0.01)) == "covered"
+    assert undecided_reason(result(true + 2 * (margin - 0.01), margin - 0.01)) == "error"
+    decided = result(true, margin)
+    decided["features"][feature["name"]]["verdict"] = "OK"
+    assert undecided_reason(decided) == "unknown"
