@@ -220,6 +220,50 @@ def _glow_outline(decoded: DecodedCapture, glowing: np.ndarray) -> DecodedCaptur
     return replace(decoded, projector_x=x, projector_y=y, rejection=rejection)
 
 
+def _unlit_as_shadow(decoded: DecodedCapture, unlit: np.ndarray) -> DecodedCapture:
+    """``GLOW_NOISE`` pixels that no projector light reaches (``unlit``) become ``LOW_MODULATION``.
+
+    Parameters
+    ----------
+    decoded : DecodedCapture
+        After the windowed recovery.
+    unlit : (H, W) bool array
+        Glowing pixels whose windowed pattern is below ``_UNLIT_SIGMAS`` of its noise.
+
+    Returns
+    -------
+    DecodedCapture
+        With those pixels' rejection ``LOW_MODULATION`` (their coordinates are NaN already).
+
+    Notes
+    -----
+    Such a pixel is in a projector shadow (cast by the part on itself, or by a fixture) or faces away from
+    the projector: it has no pattern to lose, as a shadowed pixel of a cool surface has none, which the
+    decoder calls ``LOW_MODULATION``. The code matters to the outline step: pixels without a pattern
+    (``outline._no_pattern``: dark, saturated, low modulation, saturated by the glow) seed its margin, and a
+    pixel a blur sigma inside the shadow, which holds only its lit neighbour's blurred fringes (Phi(-1) = 16 %
+    of them) and so the neighbour's code, is dropped there when its modulation is below 90 % of the strongest
+    within the margin (docs/structured-light.md, "Points at projector shadows and depth steps"). As
+    ``GLOW_NOISE`` the shadow seeded nothing and that pixel was kept, 1 to 5 mm off along its line of
+    sight. ``GLOW_NOISE`` pixels with projector light (a pattern buried in the glow's shot noise) are not
+    seeds: a noisy part's scattered weak pixels would drop their neighbours, whose codes are their own.
+    The unlit test is the windowed phase-frame level against 3 of its noise sigmas [1]_.
+
+    References
+    ----------
+    .. [1] C. Zuo et al., "Phase shifting algorithms for fringe projection profilometry: a review",
+       Optics and Lasers in Engineering 109, 2018, section 5 (the modulation's noise, sigma sqrt(2 / N)).
+    """
+    if unlit.shape != decoded.rejection.shape:
+        raise ValueError(f"The unlit map must have the capture's shape {decoded.rejection.shape}; got {unlit.shape}.")
+    shadow = unlit & (decoded.rejection == Rejection.GLOW_NOISE)
+    if not shadow.any():
+        return decoded
+    rejection = decoded.rejection.copy()
+    rejection[shadow] = Rejection.LOW_MODULATION
+    return replace(decoded, rejection=rejection)
+
+
 def decode_glowing(
     frames: np.ndarray,
     sequence: Sequence,
@@ -252,7 +296,8 @@ def decode_glowing(
     -------
     decoded : DecodedCapture
         ``intensity`` is the pattern's white level above the offset; ``rejection`` adds
-        ``GLOW_SATURATED`` and ``GLOW_NOISE``.
+        ``GLOW_SATURATED`` and ``GLOW_NOISE``; glowing pixels that no projector light reaches are
+        ``LOW_MODULATION``.
     noise : (H, W) float32 array
         The camera noise per pixel, grey levels (``pixel_noise``).
     report : GlowReport
@@ -279,6 +324,9 @@ def decode_glowing(
     cooler surface, which no coordinate jump reveals when the part's side is lost).
     ``GlowReport.lost_fraction`` counts the ``GLOW_NOISE`` pixels whose windowed pattern is at least 3
     sigma above the glow: a part's surfaces that the projector does not light are not lost to the glow.
+    Those unlit pixels (with ``window_sigma_px`` > 0) are ``LOW_MODULATION`` in the result, a projector shadow
+    as on a cool surface, so that the outline step's pattern margin drops the leaked codes beside them
+    (``_unlit_as_shadow``).
 
     References
     ----------
@@ -336,6 +384,7 @@ def decode_glowing(
                                             min_quality=min_quality, consistency=consistency, max_jump=max_jump,
                                             sigma_px=window_sigma_px)
     decoded = _glow_outline(decoded, glowing)
+    decoded = _unlit_as_shadow(decoded, unlit)
     rejection = decoded.rejection
 
     saturated_share, lost_share, drift, measured_share, inner = 0.0, 0.0, 0.0, 1.0, None
