@@ -222,6 +222,8 @@ class _LocatedPart:
     member: np.ndarray
     turned: int = 0
     """Points within the segmentation distance left out because their normals disagree with the nominal's."""
+    without_normal: int = 0
+    """Points within the segmentation distance left out because the field gives them no normal."""
 
     @property
     def in_part(self) -> np.ndarray:
@@ -275,8 +277,11 @@ def _locate_part(points: np.ndarray, temperature: np.ndarray, finite: np.ndarray
         raise ValueError(f"only {np.count_nonzero(member)} measured points lie within {max_distance:g} mm of the "
                          f"nominal surface once aligned, facing as it does (at least {MIN_PART_POINTS} needed): the "
                          "part is not in the field (hidden, lost to the glow, or not this part type)")
+    unknown = near & ~member
+    if normals is not None:
+        unknown &= ~np.isfinite(normals[candidates]).all(axis=1)
     return _LocatedPart(candidates, cold, alignment, cold_part_frame, deviation, member,
-                        int(np.count_nonzero(near & ~member)))
+                        int(np.count_nonzero(near & ~member & ~unknown)), int(np.count_nonzero(unknown)))
 
 
 def agrees_with_nominal(points_part: np.ndarray, normals_part: np.ndarray, nominal: NominalSurface,
@@ -325,7 +330,8 @@ def agrees_with_nominal(points_part: np.ndarray, normals_part: np.ndarray, nomin
     What the rule cannot see: a surface that really belongs to the part but stands steeply on the nominal (a
     fin of flash, a step where the part is longer than nominal) is dropped as foreign rather than judged, but
     for its points whose normals agree (a fin's tip, a longer end's face); the count of points dropped is in
-    the report (``segmentation.turned_points``) so that such a part can be told from a clean one.
+    the report (``segmentation.turned_points``; ``points_without_normal`` those left out for want of a normal)
+    so that such a part can be told from a clean one.
 
     A point whose normal is unknown (NaN) does not agree: in a field with normals these are the points at
     the border of the camera's point map (a pixel without both neighbours along a row or a column: a depth
@@ -425,6 +431,7 @@ def _report(part: Part, results: list[dict[str, Any]], surface: dict[str, Any], 
         "alignment": {"rms_mm": alignment.rms_mm, "inlier_fraction": alignment.inlier_fraction,
                       "matrix": alignment.matrix.tolist()},
         "segmentation": {"points": int(located.member.sum()), "turned_points": located.turned,
+                         "points_without_normal": located.without_normal,
                          "max_distance_mm": definition.segmentation.max_distance_mm,
                          "max_normal_angle_deg": MAX_NORMAL_ANGLE_DEG},
         "temperature": {"points": int(located.member.sum()), "fallback_points": int(located.used_fallback.sum()),

@@ -81,6 +81,7 @@ def test_a_support_passing_under_a_good_part_is_not_taken_for_its_surface(billet
     assert np.isnan(inspection.deviation[part_points:]).all()  # no support point is the part's
     assert np.isfinite(inspection.deviation[:part_points]).mean() > 0.97
     assert report["segmentation"]["turned_points"] > 100
+    assert report["segmentation"]["points_without_normal"] == 0  # every constructed point has a normal
     assert report["segmentation"]["max_normal_angle_deg"] == MAX_NORMAL_ANGLE_DEG
 
 
