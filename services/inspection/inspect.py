@@ -112,7 +112,7 @@ MIN_PART_POINTS = 20
 MAX_NORMAL_ANGLE_DEG = 60.0
 """A point near the aligned nominal is the part's only if its measured normal makes at most this angle with the
 nominal's outward normal at its match (``agrees_with_nominal``): the flank of a dent or bulge is tilted by its
-slope, tens of degrees at most; a fixture, the wall or a slid part's overhang meets the nominal at more."""
+slope, tens of degrees at most; a fixture, the support or a misplaced part's overhang meets it at more."""
 
 
 def inspect_field(*, field: dict[str, np.ndarray], part: Part | PreparedPart) -> Inspection:
@@ -311,20 +311,20 @@ def agrees_with_nominal(points_part: np.ndarray, normals_part: np.ndarray, nomin
     nominal's normal n at its match (the gradient of the signed distance, ``signed_distance_gradient``: the
     closest triangle's normal on a face, (p - q) / d off an edge). That reading holds only where the measured
     surface runs nearly parallel to the nominal there: a dent or bulge of depth h and width w tilts its flanks
-    by about atan(h / w) (a Gaussian one of standard deviation s at most atan(0.61 h / s): 22 degrees for a
-    4 mm bump of s = 6 mm, the zoo's steepest out-of-tolerance one), and its deepest point, the one that
-    decides its depth, is not tilted at all. A point whose normal makes more than ``max_angle_deg`` (60
-    degrees) with n belongs to another surface that happens to pass within the segmentation distance: a
-    fixture or the support meeting the part at an angle (its face seen from the camera turned away from the
-    nominal's, the angle above 90 degrees), the wall behind a thin rim, or the overhang of a part slid along a
-    direction its view does not pin (a tube's wall beyond the nominal's end, matched to the rim's edge at 90
-    degrees). Taken as the part's, those points made patches of cells at up to the segmentation distance
-    (+4.9 to +5.0 mm) and rejected parts in tolerance. A measured normal is the cross product of the point
-    map's central differences (docs/structured-light.md), a few degrees off on a smooth surface, so 60 degrees
-    leaves more than 30 degrees of margin on either side. The normals are compared with their signs: a camera
-    sees the outside of the part's surface, so its measured normal and the nominal's outward one agree on every
-    face it can see (a bore's wall included), while a support under the part, seen from above, faces the
-    part's underside (the angle near 180 degrees): the alignment's facing test (``align_nominal``) is the
+    by about atan(h / w) (a Gaussian one of standard deviation s at most atan(0.61 h / s): 22 degrees for a 4 mm
+    bump of s = 6 mm, the zoo's steepest out-of-tolerance one), and its deepest point, the one that decides its
+    depth, is not tilted at all. A point whose normal makes more than ``max_angle_deg`` (60 degrees) with n
+    belongs to another surface that happens to pass within the segmentation distance: a fixture or the support
+    meeting the part at an angle (the support's top face seen from the camera faces the part's underside, the
+    angle above 90 degrees), or the overhang of a part misplaced along a direction its view does not pin (a
+    tube's wall beyond the nominal's end, matched to the rim's edge at 90 degrees). Taken as the part's, those
+    points made patches of cells at up to the segmentation distance (+4.9 to +5.0 mm) and rejected parts in
+    tolerance. A measured normal is the cross product of the point map's central differences
+    (``surface_normals`` in services/structured_light/reconstruct.py), a few degrees off on a smooth surface, so
+    60 degrees leaves more than 30 degrees of margin on either side. The normals are compared with their signs:
+    a camera sees the outside of the part's surface, so its measured normal and the nominal's outward one agree
+    on every face it can see (a bore's wall included), while a support under the part, seen from above, faces
+    the part's underside (the angle near 180 degrees): the alignment's facing test (``align_nominal``) is the
     same comparison at its physical bound of 90 degrees.
 
     What the rule cannot see: a surface that really belongs to the part but stands steeply on the nominal (a
@@ -334,8 +334,8 @@ def agrees_with_nominal(points_part: np.ndarray, normals_part: np.ndarray, nomin
     so that such a part can be told from a clean one.
 
     A point whose normal is unknown (NaN) does not agree: in a field with normals these are the points at
-    the border of the camera's point map (a pixel without both neighbours along a row or a column: a depth
-    edge, a shadow's rim), where the decoded point mixes two surfaces (docs/zoo.md, S1) and nothing tells the
+    the border of the camera's point map (a pixel missing one of its four neighbours: a depth edge, a
+    shadow's rim), where the decoded point mixes two surfaces (docs/zoo.md, S1) and nothing tells the
     part's from a foreign surface's; the turned overhang of a slid part ends in a line of them. A field without
     normals is segmented by the distance alone (``_locate_part`` does not call this).
     """
