@@ -109,6 +109,10 @@ def _budget(part: Part) -> TemperatureBudget:
 
 MIN_PART_POINTS = 20
 """Fewer measured points on the aligned nominal surface than this are no part: no verdict from them."""
+MAX_NORMAL_ANGLE_DEG = 60.0
+"""A point near the aligned nominal is the part's only if its measured normal makes at most this angle with the
+nominal's outward normal at its match (``agrees_with_nominal``): the flank of a dent or bulge is tilted by its
+slope, tens of degrees at most; a fixture, the support or a misplaced part's overhang meets it at more."""
 
 
 def inspect_field(*, field: dict[str, np.ndarray], part: Part | PreparedPart) -> Inspection:
@@ -135,8 +139,9 @@ def inspect_field(*, field: dict[str, np.ndarray], part: Part | PreparedPart) ->
        surface that faces the camera which measured it (the field's normals ``nx, ny, nz``, when it has them).
     2. The expansion's fixed point is moved to the nominal's volume centroid as aligned, every
        point with a temperature at least that hot or none is made cold-equivalent, the alignment is
-       refined, and the points within ``segmentation.max_distance_mm`` of the nominal surface are
-       the part's.
+       refined, and the points within ``segmentation.max_distance_mm`` of the nominal surface whose
+       normals agree with the nominal's there (``agrees_with_nominal``: at most ``MAX_NORMAL_ANGLE_DEG``
+       apart) are the part's; in a field with normals, a point without one (the cloud's border) is not.
     3. Each feature is fitted to the part's cold points in its region (part frame) and to the same
        points hot; its deviation from nominal gets an expanded uncertainty (k = 2) from the budget
        (``size_uncertainty``) and a verdict (``decide``).
@@ -215,6 +220,10 @@ class _LocatedPart:
     cold_part_frame: np.ndarray
     deviation: np.ndarray
     member: np.ndarray
+    turned: int = 0
+    """Points within the segmentation distance left out because their normals disagree with the nominal's."""
+    without_normal: int = 0
+    """Points within the segmentation distance left out because the field gives them no normal."""
 
     @property
     def in_part(self) -> np.ndarray:
@@ -256,12 +265,85 @@ def _locate_part(points: np.ndarray, temperature: np.ndarray, finite: np.ndarray
                               start=coarse.matrix, normals=None if normals is None else normals[candidates[hot_seed]])
     cold_part_frame = alignment.to_part(cold.points)
     deviation = surface_deviation(cold_part_frame, prepared.nominal)
-    member = np.abs(deviation) <= max_distance
+    near = np.abs(deviation) <= max_distance
+    member = near.copy()
+    if normals is not None and near.any():
+        near_index = np.flatnonzero(near)
+        # a rotation turns normals as it turns points: world to part frame is the transpose
+        member[near_index] = agrees_with_nominal(cold_part_frame[near_index],
+                                                 normals[candidates[near_index]] @ alignment.matrix[:3, :3],
+                                                 prepared.nominal)
     if np.count_nonzero(member) < MIN_PART_POINTS:
         raise ValueError(f"only {np.count_nonzero(member)} measured points lie within {max_distance:g} mm of the "
-                         f"nominal surface once aligned (at least {MIN_PART_POINTS} needed): the part is not in the "
-                         "field (hidden, lost to the glow, or not this part type)")
-    return _LocatedPart(candidates, cold, alignment, cold_part_frame, deviation, member)
+                         f"nominal surface once aligned, facing as it does (at least {MIN_PART_POINTS} needed): the "
+                         "part is not in the field (hidden, lost to the glow, or not this part type)")
+    unknown = near & ~member
+    if normals is not None:
+        unknown &= ~np.isfinite(normals[candidates]).all(axis=1)
+    return _LocatedPart(candidates, cold, alignment, cold_part_frame, deviation, member,
+                        int(np.count_nonzero(near & ~member & ~unknown)), int(np.count_nonzero(unknown)))
+
+
+def agrees_with_nominal(points_part: np.ndarray, normals_part: np.ndarray, nominal: NominalSurface,
+                        max_angle_deg: float = MAX_NORMAL_ANGLE_DEG) -> np.ndarray:
+    """Whether each measured point's normal agrees with the nominal surface's outward normal at its match.
+
+    Parameters
+    ----------
+    points_part : (N, 3) array
+        Cold-equivalent points in the part frame, near the nominal surface.
+    normals_part : (N, 3) array
+        Their measured normals in the part frame, facing the camera that measured each (a reconstruction's
+        ``nx, ny, nz``, a station's merged field's each toward its own head); NaN where unknown.
+    nominal : NominalSurface
+        The nominal part.
+    max_angle_deg : float
+        The largest angle between the two normals of a point that is the part's.
+
+    Returns
+    -------
+    (N,) bool array
+        True where the angle is at most ``max_angle_deg``; False where the normal is unknown.
+
+    Notes
+    -----
+    The rule: a point at distance d from the nominal is read as the part's surface displaced by d along the
+    nominal's normal n at its match (the gradient of the signed distance, ``signed_distance_gradient``: the
+    closest triangle's normal on a face, (p - q) / d off an edge). That reading holds only where the measured
+    surface runs nearly parallel to the nominal there: a dent or bulge of depth h and width w tilts its flanks
+    by about atan(h / w) (a Gaussian one of standard deviation s at most atan(0.61 h / s): 22 degrees for a 4 mm
+    bump of s = 6 mm, the zoo's steepest out-of-tolerance one), and its deepest point, the one that decides its
+    depth, is not tilted at all. A point whose normal makes more than ``max_angle_deg`` (60 degrees) with n
+    belongs to another surface that happens to pass within the segmentation distance: a fixture or the support
+    meeting the part at an angle (the support's top face seen from the camera faces the part's underside, the
+    angle above 90 degrees), or the overhang of a part misplaced along a direction its view does not pin (a
+    tube's wall beyond the nominal's end, matched to the rim's edge at 90 degrees). Taken as the part's, those
+    points made patches of cells at up to the segmentation distance (+4.9 to +5.0 mm) and rejected parts in
+    tolerance. A measured normal is the cross product of the point map's central differences
+    (``surface_normals`` in services/structured_light/reconstruct.py), a few degrees off on a smooth surface, so
+    60 degrees leaves more than 30 degrees of margin on either side. The normals are compared with their signs:
+    a camera sees the outside of the part's surface, so its measured normal and the nominal's outward one agree
+    on every face it can see (a bore's wall included), while a support under the part, seen from above, faces
+    the part's underside (the angle near 180 degrees): the alignment's facing test (``align_nominal``) is the
+    same comparison at its physical bound of 90 degrees.
+
+    What the rule cannot see: a surface that really belongs to the part but stands steeply on the nominal (a
+    fin of flash, a step where the part is longer than nominal) is dropped as foreign rather than judged, but
+    for its points whose normals agree (a fin's tip, a longer end's face); the count of points dropped is in
+    the report (``segmentation.turned_points``; ``points_without_normal`` those left out for want of a normal)
+    so that such a part can be told from a clean one.
+
+    A point whose normal is unknown (NaN) does not agree: in a field with normals these are the points at
+    the border of the camera's point map (a pixel missing one of its four neighbours: a depth edge, a
+    shadow's rim), where the decoded point mixes two surfaces (docs/zoo.md, S1) and nothing tells the
+    part's from a foreign surface's; the turned overhang of a slid part ends in a line of them. A field without
+    normals is segmented by the distance alone (``_locate_part`` does not call this).
+    """
+    _, gradient = nominal.signed_distance_gradient(points_part)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        cosine = (np.einsum("ij,ij->i", normals_part, gradient)
+                  / (np.linalg.norm(normals_part, axis=1) * np.linalg.norm(gradient, axis=1)))
+    return cosine >= np.cos(np.radians(max_angle_deg))
 
 
 @dataclass(frozen=True)
@@ -348,6 +430,10 @@ def _report(part: Part, results: list[dict[str, Any]], surface: dict[str, Any], 
         "surface": surface,
         "alignment": {"rms_mm": alignment.rms_mm, "inlier_fraction": alignment.inlier_fraction,
                       "matrix": alignment.matrix.tolist()},
+        "segmentation": {"points": int(located.member.sum()), "turned_points": located.turned,
+                         "points_without_normal": located.without_normal,
+                         "max_distance_mm": definition.segmentation.max_distance_mm,
+                         "max_normal_angle_deg": MAX_NORMAL_ANGLE_DEG},
         "temperature": {"points": int(located.member.sum()), "fallback_points": int(located.used_fallback.sum()),
                         "mean_c": float(np.mean(used_temperature)), "min_c": float(np.min(used_temperature)),
                         "max_c": float(np.max(used_temperature)),
