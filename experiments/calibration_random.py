@@ -35,7 +35,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from services.calibration.camera import INTRINSIC_NAMES, view_jackknife
+from services.calibration.camera import (_ESTIMATED, INTRINSIC_NAMES, _calibrate_views, _intrinsic_values,
+                                         jackknife_replicates)
 from services.calibration.corner_window import select_corner_window
 from services.calibration.corners import detect_board
 from services.calibration.determination import FOCAL_LIMIT, PRINCIPAL_POINT_LIMIT, poorly_determined
@@ -114,8 +115,20 @@ def evaluate(seed: int, thermal16: bool, cache: Path) -> dict | None:
                                           *result.dist]))
     errors = {name: float(estimate[name] - truth.get(name, 0.0)) for name in names}
     kept = list(result.views)
-    jack = np.sqrt(np.diag(view_jackknife([objects[i] for i in kept], [refined[i] for i in kept], size,
-                                          result.distortion_model)))
+    kept_objects = [np.asarray(objects[i], np.float32) for i in kept]
+    kept_images = [np.asarray(refined[i], np.float32) for i in kept]
+    models = {}  # what a sigma rule needs, so that rules can be compared from the rows without calibrating again
+    for model in dict.fromkeys((result.distortion_model, "standard")):
+        full = _calibrate_views(kept_objects, kept_images, size, model)
+        model_names = _ESTIMATED[model]
+        values = _intrinsic_values(full)[[INTRINSIC_NAMES.index(name) for name in model_names]]
+        replicates = jackknife_replicates(kept_objects, kept_images, size, model, full)
+        models[model] = {"names": list(model_names), "estimate": values.tolist(),
+                         "jacobian": [float(full["std_intrinsics"][INTRINSIC_NAMES.index(name)]) for name in model_names],
+                         "replicates": replicates.tolist()}
+    chosen = models[result.distortion_model]
+    deviations = np.asarray(chosen["replicates"]) - np.mean(chosen["replicates"], axis=0)
+    jack = np.sqrt((len(kept) - 1) / len(kept) * np.sum(deviations**2, axis=0))
     row = {
         "seed": seed, "modality": str(data["modality"]), "size": list(size), "views": int(data["views"]),
         "found": int(data["found"]), "kept": len(kept), "blur": float(data["blur"]), "noise": float(data["noise"]),
@@ -127,6 +140,8 @@ def evaluate(seed: int, thermal16: bool, cache: Path) -> dict | None:
         "std_jackknife": dict(zip(names, map(float, jack))),
         "std_model_choice": result.std_model_choice or {name: 0.0 for name in names},
         "warnings": poorly_determined(result),
+        "truth": {name: float(truth.get(name, 0.0)) for name in INTRINSIC_NAMES},
+        "models": models,
     }
     if thermal16:
         objects32 = [o.astype(np.float32) for o in objects]
