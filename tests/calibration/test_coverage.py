@@ -58,11 +58,26 @@ def test_the_predictive_factor_makes_a_jackknife_sigma_cover_90_percent(views):
         assert raw < 0.885, raw  # the bare jackknife sigma claims too much with few views
 
 
-def test_a_coefficient_the_standard_model_does_not_estimate_spreads_to_zero():
-    """The lens models are nested: k4..k6 of a rational choice are zero in the standard model, so their spread to
-    it is the coefficient itself; k1 is the same coefficient in both and spreads by the difference."""
+def test_the_choice_of_a_lens_model_spreads_to_the_standard_models_coefficients_less_their_noise():
+    """The lens models are nested: k4 of a rational choice is zero in the standard model, so its squared spread is
+    the coefficient's square less its jackknife variance; k1 is the same coefficient in both and spreads by the
+    difference less that difference's own jackknife variance (Hausman's form); f by the plain difference."""
     K = np.array([[400.0, 0.0, 160.0], [0.0, 400.0, 128.0], [0.0, 0.0, 1.0]])
     chosen = {"K": K, "dist": np.array([-0.9, 0.3, 0.001, 0.0, 0.02, -0.7, 0.1, 0.0])}
-    general = {"K": K, "dist": np.array([-0.2, 0.1, 0.001, 0.0, 0.01])}
-    spread = model_choice_spread(chosen, general, ("fx", "k1", "k3", "k4", "k5"))
-    assert spread == pytest.approx({"fx": 0.0, "k1": 0.7, "k3": 0.01, "k4": 0.7, "k5": 0.1})
+    general = {"K": K * np.array([[1.001], [1.0], [1.0]]), "dist": np.array([-0.2, 0.1, 0.001, 0.0, 0.01])}
+    names = ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6")
+    rng = np.random.default_rng(5)
+    chosen_replicates = rng.normal(0.0, 0.05, (12, len(names)))
+    general_replicates = rng.normal(0.0, 0.05, (12, 9))
+    spread = model_choice_spread(chosen, general, names, chosen_replicates, general_replicates)
+
+    def jackknife_variance(values):
+        return 11 / 12 * np.sum((values - values.mean()) ** 2)
+
+    assert spread["fx"] == pytest.approx(0.4)
+    k1_noise = jackknife_variance(general_replicates[:, 4] - chosen_replicates[:, 4])
+    assert spread["k1"] == pytest.approx(np.sqrt(0.7**2 - k1_noise))
+    assert spread["k4"] == pytest.approx(np.sqrt(0.7**2 - jackknife_variance(chosen_replicates[:, 9])))
+    assert spread["p1"] == 0.0  # equal estimates: no bias, whatever the noise
+    with pytest.raises(ValueError, match="replicates"):
+        model_choice_spread(chosen, general, names)
