@@ -159,6 +159,78 @@ def sigma(row: dict, kind: str, name: str) -> float:
     return row[kind][name]
 
 
+def _rule_inputs(row: dict) -> dict[str, dict]:
+    """Per parameter of a row: error, Jacobian and jackknife sigma, the view count, and against the standard
+    model the difference d, its paired jackknife sigma and the standard model's jackknife sigma."""
+    def jackknife(replicates):
+        replicates = np.asarray(replicates)
+        return np.sqrt((len(replicates) - 1) / len(replicates) * np.sum((replicates - replicates.mean(0)) ** 2, axis=0))
+    chosen, standard = row["models"][row["model"]], row["models"]["standard"]
+    chosen_replicates, standard_replicates = np.asarray(chosen["replicates"]), np.asarray(standard["replicates"])
+    chosen_jackknife, standard_jackknife = jackknife(chosen_replicates), jackknife(standard_replicates)
+    inputs = {}
+    for i, name in enumerate(chosen["names"]):
+        if name in standard["names"]:
+            j = standard["names"].index(name)
+            general, general_replicates, general_jackknife = standard["estimate"][j], standard_replicates[:, j], \
+                standard_jackknife[j]
+        else:  # k4..k6: zero in the standard model
+            general, general_replicates, general_jackknife = 0.0, np.zeros(len(chosen_replicates)), 0.0
+        inputs[name] = dict(error=row["errors"][name], jacobian=chosen["jacobian"][i], jackknife=chosen_jackknife[i],
+                            views=len(chosen_replicates), model=row["model"], d=general - chosen["estimate"][i],
+                            d_jackknife=float(jackknife(general_replicates - chosen_replicates[:, i])),
+                            standard_jackknife=general_jackknife)
+    return inputs
+
+
+#: Sigma rules compared on the tuning cameras (docs/calibration.md): the base sigma, whether a simpler model's
+#: sigma is floored by the standard model's (pinhole parameters or all), and the model-choice term on the
+#: distortion coefficients (none, d^2, or Hausman's max(0, d^2 - var d)); fx..cy always carry d^2.
+RULES = {
+    "previous (max of jackknife and Jacobian, floor all, d^2 on f and c)": ("max", "all", "none"),
+    "Student jackknife, floor all, d^2 on f and c": ("student", "all", "none"),
+    "Student jackknife, floor all, d^2 on all": ("student", "all", "plain"),
+    "Student jackknife, floor f and c, d^2 on all": ("student", "pinhole", "plain"),
+    "max, floor f and c, Hausman on distortion": ("max", "pinhole", "hausman"),
+    "jackknife alone, floor f and c, Hausman on distortion": ("jackknife", "pinhole", "hausman"),
+    "reported now: Student jackknife, floor f and c, Hausman on distortion": ("student", "pinhole", "hausman"),
+}
+
+
+def rule_sigma(p: dict, name: str, rule: tuple[str, str, str]) -> float:
+    base, floor, term = rule
+    factor = np.sqrt((p["views"] - 1) / (p["views"] - 3))
+    sigma = {"max": max(p["jackknife"], p["jacobian"]), "student": factor * p["jackknife"],
+             "jackknife": p["jackknife"]}[base]
+    pinhole = name in ("fx", "fy", "cx", "cy")
+    if p["model"] in ("none", "radial") and p["standard_jackknife"] > 0 and (floor == "all" or pinhole):
+        sigma = max(sigma, (factor if base == "student" else 1.0) * p["standard_jackknife"])
+    if p["model"] != "standard":
+        if pinhole or term == "plain":
+            sigma = np.hypot(sigma, p["d"])
+        elif term == "hausman":
+            sigma = np.sqrt(sigma**2 + max(0.0, p["d"] ** 2 - p["d_jackknife"] ** 2))
+    return float(sigma)
+
+
+def compare_rules(rows: list[dict]) -> None:
+    """Coverage of each of ``RULES`` from rows that keep the models' replicates (``--rows-out`` of this version)."""
+    good = [r for r in rows if not r.get("failed") and "models" in r]
+    if not good:
+        return
+    inputs = [_rule_inputs(r) for r in good]
+    groups = {"f": ("fx", "fy"), "c_x": ("cx",), "c_y": ("cy",), "distortion": ("k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6"),
+              "k1": ("k1",), "k2": ("k2",), "p1, p2": ("p1", "p2"), "k3": ("k3",)}
+    print(f"\n| sigma rule ({len(good)} cameras): coverage at 90 % | " + " | ".join(groups) + " |\n|---"
+          + "|---" * len(groups) + "|")
+    for label, rule in RULES.items():
+        cells = []
+        for members in groups.values():
+            hits = [abs(p[n]["error"]) <= Z90 * rule_sigma(p[n], n, rule) for p in inputs for n in members if n in p]
+            cells.append(f"{100 * np.mean(hits):.1f} %" if hits else "-")
+        print(f"| {label} | " + " | ".join(cells) + " |")
+
+
 def summary(rows: list[dict], title: str) -> None:
     good = [r for r in rows if not r.get("failed")]
     print(f"\n{title}: {len(good)} cameras calibrated of {len(rows)} "
@@ -189,6 +261,7 @@ def summary(rows: list[dict], title: str) -> None:
             print(f"| {label} | {100 * np.mean(hits['std']):.1f} % | {100 * np.mean(hits['std_conditional']):.1f} % "
                   f"| {100 * np.mean(hits['std_jacobian']):.1f} % | {100 * np.mean(hits['std_jackknife']):.1f} % "
                   f"| {len(hits['std'])} |")
+    compare_rules(good)
     flagged = {"focal length": [r for r in good if Z90 * max(r["std"]["fx"] / r["f_true"], r["std"]["fy"] / r["f_true"])
                                 > FOCAL_LIMIT],
                "principal point": [r for r in good if Z90 * max(r["std"]["cx"], r["std"]["cy"])
