@@ -150,8 +150,8 @@ def calibrate_camera(
     from the difference to the standard model's estimate (``model_choice_spread``), and a simpler model's
     focal lengths and principal point are never less uncertain than the standard model's: the sigmas are
     unconditional on the choice. (A simpler model's distortion coefficients are not floored by the standard
-    model's: those trade against k3 there, a noise that is no error of the simpler model.) Outlier views replace the paper's removal of gross errors by
-    hand: while the worst view's RMS exceeds both median + 4 * 1.4826 * MAD and twice the
+    model's: those trade against k3 there, a noise that is no error of the simpler model.) Outlier views replace
+    the paper's removal of gross errors by hand: while the worst view's RMS exceeds both median + 4 * 1.4826 * MAD and twice the
     median of the per-view RMS, it is dropped and the calibration repeated, never going
     below three views.
 
@@ -330,7 +330,8 @@ def model_choice_spread(chosen: dict, general: dict, names: tuple[str, ...] = ("
             spread[name] = float(abs(value))
             continue
         if chosen_replicates is None or general_replicates is None:
-            raise ValueError(f"The spread of the distortion coefficient {name} needs both models' jackknife replicates.")
+            raise ValueError(f"The spread of the distortion coefficient {name} needs both models' jackknife "
+                             "replicates.")
         general_values = np.zeros(len(general_replicates))
         if name in _ESTIMATED["standard"]:
             general_values = np.asarray(general_replicates)[:, _ESTIMATED["standard"].index(name)]
