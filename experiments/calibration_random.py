@@ -8,8 +8,15 @@ only calibrates; a run split over processes is summarised with ``--summarise ROW
     nice -n 10 .venv/bin/python experiments/calibration_random.py --thermal16 --seeds 1100-1149 --cache /tmp/calib-random
 
 Seeds. TUNING (used to choose the sigma rule and the "poorly determined" limits; never reported):
-random population 0-29, thermal 320x256 population 1000-1039. REPORTING: random population 100-149
-(50 cameras), thermal 320x256 population 1100-1149 (50 cameras).
+random population 0-99, thermal 320x256 population 1000-1099 (issue 35's rule was chosen on all of these).
+REPORTING: random population 100-149 and 150-199, thermal 320x256 population 1100-1149 and 1150-1249 (the
+previous sigma rule); random 200-249 and thermal 1250-1349 (issue 35's rule, never used before).
+
+The rows (``--rows-out``) keep, per camera, the chosen and the standard lens model's estimates, Jacobian sigmas
+and delete-one-view replicates, so the sigma rules of ``RULES`` are compared from them (``--summarise``)
+without calibrating again::
+
+    .venv/bin/python experiments/calibration_random.py --thermal16 --summarise t16-1000-1039.json t16-1040-1099.json
 
 Populations (``services.simulation.boards.random_calibration``):
 
@@ -35,7 +42,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from services.calibration.camera import INTRINSIC_NAMES, view_jackknife
+from services.calibration.camera import (_ESTIMATED, INTRINSIC_NAMES, _calibrate_views, _intrinsic_values,
+                                         jackknife_replicates)
 from services.calibration.corner_window import select_corner_window
 from services.calibration.corners import detect_board
 from services.calibration.determination import FOCAL_LIMIT, PRINCIPAL_POINT_LIMIT, poorly_determined
@@ -114,8 +122,20 @@ def evaluate(seed: int, thermal16: bool, cache: Path) -> dict | None:
                                           *result.dist]))
     errors = {name: float(estimate[name] - truth.get(name, 0.0)) for name in names}
     kept = list(result.views)
-    jack = np.sqrt(np.diag(view_jackknife([objects[i] for i in kept], [refined[i] for i in kept], size,
-                                          result.distortion_model)))
+    kept_objects = [np.asarray(objects[i], np.float32) for i in kept]
+    kept_images = [np.asarray(refined[i], np.float32) for i in kept]
+    models = {}  # what a sigma rule needs, so that rules can be compared from the rows without calibrating again
+    for model in dict.fromkeys((result.distortion_model, "standard")):
+        full = _calibrate_views(kept_objects, kept_images, size, model)
+        model_names = _ESTIMATED[model]
+        values = _intrinsic_values(full)[[INTRINSIC_NAMES.index(name) for name in model_names]]
+        replicates = jackknife_replicates(kept_objects, kept_images, size, model, full)
+        models[model] = {"names": list(model_names), "estimate": values.tolist(),
+                         "jacobian": [float(full["std_intrinsics"][INTRINSIC_NAMES.index(name)]) for name in model_names],
+                         "replicates": replicates.tolist()}
+    chosen = models[result.distortion_model]
+    deviations = np.asarray(chosen["replicates"]) - np.mean(chosen["replicates"], axis=0)
+    jack = np.sqrt((len(kept) - 1) / len(kept) * np.sum(deviations**2, axis=0))
     row = {
         "seed": seed, "modality": str(data["modality"]), "size": list(size), "views": int(data["views"]),
         "found": int(data["found"]), "kept": len(kept), "blur": float(data["blur"]), "noise": float(data["noise"]),
@@ -127,6 +147,8 @@ def evaluate(seed: int, thermal16: bool, cache: Path) -> dict | None:
         "std_jackknife": dict(zip(names, map(float, jack))),
         "std_model_choice": result.std_model_choice or {name: 0.0 for name in names},
         "warnings": poorly_determined(result),
+        "truth": {name: float(truth.get(name, 0.0)) for name in INTRINSIC_NAMES},
+        "models": models,
     }
     if thermal16:
         objects32 = [o.astype(np.float32) for o in objects]
@@ -142,6 +164,78 @@ def sigma(row: dict, kind: str, name: str) -> float:
     if kind == "std_conditional":
         return float(np.sqrt(max(row["std"][name] ** 2 - row.get("std_model_choice", {}).get(name, 0.0) ** 2, 0.0)))
     return row[kind][name]
+
+
+def _rule_inputs(row: dict) -> dict[str, dict]:
+    """Per parameter of a row: error, Jacobian and jackknife sigma, the view count, and against the standard
+    model the difference d, its paired jackknife sigma and the standard model's jackknife sigma."""
+    def jackknife(replicates):
+        replicates = np.asarray(replicates)
+        return np.sqrt((len(replicates) - 1) / len(replicates) * np.sum((replicates - replicates.mean(0)) ** 2, axis=0))
+    chosen, standard = row["models"][row["model"]], row["models"]["standard"]
+    chosen_replicates, standard_replicates = np.asarray(chosen["replicates"]), np.asarray(standard["replicates"])
+    chosen_jackknife, standard_jackknife = jackknife(chosen_replicates), jackknife(standard_replicates)
+    inputs = {}
+    for i, name in enumerate(chosen["names"]):
+        if name in standard["names"]:
+            j = standard["names"].index(name)
+            general, general_replicates, general_jackknife = standard["estimate"][j], standard_replicates[:, j], \
+                standard_jackknife[j]
+        else:  # k4..k6: zero in the standard model
+            general, general_replicates, general_jackknife = 0.0, np.zeros(len(chosen_replicates)), 0.0
+        inputs[name] = dict(error=row["errors"][name], jacobian=chosen["jacobian"][i], jackknife=chosen_jackknife[i],
+                            views=len(chosen_replicates), model=row["model"], d=general - chosen["estimate"][i],
+                            d_jackknife=float(jackknife(general_replicates - chosen_replicates[:, i])),
+                            standard_jackknife=general_jackknife)
+    return inputs
+
+
+#: Sigma rules compared on the tuning cameras (docs/calibration.md): the base sigma, whether a simpler model's
+#: sigma is floored by the standard model's (pinhole parameters or all), and the model-choice term on the
+#: distortion coefficients (none, d^2, or Hausman's max(0, d^2 - var d)); fx..cy always carry d^2.
+RULES = {
+    "previous (max of jackknife and Jacobian, floor all, d^2 on f and c)": ("max", "all", "none"),
+    "Student jackknife, floor all, d^2 on f and c": ("student", "all", "none"),
+    "Student jackknife, floor all, d^2 on all": ("student", "all", "plain"),
+    "Student jackknife, floor f and c, d^2 on all": ("student", "pinhole", "plain"),
+    "max, floor f and c, Hausman on distortion": ("max", "pinhole", "hausman"),
+    "jackknife alone, floor f and c, Hausman on distortion": ("jackknife", "pinhole", "hausman"),
+    "reported now: Student jackknife, floor f and c, Hausman on distortion": ("student", "pinhole", "hausman"),
+}
+
+
+def rule_sigma(p: dict, name: str, rule: tuple[str, str, str]) -> float:
+    base, floor, term = rule
+    factor = np.sqrt((p["views"] - 1) / (p["views"] - 3))
+    sigma = {"max": max(p["jackknife"], p["jacobian"]), "student": factor * p["jackknife"],
+             "jackknife": p["jackknife"]}[base]
+    pinhole = name in ("fx", "fy", "cx", "cy")
+    if p["model"] in ("none", "radial") and p["standard_jackknife"] > 0 and (floor == "all" or pinhole):
+        sigma = max(sigma, (factor if base == "student" else 1.0) * p["standard_jackknife"])
+    if p["model"] != "standard":
+        if pinhole or term == "plain":
+            sigma = np.hypot(sigma, p["d"])
+        elif term == "hausman":
+            sigma = np.sqrt(sigma**2 + max(0.0, p["d"] ** 2 - p["d_jackknife"] ** 2))
+    return float(sigma)
+
+
+def compare_rules(rows: list[dict]) -> None:
+    """Coverage of each of ``RULES`` from rows that keep the models' replicates (``--rows-out`` of this version)."""
+    good = [r for r in rows if not r.get("failed") and "models" in r]
+    if not good:
+        return
+    inputs = [_rule_inputs(r) for r in good]
+    groups = {"f": ("fx", "fy"), "c_x": ("cx",), "c_y": ("cy",), "distortion": ("k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6"),
+              "k1": ("k1",), "k2": ("k2",), "p1, p2": ("p1", "p2"), "k3": ("k3",)}
+    print(f"\n| sigma rule ({len(good)} cameras): coverage at 90 % | " + " | ".join(groups) + " |\n|---"
+          + "|---" * len(groups) + "|")
+    for label, rule in RULES.items():
+        cells = []
+        for members in groups.values():
+            hits = [abs(p[n]["error"]) <= Z90 * rule_sigma(p[n], n, rule) for p in inputs for n in members if n in p]
+            cells.append(f"{100 * np.mean(hits):.1f} %" if hits else "-")
+        print(f"| {label} | " + " | ".join(cells) + " |")
 
 
 def summary(rows: list[dict], title: str) -> None:
@@ -174,6 +268,7 @@ def summary(rows: list[dict], title: str) -> None:
             print(f"| {label} | {100 * np.mean(hits['std']):.1f} % | {100 * np.mean(hits['std_conditional']):.1f} % "
                   f"| {100 * np.mean(hits['std_jacobian']):.1f} % | {100 * np.mean(hits['std_jackknife']):.1f} % "
                   f"| {len(hits['std'])} |")
+    compare_rules(good)
     flagged = {"focal length": [r for r in good if Z90 * max(r["std"]["fx"] / r["f_true"], r["std"]["fy"] / r["f_true"])
                                 > FOCAL_LIMIT],
                "principal point": [r for r in good if Z90 * max(r["std"]["cx"], r["std"]["cy"])

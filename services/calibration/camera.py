@@ -14,6 +14,7 @@ from services.formats.board import MIN_VIEWS
 DistortionModel = Literal["none", "radial", "standard", "rational", "auto"]
 #: The lens models ``distortion="auto"`` chooses from, simplest first; each contains the previous one.
 AUTO_CANDIDATES = ("none", "radial", "standard", "rational")
+PINHOLE_NAMES = ("fx", "fy", "cx", "cy")
 INTRINSIC_NAMES = ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6",
                    "s1", "s2", "s3", "s4", "tau_x", "tau_y")
 _ESTIMATED = {
@@ -50,11 +51,12 @@ class CameraCalibration:
     rms : float
         Root-mean-square reprojection error over all kept features, in pixels.
     std : dict of str to float
-        One standard deviation of each estimated intrinsic parameter: the jackknife over views, never less
-        than the Jacobian's (see ``view_jackknife``); when ``distortion="auto"`` chose a model simpler than
-        the standard one, never less than the standard model's jackknife either; and when it chose any model but
-        the standard one, fx, fy, cx and cy also carry the spread to the standard model's estimate
-        (``std_model_choice``): the choice is uncertain too.
+        One standard deviation of each estimated intrinsic parameter: the jackknife over views (see
+        ``view_jackknife``) times ``student_predictive_factor`` (the jackknife's own noise); when
+        ``distortion="auto"`` chose a model simpler than the standard one, fx, fy, cx and cy never less than
+        the standard model's (the same way); and when it chose any model but the standard one, every parameter
+        also carries the choice's uncertainty (``std_model_choice``). Without the jackknife
+        (``jackknife=False``, or three views), the Jacobian's.
     views : (V,) int array
         Indices (into the input lists) of the views kept.
     per_view_rms : (V,) array
@@ -77,9 +79,10 @@ class CameraCalibration:
     correlation : (P, P) array or None
         Correlation matrix of the estimated intrinsics (the order of ``std``) from the jackknife.
     std_model_choice : dict of str to float or None
-        When ``distortion="auto"`` chose a model other than the standard one: |theta_standard - theta_chosen| of
-        fx, fy, cx and cy (``model_choice_spread``), the uncertainty of the choice, added to their ``std`` in
-        quadrature.
+        When ``distortion="auto"`` chose a model other than the standard one: the uncertainty of the choice
+        (``model_choice_spread``), added to each parameter's ``std`` in quadrature: |theta_standard -
+        theta_chosen| of fx, fy, cx, cy, and of a distortion coefficient that squared difference less its own
+        jackknife variance (Hausman's form; zero in the standard model for k4, k5, k6).
     """
 
     image_size: tuple[int, int]
@@ -140,10 +143,15 @@ def calibrate_camera(
     Standard deviations: the Jacobian's sqrt(diag((J^T J)^-1) sigma^2), sigma^2 the residual variance
     per coordinate, assumes independent corner errors; blur and a bent or unevenly lit board make the
     errors of a view's corners shared, so the delete-one-view jackknife (``view_jackknife``) is reported,
-    never below the Jacobian's. When ``distortion="auto"`` chose a model other than the standard one, the focal
-    lengths' and principal point's variances add the squared difference to the standard model's estimates
-    (``model_choice_spread``): unconditional on the choice. Outlier views replace the paper's removal of gross errors by
-    hand: while the worst view's RMS exceeds both median + 4 * 1.4826 * MAD and twice the
+    times sqrt(nu / (nu - 2)), nu = V - 1 (``student_predictive_factor``): the standard deviation of Student's t,
+    since the jackknife's variance is itself estimated from V views. (The larger of the jackknife's and the
+    Jacobian's sigma, reported before, is biased upward when the two agree.) When ``distortion="auto"`` chose a
+    model other than the standard one, every parameter's variance adds the squared bias of the choice, estimated
+    from the difference to the standard model's estimate (``model_choice_spread``), and a simpler model's
+    focal lengths and principal point are never less uncertain than the standard model's: the sigmas are
+    unconditional on the choice. (A simpler model's distortion coefficients are not floored by the standard
+    model's: those trade against k3 there, a noise that is no error of the simpler model.) Outlier views replace
+    the paper's removal of gross errors by hand: while the worst view's RMS exceeds both median + 4 * 1.4826 * MAD and twice the
     median of the per-view RMS, it is dropped and the calibration repeated, never going
     below three views.
 
@@ -195,18 +203,20 @@ def calibrate_camera(
                     if name in _ESTIMATED[distortion]}
     std, correlation, model_choice = dict(std_jacobian), None, None
     if jackknife and len(kept) > MIN_VIEWS:
-        covariance = view_jackknife([objects[i] for i in kept], [images[i] for i in kept], image_size, distortion,
-                                    result)
+        kept_objects, kept_images = [objects[i] for i in kept], [images[i] for i in kept]
+        replicates = jackknife_replicates(kept_objects, kept_images, image_size, distortion, result)
+        covariance = _jackknife_covariance(replicates)
         jackknife = np.sqrt(np.diag(covariance))
-        std = {name: max(float(value), std_jacobian[name]) for name, value in zip(_ESTIMATED[distortion], jackknife)}
-        if candidates and distortion in ("none", "radial"):  # chosen by "auto": not conditional on the simpler model being right
-            general = view_jackknife([objects[i] for i in kept], [images[i] for i in kept], image_size, "standard",
-                                     candidates["standard"])
-            for name, value in zip(_ESTIMATED["standard"], np.sqrt(np.diag(general))):
-                if name in std:
-                    std[name] = max(std[name], float(value))
-        if candidates and distortion != "standard":  # the choice itself: the standard model's estimate differs by d
-            model_choice = model_choice_spread(result, candidates["standard"])
+        predictive = student_predictive_factor(len(kept))  # the jackknife's own noise (V - 1 degrees of freedom)
+        std = {name: predictive * float(value) for name, value in zip(_ESTIMATED[distortion], jackknife)}
+        if candidates and distortion != "standard":  # chosen by "auto": the choice is uncertain too
+            general = jackknife_replicates(kept_objects, kept_images, image_size, "standard", candidates["standard"])
+            model_choice = model_choice_spread(result, candidates["standard"], _ESTIMATED[distortion], replicates,
+                                               general)
+            if distortion in ("none", "radial"):  # not conditional on the simpler model being right
+                for name, value in zip(_ESTIMATED["standard"], np.sqrt(np.diag(_jackknife_covariance(general)))):
+                    if name in PINHOLE_NAMES and name in std:
+                        std[name] = max(std[name], predictive * float(value))
             std.update({name: float(np.hypot(std[name], value)) for name, value in model_choice.items()})
         with np.errstate(divide="ignore", invalid="ignore"):
             correlation = np.nan_to_num(covariance / np.outer(jackknife, jackknife))
@@ -231,30 +241,80 @@ def calibrate_camera(
     )
 
 
-def model_choice_spread(chosen: dict, general: dict) -> dict[str, float]:
-    """How far the standard lens model's focal lengths and principal point lie from the chosen model's.
+def student_predictive_factor(views: int) -> float:
+    """The factor from a delete-one-view jackknife's standard deviation to the predictive one: sqrt(nu / (nu - 2)).
+
+    Parameters
+    ----------
+    views : int
+        The number of views V the jackknife left out in turn (at least 4); nu = V - 1.
+
+    Returns
+    -------
+    float
+
+    Notes
+    -----
+    The jackknife's variance is itself an estimate from V pseudo-values, with about nu = V - 1 degrees of
+    freedom [1]_; an error divided by it follows Student's t with nu degrees of freedom rather than the normal
+    law, whose standard deviation is sqrt(nu / (nu - 2)) [2]_. Multiplying the jackknife's sigma by this
+    factor gives the standard deviation of the error that the sigma predicts, with the right expectation;
+    the larger of the jackknife's and the Jacobian's sigma, used before, is biased upward whenever the two
+    estimate the same variance (each has its sampling noise and the larger is kept), and the Jacobian's
+    sigma is only a lower bound when a view's corners share their errors.
+
+    References
+    ----------
+    .. [1] J. W. Tukey, "Bias and confidence in not-quite large samples" (abstract), Annals of Mathematical
+       Statistics 29(2), 614 (1958).
+    .. [2] Student, "The probable error of a mean", Biometrika 6(1), 1-25 (1908).
+    """
+    if views < 4:
+        raise ValueError(f"The predictive factor needs at least 4 views (3 degrees of freedom); got {views}.")
+    freedom = views - 1
+    return float(np.sqrt(freedom / (freedom - 2)))
+
+
+def model_choice_spread(chosen: dict, general: dict, names: tuple[str, ...] = ("fx", "fy", "cx", "cy"),
+                        chosen_replicates: np.ndarray | None = None,
+                        general_replicates: np.ndarray | None = None) -> dict[str, float]:
+    """The uncertainty of the lens model's choice: how far the standard model's estimates lie from the chosen one's.
 
     Parameters
     ----------
     chosen, general : dict
         The calibration with the chosen lens model and with the standard one (``K`` and ``dist``).
+    names : tuple of str
+        The chosen model's parameters (its order of ``INTRINSIC_NAMES``); a coefficient the standard model does
+        not estimate (k4, k5, k6 of the rational model) is zero there.
+    chosen_replicates, general_replicates : (V, P_chosen) and (V, 9) arrays, optional
+        The delete-one-view replicates of both models over the same views (``jackknife_replicates``); needed
+        for the distortion coefficients in ``names``.
 
     Returns
     -------
     dict of str to float
-        ``|theta_standard - theta_chosen|`` of fx, fy, cx and cy.
+        For fx, fy, cx, cy: ``|d|``, d = theta_standard - theta_chosen. For a distortion coefficient:
+        ``sqrt(max(0, d^2 - var(d)))``, var(d) the delete-one-view jackknife variance of the difference.
 
     Notes
     -----
     A model chosen by a criterion gives estimates conditional on the choice being right; the reported
     variance must also carry the uncertainty of the choice [1]_. With the standard model as the reference, the
-    unconditional variance of a chosen estimate is taken as ``sigma^2 + (theta_standard - theta_chosen)^2``: the
-    difference estimates the bias of the chosen (simpler) model when the omitted terms are not zero [2]_. The
-    principal point needs it most: a decentred lens (tangential p1, p2) moves the image almost as a shift of
-    the principal point does, so the criterion cannot see the tangential terms while the simpler model's
-    principal point absorbs them. Only the pinhole parameters get the term: they mean the same in every lens
-    model, whereas a distortion coefficient does not (k1 trades against k3 when k3 is free, and sits in a ratio
-    in the rational model), so its spread between models is no error of the chosen one.
+    unconditional variance of a chosen estimate is taken as ``sigma^2 + b^2``, b^2 an estimate of the chosen
+    model's squared bias, which the difference to the standard model measures when the omitted terms are not
+    zero [2]_. For the pinhole parameters b^2 = d^2. The principal point needs the term most: a decentred lens
+    (tangential p1, p2) moves the image almost as a shift of the principal point does, so the criterion cannot
+    see the tangential terms while the simpler model's principal point absorbs them.
+
+    The distortion coefficients get the term too, since the candidate models are nested (a coefficient is the
+    same coefficient of the same lens function in every model). A rational model chosen on few views can trade
+    k1 against k4 (numerator against denominator) far from the truth, with every delete-one-view refit
+    staying in the same valley; the standard model's k1 shows it. But the standard model's coefficients are
+    also much noisier than a simpler model's (k1 and k2 trade against k3), so d^2 there is mostly that noise,
+    not the chosen model's error: its expectation is b^2 + var(d). Hausman's form b^2 = max(0, d^2 - var(d))
+    [2]_ removes it, var(d) taken from the paired view jackknife of the difference (both models refitted
+    without the same view), which needs no assumption about which model is efficient.
 
     References
     ----------
@@ -262,8 +322,29 @@ def model_choice_spread(chosen: dict, general: dict) -> dict[str, float]:
        Biometrics 53(2), 603-618 (1997).
     .. [2] J. A. Hausman, "Specification tests in econometrics", Econometrica 46(6), 1251-1271 (1978).
     """
-    difference = np.abs(_intrinsic_values(general)[:4] - _intrinsic_values(chosen)[:4])
-    return {name: float(value) for name, value in zip(INTRINSIC_NAMES[:4], difference)}
+    indices = [INTRINSIC_NAMES.index(name) for name in names]
+    difference = _intrinsic_values(general)[indices] - _intrinsic_values(chosen)[indices]
+    spread = {}
+    for position, (name, value) in enumerate(zip(names, difference)):
+        if name in PINHOLE_NAMES:
+            spread[name] = float(abs(value))
+            continue
+        if chosen_replicates is None or general_replicates is None:
+            raise ValueError(f"The spread of the distortion coefficient {name} needs both models' jackknife "
+                             "replicates.")
+        general_values = np.zeros(len(general_replicates))
+        if name in _ESTIMATED["standard"]:
+            general_values = np.asarray(general_replicates)[:, _ESTIMATED["standard"].index(name)]
+        paired = general_values - np.asarray(chosen_replicates)[:, position]
+        variance = float(_jackknife_covariance(paired[:, None])[0, 0])
+        spread[name] = float(np.sqrt(max(0.0, value**2 - variance)))
+    return spread
+
+
+def _jackknife_covariance(replicates: np.ndarray) -> np.ndarray:
+    """(V - 1) / V sum_i (theta_(i) - theta_(.)) (theta_(i) - theta_(.))^T of (V, P) delete-one replicates."""
+    deviations = replicates - replicates.mean(axis=0)
+    return (len(replicates) - 1) / len(replicates) * deviations.T @ deviations
 
 
 def _intrinsic_values(result: dict) -> np.ndarray:
@@ -305,6 +386,27 @@ def view_jackknife(objects: list[np.ndarray], images: list[np.ndarray], image_si
     .. [1] B. Efron, C. Stein, "The jackknife estimate of variance", Annals of Statistics 9(3), 586-596 (1981).
     .. [2] B. Efron, "The jackknife, the bootstrap and other resampling plans", SIAM CBMS-NSF 38 (1982), ch. 3.
     """
+    return _jackknife_covariance(jackknife_replicates(objects, images, image_size, distortion, full))
+
+
+def jackknife_replicates(objects: list[np.ndarray], images: list[np.ndarray], image_size: tuple[int, int],
+                         distortion: str, full: dict | None = None) -> np.ndarray:
+    """The intrinsics estimated without each view in turn (the replicates of ``view_jackknife``).
+
+    Parameters
+    ----------
+    objects, images : lists of (N_i, 3) and (N_i, 2) arrays
+        The kept views' board points and corners.
+    image_size : (width, height)
+    distortion : {"none", "radial", "standard", "rational"}
+    full : dict, optional
+        The calibration on all views (its intrinsics start every refit).
+
+    Returns
+    -------
+    (V, P) array
+        Row i: the parameters named by the model (fx, fy, cx, cy, then its distortion terms) without view i.
+    """
     if len(objects) < MIN_VIEWS + 1:
         raise ValueError(f"The view jackknife needs at least {MIN_VIEWS + 1} views; got {len(objects)}.")
     names = _ESTIMATED[distortion]
@@ -323,9 +425,7 @@ def view_jackknife(objects: list[np.ndarray], images: list[np.ndarray], image_si
                                                tuple(int(s) for s in image_size), K0, dist0, flags=flags,
                                                criteria=_CRITERIA)
         estimates.append(_intrinsic_values({"K": K, "dist": dist})[indices])
-    estimates = np.array(estimates)
-    deviations = estimates - estimates.mean(axis=0)
-    return (len(objects) - 1) / len(objects) * deviations.T @ deviations
+    return np.array(estimates)
 
 
 def _select_distortion(objects: list[np.ndarray], images: list[np.ndarray], image_size: tuple[int, int],

@@ -49,9 +49,10 @@ def test_predicted_standard_deviations_match_a_monte_carlo_spread(chessboard_9x6
     spread = np.std(estimates, axis=0, ddof=1)
     ratio = np.mean(predicted, axis=0) / spread
     assert np.all(np.abs(ratio - 1) <= 0.3), ratio
-    # with independent corner errors the reported sigma (the view jackknife of 8 views, never below the
-    # Jacobian's) is conservative, by less than half
-    assert np.all((np.mean(reported, axis=0) / spread >= 0.9) & (np.mean(reported, axis=0) / spread <= 1.5))
+    # with independent corner errors the reported sigma (the view jackknife of 8 views times Student's factor
+    # sqrt(7 / 5) = 1.18 for the jackknife's own noise) is conservative: the jackknife's variance is biased upward
+    # (Efron and Stein 1981), here by up to 1.3 in sigma, and the factor adds its 1.18
+    assert np.all((np.mean(reported, axis=0) / spread >= 1.0) & (np.mean(reported, axis=0) / spread <= 1.65))
 
 
 def test_the_view_jackknife_covers_errors_shared_by_a_views_corners(chessboard_9x6):

@@ -2,7 +2,7 @@ import cv2
 import numpy as np
 import pytest
 
-from services.calibration.camera import calibrate_camera
+from services.calibration.camera import _calibrate_views, calibrate_camera, student_predictive_factor, view_jackknife
 from services.calibration.determination import _tilt_advice, poorly_determined
 from services.formats.board import parse_board
 
@@ -59,4 +59,11 @@ def test_the_jackknife_correlation_is_a_correlation_matrix():
     assert result.correlation.shape == (len(result.std), len(result.std))
     assert np.allclose(np.diag(result.correlation), 1.0)
     assert np.all(np.abs(result.correlation) <= 1.0 + 1e-9)
-    assert all(result.std[name] >= result.std_jacobian[name] for name in result.std)
+    # the reported sigma is the jackknife's (the square root of the covariance's diagonal) times Student's factor
+    points = views(12, 35.0)
+    jackknife = np.sqrt(np.diag(view_jackknife([BOARD.object_points()] * len(points), points, SIZE, "radial",
+                                               _calibrate_views([BOARD.object_points().astype(np.float32)] * len(points),
+                                                                [p.astype(np.float32) for p in points], SIZE,
+                                                                "radial"))))
+    reported = np.array([result.std[name] for name in ("fx", "fy", "cx", "cy", "k1", "k2")])
+    assert np.allclose(reported, student_predictive_factor(12) * jackknife, rtol=1e-3)

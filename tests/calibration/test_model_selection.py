@@ -104,7 +104,12 @@ def test_the_sigma_of_a_simpler_chosen_model_carries_the_choice():
     assert result.distortion_model == "radial"
     standard = calibrate_camera(objects, points, THERMAL_SIZE, "standard", jackknife=False)
     assert result.std_model_choice["cx"] == pytest.approx(abs(standard.K[0, 2] - result.K[0, 2]), rel=1e-6)
-    assert set(result.std_model_choice) == {"fx", "fy", "cx", "cy"}
+    # every estimated parameter carries the choice, the distortion coefficients too (the models are nested), theirs
+    # without the difference's own noise (Hausman's form), so never more than the difference
+    assert set(result.std_model_choice) == {"fx", "fy", "cx", "cy", "k1", "k2"}
+    for index, name in enumerate(("k1", "k2")):
+        assert result.std_model_choice[name] <= abs(standard.dist[index] - result.dist[index]) + 1e-12
+        assert result.std[name] >= result.std_model_choice[name]
     error = abs(result.K[0, 2] - THERMAL_K[0, 2])
     conditional = math.sqrt(result.std["cx"] ** 2 - result.std_model_choice["cx"] ** 2)
     assert error > 1.645 * conditional
