@@ -1,7 +1,9 @@
 """Who may do what: every operation but health needs a key of the right scope; keys are hashed, listed and
 revoked by command and by API; each key is rate limited (429 + Retry-After)."""
 
+import math
 import re
+import time
 
 import pytest
 from sqlalchemy import select
@@ -191,9 +193,12 @@ def app_and_queries(runtime, job_queue):
 def test_unknown_keys_cost_one_query_each_and_their_address_is_then_held_off(app_and_queries, auth):
     app, queries = app_and_queries
     unknown = [{"Authorization": f"Bearer tf_unknown-{n % 4}"} for n in range(60)]
+    started = time.monotonic()
     responses = _requests(app, [("/v1/jobs", headers) for headers in unknown])
+    refilled = math.ceil(1.0 * (time.monotonic() - started))  # 1 per second refills while the 60 are served
     statuses = [response.status_code for response in responses]
-    assert set(statuses) <= {401, 429} and statuses.count(401) <= 5 + 1, statuses  # the burst (+1 refilled)
+    # a token bucket admits its burst (5) and what refilled meanwhile; a loaded machine serves the 60 slower
+    assert set(statuses) <= {401, 429} and statuses.count(401) <= 5 + refilled < 60, (statuses, refilled)
     assert len(queries) <= 4, queries  # one query per distinct key at most, however many ask at once
     held_off = next(response for response in responses if response.status_code == 429)
     assert held_off.headers["content-type"] == PROBLEM and int(held_off.headers["retry-after"]) >= 1
