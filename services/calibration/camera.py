@@ -395,12 +395,8 @@ def jackknife_replicates(objects: list[np.ndarray], images: list[np.ndarray], im
 
     Parameters
     ----------
-    objects, images : lists of (N_i, 3) and (N_i, 2) arrays
-        The kept views' board points and corners.
-    image_size : (width, height)
-    distortion : {"none", "radial", "standard", "rational"}
-    full : dict, optional
-        The calibration on all views (its intrinsics start every refit).
+    objects, images, image_size, distortion, full
+        As ``view_jackknife``.
 
     Returns
     -------
