@@ -53,13 +53,17 @@ def _field(seed: int, cache: Path):
     return PointCloud(*stored[1:]) if isinstance(stored, tuple) else stored
 
 
-def cpu(seeds: list[int], cache: Path) -> list[dict]:
-    rows = []
+def _scenes(seeds: list[int], cache: Path):
+    """Each seed with a cached field: (seed, its zoo scene, the field)."""
     for seed in seeds:
         field = _field(seed, cache)
-        if field is None:
-            continue
-        zoo = zoo_scene(seed)
+        if field is not None:
+            yield seed, zoo_scene(seed), field
+
+
+def cpu(seeds: list[int], cache: Path) -> list[dict]:
+    rows = []
+    for seed, zoo, field in _scenes(seeds, cache):
         with tempfile.TemporaryDirectory(prefix="zoo-part-") as directory:
             part = load_part(zoo.write_part(directory))
         prepared = inspect_module.prepare_part(part)
@@ -96,11 +100,7 @@ def angles(seeds: list[int], cache: Path, bounds: tuple[float, ...] = (45.0, 60.
 
     pipeline_inspect.inspect_field = capturing
     rows = []
-    for seed in seeds:
-        field = _field(seed, cache)
-        if field is None:
-            continue
-        zoo = zoo_scene(seed)
+    for seed, zoo, field in _scenes(seeds, cache):
         row = {"seed": seed, "kind": zoo.kind, "in_tolerance": zoo.truth.in_tolerance}
         for bound in bounds:
             inspect_module.agrees_with_nominal = functools.partial(_RULE, max_angle_deg=bound)
