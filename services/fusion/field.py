@@ -7,6 +7,7 @@ from collections.abc import Mapping, Sequence
 import numpy as np
 
 from services.geometry.cloud import PointCloud
+from services.fusion.carving import Witness, unseen_space
 from services.fusion.colormap import DEFAULT_COLORMAP, temperature_colors
 from services.fusion.fuse import DEFAULT_MAX_VIEW_ANGLE_DEG, Rows, ThermalView, fuse_rows, rows_of
 from services.fusion.normals import estimate_normals, normals_at
@@ -77,6 +78,7 @@ def temperature_field(
     viewpoint: np.ndarray,
     max_view_angle_deg: float = DEFAULT_MAX_VIEW_ANGLE_DEG,
     colormap: str = DEFAULT_COLORMAP,
+    witnesses: Sequence[Witness] = (),
 ) -> PointCloud:
     """The cloud's properties plus ``temperature``, ``view_angle`` and perceptual ``red, green, blue``.
 
@@ -93,6 +95,11 @@ def temperature_field(
         View-angle limit, see :func:`services.fusion.fuse.fuse_temperature`.
     colormap : str
         Colour map for the RGB properties (see :func:`services.fusion.colormap.colormap_lut`).
+    witnesses : sequence of Witness
+        The cameras that measured the cloud, with their rows: a point whose
+        thermal ray passes through space none of them saw free gets no
+        temperature (:mod:`services.fusion.carving`). Empty: the cloud's own
+        points are the only occluders.
 
     Returns
     -------
@@ -107,7 +114,10 @@ def temperature_field(
     if absent:
         raise ValueError(f"The cloud lacks the coordinate properties {absent}.")
     points_of, normals_of = _cloud_rows(cloud, viewpoint)
-    fused = fuse_rows(len(cloud), points_of, normals_of, views, max_view_angle_deg)
+    unseen = None
+    if witnesses:
+        unseen = unseen_space(np.column_stack(_coordinates(cloud)), witnesses)
+    fused = fuse_rows(len(cloud), points_of, normals_of, views, max_view_angle_deg, unseen=unseen)
     rgb = temperature_colors(fused.temperature, name=colormap)
     return cloud.without(*FIELD_PROPERTIES).with_properties(
         temperature=fused.temperature, view_angle=fused.view_angle, red=rgb[:, 0], green=rgb[:, 1], blue=rgb[:, 2])

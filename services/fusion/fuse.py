@@ -17,6 +17,7 @@ import numpy as np
 from services.geometry.camera_model import CameraModel
 from services.geometry.distortion import distorted_pixels, opencv_distortion_terms
 from services.geometry.rigid import rigid_transform
+from services.fusion.carving import UnseenSpace, occluder_samples
 from services.fusion.visibility import (
     SAMPLE_FOOTPRINTS, background_depth, depth_gradient, depth_tolerance, fill_empty_pixels, footprint_radius,
     nearest_depth_around, nearest_pixel_index, splat_nearest, within_tolerance,
@@ -173,7 +174,7 @@ def rows_of(array: np.ndarray) -> Rows:
 
 def _sample_view(count: int, points_of: Rows, normals_of: Rows, view: ThermalView, max_view_angle_deg: float,
                  depth_tolerance_mm: float, occlusion_margin_px: int, result: _ChunkResult,
-                 thermal_blur_px: float = DEFAULT_THERMAL_BLUR_PX) -> None:
+                 thermal_blur_px: float = DEFAULT_THERMAL_BLUR_PX, unseen: UnseenSpace | None = None) -> None:
     """The temperature of ``count`` points in one thermal view, averaged over the view's frames, chunk by chunk:
     ``result(rows, temperature, view_angle, weight)`` for each chunk of rows (called on the pool's threads; each
     chunk's rows are its own). See :func:`fuse_temperature` for the parameters.
@@ -216,6 +217,13 @@ def _sample_view(count: int, points_of: Rows, normals_of: Rows, view: ThermalVie
         reach = footprint_radius(thermal_blur_px, stencil_px)
         far = background_depth(buffer, reach, depth_tolerance_mm).ravel()
         stencils.append((far, SAMPLE_FOOTPRINTS + np.sqrt(2) * reach))
+    if unseen is not None:  # occluders for the visibility tests, not surfaces for the mixed-pixel test above
+        skirts = occluder_samples(unseen, device, depth_tolerance_mm)
+        skirt_device = rigid_transform(skirts, R, t)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            z = np.where(skirt_device[:, 2] > 0.0, skirt_device[:, 2], np.nan)
+            u, v = distorted_pixels(skirt_device[:, 0] / z, skirt_device[:, 1] / z, K, terms, tilt)
+        splat_nearest(buffer.ravel(), nearest_pixel_index(u, v, device.width, device.height), skirt_device[:, 2])
     buffer = fill_empty_pixels(buffer)
     # the square window reaches margin * sqrt(2) pixels away along its diagonals
     guard_footprints = SAMPLE_FOOTPRINTS + np.sqrt(2) * occlusion_margin_px
@@ -280,6 +288,7 @@ def fuse_temperature(
     depth_tolerance_mm: float = DEFAULT_DEPTH_TOLERANCE_MM,
     occlusion_margin_px: int = DEFAULT_OCCLUSION_MARGIN_PX,
     thermal_blur_px: float = DEFAULT_THERMAL_BLUR_PX,
+    unseen: UnseenSpace | None = None,
 ) -> TemperatureField:
     """Temperature of every cloud point from calibrated thermal views, fused by view angle and distance.
 
@@ -307,6 +316,11 @@ def fuse_temperature(
     thermal_blur_px : float
         The thermal optics' Gaussian blur, sigma in pixels: it sets the reach of
         the mixed-pixel test (:func:`services.fusion.visibility.footprint_radius`).
+    unseen : UnseenSpace, optional
+        The space the measuring camera(s) could not see into
+        (:func:`services.fusion.carving.unseen_space`): its skirts are drawn
+        into each view's z-buffer as occluders, so that a point whose thermal
+        ray passes through space no camera saw free gets no temperature.
 
     Returns
     -------
@@ -356,14 +370,14 @@ def fuse_temperature(
     if points.ndim != 2 or points.shape[1] != 3 or normals.shape != points.shape:
         raise ValueError(f"points and normals must both be (N, 3); got {points.shape} and {normals.shape}.")
     return fuse_rows(len(points), rows_of(points), rows_of(normals), views, max_view_angle_deg, depth_tolerance_mm,
-                     occlusion_margin_px, thermal_blur_px)
+                     occlusion_margin_px, thermal_blur_px, unseen)
 
 
 def fuse_rows(count: int, points_of: Rows, normals_of: Rows, views: Sequence[ThermalView],
               max_view_angle_deg: float = DEFAULT_MAX_VIEW_ANGLE_DEG,
               depth_tolerance_mm: float = DEFAULT_DEPTH_TOLERANCE_MM,
               occlusion_margin_px: int = DEFAULT_OCCLUSION_MARGIN_PX,
-              thermal_blur_px: float = DEFAULT_THERMAL_BLUR_PX) -> TemperatureField:
+              thermal_blur_px: float = DEFAULT_THERMAL_BLUR_PX, unseen: UnseenSpace | None = None) -> TemperatureField:
     """:func:`fuse_temperature` of ``count`` points given chunk by chunk (e.g. stacked from a cloud's
     coordinate columns, without an (N, 3) copy of the whole cloud)."""
     if occlusion_margin_px < 0:
@@ -384,7 +398,7 @@ def fuse_rows(count: int, points_of: Rows, normals_of: Rows, views: Sequence[The
 
     for view in views:
         _sample_view(count, points_of, normals_of, view, max_view_angle_deg, depth_tolerance_mm, occlusion_margin_px,
-                     accumulate, thermal_blur_px)
+                     accumulate, thermal_blur_px, unseen)
     fused = np.empty(count, dtype=np.float32)
     fused_angle = np.empty(count, dtype=np.float32)
 

@@ -8,6 +8,7 @@ import numpy as np
 
 from services.errors import InputError
 from services.formats.rig import Rig
+from services.fusion.carving import Witness
 from services.fusion.field import temperature_field
 from services.fusion.fuse import DEFAULT_MAX_VIEW_ANGLE_DEG, ThermalView
 from services.geometry.cloud import PointCloud
@@ -40,6 +41,25 @@ def measuring_viewpoint(rig: Rig, views: Sequence[ThermalView]) -> np.ndarray:
     toward each point's own head first, so that this viewpoint orients none of them."""
     cameras = [device for device in rig.devices.values() if device.kind == "camera"]
     return (cameras[0] if len(cameras) == 1 else views[0].device).centre
+
+
+def measuring_cameras(cloud: PointCloud, rig: Rig) -> list[Witness]:
+    """The cameras that measured the cloud, each with its rows: a merged station cloud's heads by its ``head``
+    property, else the rig's only camera for every point (none when the rig has several cameras and the cloud
+    says not which measured what)."""
+    if "head" in cloud and len(rig.heads) >= 2:
+        head = np.asarray(cloud["head"])
+        witnesses = []
+        for index, station_head in enumerate(rig.heads):
+            rows = np.flatnonzero(head == index)
+            witnesses += [Witness(rig.devices[station_head.camera], rows),
+                          Witness(rig.devices[station_head.projector], rows, skirts=False)]
+        return witnesses
+    cameras = [device for device in rig.devices.values() if device.kind == "camera"]
+    projectors = [device for device in rig.devices.values() if device.kind == "projector"]
+    if len(cameras) != 1:
+        return []
+    return [Witness(cameras[0])] + ([Witness(projectors[0], skirts=False)] if len(projectors) == 1 else [])
 
 
 def station_normals(cloud: PointCloud, rig: Rig) -> PointCloud:
@@ -84,4 +104,5 @@ def fuse_field(*, cloud: PointCloud, rig: Rig, thermal: ThermalFrames,
     if not 0.0 < max_view_angle_deg < 90.0:
         raise InputError(f"the maximum view angle must be in (0, 90) degrees; got {max_view_angle_deg}")
     views = thermal_views(rig, thermal)
-    return temperature_field(station_normals(cloud, rig), views, measuring_viewpoint(rig, views), max_view_angle_deg)
+    return temperature_field(station_normals(cloud, rig), views, measuring_viewpoint(rig, views), max_view_angle_deg,
+                             witnesses=measuring_cameras(cloud, rig))

@@ -1,0 +1,258 @@
+"""The space a measuring camera could not see into, as occluders for the thermal views' z-buffers.
+
+A cloud's z-buffer in a thermal view (:mod:`services.fusion.visibility`) holds the surfaces the structured light
+reconstructed. The thermal camera also sees surfaces that it did not reconstruct: a part's flanks that face away
+from the camera or lie in the projector's shadow. A wall point behind such a flank reads the part's temperature,
+because no point of the cloud stands between it and the thermal camera. What the measuring camera tells is where
+space is *free*: along each pixel's ray, up to the surface it measured there. Everything behind a measured surface
+is unknown, and may hold the unseen surface. A thermal ray to a measured point that passes through unknown space
+cannot be trusted, and it must cross the unknown region's boundary to do so: the measured surface itself (already
+in the z-buffer) or the "skirts" that join a near surface to a farther one at a depth jump of the camera's view,
+along the camera's rays. This module builds those skirts, so that the thermal z-buffer can draw them as occluders.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from services.geometry.camera import normalized_coordinates
+from services.geometry.camera_model import CameraModel
+from services.geometry.distortion import distorted_pixels, opencv_distortion_terms
+from services.geometry.rigid import rigid_transform
+
+DEFAULT_JUMP_MM = 4.0
+"""The smallest depth jump between neighbouring pixels that is a discontinuity, not a steep surface (twice the
+fusion's depth tolerance); see :func:`skirt_segments` for the slope term."""
+JUMP_SLOPE = 4.0
+"""tan of the steepest surface the camera measures (76 degrees): neighbouring pixels on one surface differ in
+depth by at most this many pixel footprints."""
+DEFAULT_HOLE_REACH_PX = 16
+"""How far (pixels) from a pixel without a point the depths around it are taken to bound what the hole hides."""
+MAX_SAMPLES_PER_SEGMENT = 2048
+PROJECTOR_GAP_PX = 2
+
+
+@dataclass(frozen=True)
+class Witness:
+    """A device that saw the cloud's points: its model and the rows of the cloud it saw (``None``: all).
+
+    A camera's rays are free up to the points it measured, and so are a projector's up to the points it lit
+    (a structured-light point is lit by the projector and seen by the camera). ``skirts``: whether the space
+    behind its depth map bounds what the fusion trusts (the camera's); a projector only carves it (the points
+    it lit but the camera did not see are not in the cloud, so its depth map's holes tell nothing)."""
+
+    camera: CameraModel
+    rows: np.ndarray | None = None
+    skirts: bool = True
+
+
+@dataclass(frozen=True)
+class UnseenSpace:
+    """Skirts of the space the witnesses could not see: (M, 2, 3) world segments, and each witness's depth map
+    (its z-buffer of the cloud, +inf where no point fell), to carve the skirts by the other witnesses."""
+
+    segments: np.ndarray
+    owners: np.ndarray
+    witnesses: tuple[tuple[CameraModel, np.ndarray], ...]
+
+
+def depth_map(points: np.ndarray, camera: CameraModel) -> np.ndarray:
+    """The camera's z-buffer of ``points`` (N, 3) world mm: (height, width) depths, +inf where no point falls."""
+    device = rigid_transform(np.asarray(points, dtype=np.float64), np.asarray(camera.R), np.asarray(camera.t))
+    z = device[:, 2]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        zz = np.where(z > 0.0, z, np.nan)
+        terms, tilt = opencv_distortion_terms(camera.dist)
+        u, v = distorted_pixels(device[:, 0] / zz, device[:, 1] / zz, np.asarray(camera.K), terms, tilt)
+    column, row = np.rint(u), np.rint(v)
+    inside = (column >= 0) & (column < camera.width) & (row >= 0) & (row < camera.height) & (z > 0)
+    buffer = np.full(camera.height * camera.width, np.inf)
+    np.minimum.at(buffer, (row[inside] * camera.width + column[inside]).astype(np.intp), z[inside])
+    return buffer.reshape(camera.height, camera.width)
+
+
+def _window(depth: np.ndarray, reach_px: int, largest: bool) -> np.ndarray:
+    """The smallest (or largest) finite depth within ``reach_px`` of each pixel (+inf, or -inf, where none)."""
+    size = 2 * int(reach_px) + 1
+    square = np.ones((size, size), np.uint8)
+    if largest:
+        values = np.where(np.isfinite(depth), depth, -np.inf)
+        return cv2.dilate(values, square, borderType=cv2.BORDER_CONSTANT, borderValue=-np.inf)
+    return cv2.erode(depth, square, borderType=cv2.BORDER_CONSTANT, borderValue=np.inf)
+
+
+def skirt_segments(depth: np.ndarray, camera: CameraModel, jump_mm: float = DEFAULT_JUMP_MM,
+                   hole_reach_px: int = DEFAULT_HOLE_REACH_PX) -> np.ndarray:
+    """The skirts of the space behind a camera's depth map: (M, 2, 3) world segments along the camera's rays.
+
+    Parameters
+    ----------
+    depth : (height, width) array
+        The camera's z-buffer of the cloud it measured (:func:`depth_map`), +inf where no point fell.
+    camera : CameraModel
+        The camera.
+    jump_mm : float
+        The smallest depth jump between neighbouring pixels taken as a discontinuity.
+    hole_reach_px : int
+        How far around a pixel without a point the depths are taken to bound what it hides.
+
+    Returns
+    -------
+    segments : (M, 2, 3) array
+        World points: each segment runs along the ray between two neighbouring pixels, from just behind the
+        nearer depth to just before the farther one.
+
+    Notes
+    -----
+    Space behind the depth map is unknown to the camera: the region U = {X : z(X) > Z(pixel of X)}. Its boundary
+    is the measured surface plus, between neighbouring pixels p, q with Z_q - Z_p > J, the ray surface from
+    depth Z_p to Z_q: a thermal ray from a measured point that passes through U crosses it there. The jump
+    threshold J = max(jump_mm, 4 f^-1 Z_p) allows a surface up to atan 4 = 76 degrees steep between neighbours
+    (f the focal length in pixels: Z/f is the pixel footprint). A pixel without a point sees a surface at an
+    unknown depth. Beside such a hole, the depths within ``hole_reach_px`` bound what it may hide: from a
+    measured pixel beside it a skirt runs back to the largest depth around (behind the measured surface, so it
+    never stands in free space), and, where a nearer surface lies within the reach by more than the slope over
+    the reach allows, from the smallest depth around to the measured pixel (the hole may hold that surface's
+    unseen continuation: a part's flank the projector leaves dark). Skirts start and end half a threshold inside
+    the jump, so that the surfaces at their ends keep their own points. This is the free-space reasoning of
+    volumetric carving [1]_ applied to the one question the fusion asks: is a thermal ray free?
+
+    References
+    ----------
+    .. [1] K. N. Kutulakos and S. M. Seitz, "A Theory of Shape by Space Carving", International Journal of
+       Computer Vision 38(3), 199-218, 2000.
+    """
+    depth = np.asarray(depth, dtype=np.float64)
+    if depth.shape != (camera.height, camera.width):
+        raise ValueError(f"The depth map must be {camera.height}x{camera.width} for this camera; got {depth.shape}.")
+    if not jump_mm > 0 or hole_reach_px < 1:
+        raise ValueError(f"The jump must be positive and the hole reach at least 1 pixel; got {jump_mm} mm and "
+                         f"{hole_reach_px} px.")
+    K = np.asarray(camera.K, dtype=np.float64)
+    focal = 0.5 * (K[0, 0] + K[1, 1])
+    finite = np.isfinite(depth)
+    lowest = _window(depth, hole_reach_px, largest=False)
+    highest = _window(depth, hole_reach_px, largest=True)
+    starts, ends, middles = [], [], []
+    for axis in (0, 1):
+        first = [slice(None), slice(None)]
+        second = [slice(None), slice(None)]
+        first[axis], second[axis] = slice(None, -1), slice(1, None)
+        a, b = depth[tuple(first)], depth[tuple(second)]
+        fa, fb = finite[tuple(first)], finite[tuple(second)]
+        rows, columns = np.mgrid[0:a.shape[0], 0:a.shape[1]]
+        middle_u = columns + (0.5 if axis == 1 else 0.0)
+        middle_v = rows + (0.5 if axis == 0 else 0.0)
+        # both measured: a jump
+        both = fa & fb
+        near = np.where(both, np.minimum(a, b), np.inf)
+        far = np.where(both, np.maximum(a, b), -np.inf)
+        # one measured, one hole: back to the farthest depth around; forward from the nearest, across a jump
+        one = fa ^ fb
+        z = np.where(fa, a, b)
+        around_low = np.minimum(lowest[tuple(first)], lowest[tuple(second)])
+        around_high = np.maximum(highest[tuple(first)], highest[tuple(second)])
+        reach_jump = np.maximum(jump_mm, JUMP_SLOPE * np.where(np.isfinite(z), z, 0.0) / focal * (hole_reach_px + 1))
+        with np.errstate(invalid="ignore"):
+            forward = one & (z - around_low > reach_jump)
+        near = np.where(one, np.where(forward, around_low, z), near)
+        far = np.where(one, np.maximum(around_high, z), far)
+        with np.errstate(invalid="ignore"):
+            threshold = np.maximum(jump_mm, JUMP_SLOPE * near / focal)
+            emit = (both | one) & (far - near > threshold)
+        index = np.nonzero(emit)
+        half = 0.5 * threshold[index]
+        starts.append(near[index] + half)
+        ends.append(far[index] - half)
+        middles.append(np.column_stack([middle_u[index], middle_v[index]]))
+    start, end, middle = np.concatenate(starts), np.concatenate(ends), np.concatenate(middles)
+    if len(start) == 0:
+        return np.empty((0, 2, 3))
+    rays = np.column_stack([normalized_coordinates(middle, K, camera.dist), np.ones(len(middle))])
+    R, t = np.asarray(camera.R, dtype=np.float64), np.asarray(camera.t, dtype=np.float64)
+    segments = np.empty((len(start), 2, 3))
+    for end_index, along in enumerate((start, end)):
+        device = rays * along[:, None]
+        segments[:, end_index] = (device - t) @ R  # R^T (x - t) for each row
+    return segments
+
+
+def unseen_space(points: np.ndarray, witnesses: Sequence[Witness], jump_mm: float = DEFAULT_JUMP_MM,
+                 hole_reach_px: int = DEFAULT_HOLE_REACH_PX) -> UnseenSpace:
+    """The skirts of the space that none of ``witnesses`` saw into, from the cloud ``points`` (N, 3) world mm.
+
+    Each witness's skirts come from its own rows of the cloud (:func:`skirt_segments`); with several witnesses
+    (a station's heads) a skirt's samples that another witness sees past are carved away when they are drawn
+    (:func:`occluder_samples`): space is free where any camera saw through it.
+    """
+    points = np.asarray(points, dtype=np.float64)
+    segments, owners, maps = [], [], []
+    for index, witness in enumerate(witnesses):
+        own = points if witness.rows is None else points[witness.rows]
+        own = own[np.isfinite(own).all(axis=1)]
+        depth = depth_map(own, witness.camera)
+        if not witness.skirts:
+            # a projector finer than the camera gets the camera's points on every other pixel or so: the gaps
+            # between them take the nearest depth around (less free space, never more)
+            gaps = np.isinf(depth)
+            depth[gaps] = _window(depth, PROJECTOR_GAP_PX, largest=False)[gaps]
+            maps.append((witness.camera, depth))
+            continue
+        maps.append((witness.camera, depth))
+        segments.append(skirt_segments(depth, witness.camera, jump_mm, hole_reach_px))
+        owners.append(np.full(len(segments[-1]), index, dtype=np.intp))
+    if not segments:
+        return UnseenSpace(np.empty((0, 2, 3)), np.empty(0, dtype=np.intp), ())
+    return UnseenSpace(np.concatenate(segments), np.concatenate(owners), tuple(maps))
+
+
+def occluder_samples(space: UnseenSpace, view: CameraModel, depth_tolerance_mm: float) -> np.ndarray:
+    """Points (S, 3) along the skirts, dense enough for ``view`` (two per pixel of a skirt's image there), less
+    those that a witness other than the skirt's own sees past by more than ``depth_tolerance_mm``."""
+    segments = space.segments
+    if len(segments) == 0:
+        return np.empty((0, 3))
+    K = np.asarray(view.K, dtype=np.float64)
+    terms, tilt = opencv_distortion_terms(view.dist)
+    ends = rigid_transform(segments.reshape(-1, 3), np.asarray(view.R), np.asarray(view.t))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        z = np.where(ends[:, 2] > 0, ends[:, 2], np.nan)
+        u, v = distorted_pixels(ends[:, 0] / z, ends[:, 1] / z, K, terms, tilt)
+    length = np.hypot(u[0::2] - u[1::2], v[0::2] - v[1::2])
+    count = np.where(np.isfinite(length), np.ceil(2.0 * length) + 1, 2).astype(np.intp)
+    np.clip(count, 1, MAX_SAMPLES_PER_SEGMENT, out=count)
+    owner = np.repeat(np.arange(len(segments)), count)
+    first = np.cumsum(count) - count
+    step = np.arange(len(owner)) - np.repeat(first, count)
+    fraction = step / np.maximum(np.repeat(count, count) - 1, 1)
+    samples = segments[owner, 0] + fraction[:, None] * (segments[owner, 1] - segments[owner, 0])
+    if len(space.witnesses) > 1:  # carved by the witnesses other than the skirt's own
+        keep = np.ones(len(samples), dtype=bool)
+        sample_owner = space.owners[owner]
+        for index, (camera, depth) in enumerate(space.witnesses):
+            others = np.flatnonzero(keep & (sample_owner != index))
+            keep[others] = ~_seen_past(samples[others], camera, depth, depth_tolerance_mm)
+        samples = samples[keep]
+    return samples
+
+
+def _seen_past(samples: np.ndarray, camera: CameraModel, depth: np.ndarray, tolerance_mm: float) -> np.ndarray:
+    """Samples in front of the camera's measured depth by more than the tolerance: free space for that camera."""
+    device = rigid_transform(samples, np.asarray(camera.R), np.asarray(camera.t))
+    z = device[:, 2]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        zz = np.where(z > 0, z, np.nan)
+        terms, tilt = opencv_distortion_terms(camera.dist)
+        u, v = distorted_pixels(device[:, 0] / zz, device[:, 1] / zz, np.asarray(camera.K), terms, tilt)
+    column, row = np.rint(u), np.rint(v)
+    inside = (column >= 0) & (column < camera.width) & (row >= 0) & (row < camera.height) & (z > 0)
+    seen = np.zeros(len(samples), dtype=bool)
+    at = np.flatnonzero(inside)
+    measured = depth[row[at].astype(np.intp), column[at].astype(np.intp)]
+    # +inf (nothing measured there) is unknown, not seen past
+    seen[at] = np.isfinite(measured) & (z[at] < measured - tolerance_mm)
+    return seen
