@@ -23,6 +23,7 @@ from services.geometry.camera import normalized_coordinates
 from services.geometry.camera_model import CameraModel
 from services.geometry.distortion import distorted_pixels, opencv_distortion_terms
 from services.geometry.rigid import rigid_transform
+from services.fusion.visibility import nearest_pixel_index, splat_nearest
 
 DEFAULT_JUMP_MM = 4.0
 """The smallest depth jump between neighbouring pixels that is a discontinuity, not a steep surface (twice the
@@ -58,21 +59,52 @@ class UnseenSpace:
     segments: np.ndarray
     owners: np.ndarray
     witnesses: tuple[tuple[CameraModel, np.ndarray], ...]
+    surfaces: np.ndarray
 
 
-def depth_map(points: np.ndarray, camera: CameraModel) -> np.ndarray:
-    """The camera's z-buffer of ``points`` (N, 3) world mm: (height, width) depths, +inf where no point falls."""
+def _pixel_index(points: np.ndarray, camera: CameraModel) -> np.ndarray:
+    """Flat index of the pixel nearest each point's image (-1 outside the image or behind the camera)."""
     device = rigid_transform(np.asarray(points, dtype=np.float64), np.asarray(camera.R), np.asarray(camera.t))
     z = device[:, 2]
     with np.errstate(divide="ignore", invalid="ignore"):
         zz = np.where(z > 0.0, z, np.nan)
         terms, tilt = opencv_distortion_terms(camera.dist)
         u, v = distorted_pixels(device[:, 0] / zz, device[:, 1] / zz, np.asarray(camera.K), terms, tilt)
-    column, row = np.rint(u), np.rint(v)
-    inside = (column >= 0) & (column < camera.width) & (row >= 0) & (row < camera.height) & (z > 0)
+    return nearest_pixel_index(u, v, camera.width, camera.height)
+
+
+def depth_map(points: np.ndarray, camera: CameraModel) -> np.ndarray:
+    """The camera's z-buffer of ``points`` (N, 3) world mm: (height, width) depths, +inf where no point falls."""
+    points = np.asarray(points, dtype=np.float64)
+    pixel = _pixel_index(points, camera)
+    z = rigid_transform(points, np.asarray(camera.R), np.asarray(camera.t))[:, 2]
     buffer = np.full(camera.height * camera.width, np.inf)
-    np.minimum.at(buffer, (row[inside] * camera.width + column[inside]).astype(np.intp), z[inside])
+    splat_nearest(buffer, pixel, z)
     return buffer.reshape(camera.height, camera.width)
+
+
+def smooth_surfaces(depth: np.ndarray, camera: CameraModel, jump_mm: float = DEFAULT_JUMP_MM
+                    ) -> tuple[np.ndarray, int]:
+    """The smooth surfaces of a depth map: (height, width) labels 1..count of 4-connected measured pixels with no
+    depth jump between them (:func:`skirt_segments`' threshold), 0 where none; and the count."""
+    K = np.asarray(camera.K, dtype=np.float64)
+    focal = 0.5 * (K[0, 0] + K[1, 1])
+    finite = np.isfinite(depth)
+    with np.errstate(invalid="ignore"):
+        jump = np.maximum(jump_mm, JUMP_SLOPE * np.where(finite, depth, 0.0) / focal)
+        right = np.abs(depth[:, 1:] - depth[:, :-1]) <= np.minimum(jump[:, 1:], jump[:, :-1])
+        down = np.abs(depth[1:] - depth[:-1]) <= np.minimum(jump[1:], jump[:-1])
+    # a pixel joins its surface's interior unless a jump or a hole lies beside it; edge pixels then take the
+    # label of an interior neighbour (the surface across a jump begins with edge pixels of its own)
+    interior = finite.copy()
+    interior[:, 1:] &= right
+    interior[:, :-1] &= right
+    interior[1:] &= down
+    interior[:-1] &= down
+    count, labels = cv2.connectedComponents(interior.astype(np.uint8), connectivity=4)
+    grown = cv2.dilate(labels.astype(np.float32), np.ones((3, 3), np.uint8)).astype(np.intp)
+    labels = np.where(finite & (labels == 0), grown, labels)
+    return labels, count - 1
 
 
 def _window(depth: np.ndarray, reach_px: int, largest: bool) -> np.ndarray:
@@ -191,9 +223,12 @@ def unseen_space(points: np.ndarray, witnesses: Sequence[Witness], jump_mm: floa
     """
     points = np.asarray(points, dtype=np.float64)
     segments, owners, maps = [], [], []
+    surfaces = np.full(len(points), -1, dtype=np.intp)
+    numbered = 0
     for index, witness in enumerate(witnesses):
-        own = points if witness.rows is None else points[witness.rows]
-        own = own[np.isfinite(own).all(axis=1)]
+        rows = np.arange(len(points)) if witness.rows is None else np.asarray(witness.rows, dtype=np.intp)
+        rows = rows[np.isfinite(points[rows]).all(axis=1)]
+        own = points[rows]
         depth = depth_map(own, witness.camera)
         if not witness.skirts:
             # a projector finer than the camera gets the camera's points on every other pixel or so: the gaps
@@ -203,33 +238,84 @@ def unseen_space(points: np.ndarray, witnesses: Sequence[Witness], jump_mm: floa
             maps.append((witness.camera, depth))
             continue
         maps.append((witness.camera, depth))
+        labels, count = smooth_surfaces(depth, witness.camera, jump_mm)
+        pixel = _pixel_index(own, witness.camera)
+        at = pixel >= 0
+        found = labels.ravel()[pixel[at]]
+        surfaces[rows[at]] = np.where(found > 0, found + numbered, -1)
+        numbered += count
         segments.append(skirt_segments(depth, witness.camera, jump_mm, hole_reach_px))
         owners.append(np.full(len(segments[-1]), index, dtype=np.intp))
     if not segments:
-        return UnseenSpace(np.empty((0, 2, 3)), np.empty(0, dtype=np.intp), ())
-    return UnseenSpace(np.concatenate(segments), np.concatenate(owners), tuple(maps))
+        return UnseenSpace(np.empty((0, 2, 3)), np.empty(0, dtype=np.intp), tuple(maps), surfaces)
+    return UnseenSpace(np.concatenate(segments), np.concatenate(owners), tuple(maps), surfaces)
+
+
+CONSISTENT_K = 20.0
+"""How far (K) beyond three robust standard deviations from the median of its surface's other readings a reading
+that only the skirts would take away may lie and still be kept."""
+MIN_SURFACE_READINGS = 20
+"""Readings a smooth surface needs before its range vouches for another reading on it."""
+
+
+def restore_consistent(plain: np.ndarray, carved: np.ndarray, surfaces: np.ndarray,
+                       tolerance_k: float = CONSISTENT_K) -> np.ndarray:
+    """The carved temperatures, with the readings that only the skirts took away given back where they agree
+    with the readings the skirts left on the same smooth surface.
+
+    Parameters
+    ----------
+    plain, carved : (N,) arrays
+        The points' temperatures (degrees C, NaN unseen) without and with the skirts as occluders.
+    surfaces : (N,) int array
+        The smooth surface of each point (:attr:`UnseenSpace.surfaces`), -1 where none.
+    tolerance_k : float
+        The margin beyond three robust standard deviations of the surface's readings.
+
+    Returns
+    -------
+    temperature : (N,) array
+
+    Notes
+    -----
+    A skirt bounds the space a camera could not see into, not what fills it: behind a fixture's edge it also
+    lies where the thermal camera in fact sees the part past the fixture. A thermal ray through unseen space
+    that met an unseen occluder reads the occluder's temperature, which on a smooth surface differs from the
+    readings around it (a cool wall read at the temperature of the hot flank in front of it, or a hot part read
+    at a cool fixture's). A reading only the skirts took away is therefore kept where it lies within the
+    5th..95th percentile of the carved readings on its surface, widened by ``tolerance_k``, and that surface has
+    at least ``MIN_SURFACE_READINGS`` of them; the temperature field of a forging varies smoothly over a surface
+    seen without a depth jump, so its own readings vouch for it.
+    """
+    plain, carved = np.asarray(plain), np.asarray(carved)
+    result = carved.copy()
+    doubtful = np.flatnonzero(np.isfinite(plain) & np.isnan(carved) & (surfaces >= 0))
+    if len(doubtful) == 0:
+        return result
+    vouching = np.flatnonzero(np.isfinite(carved) & (surfaces >= 0))
+    order = np.argsort(surfaces[vouching], kind="stable")
+    labels, first, counts = np.unique(surfaces[vouching][order], return_index=True, return_counts=True)
+    values = carved[vouching][order]
+    low = np.full(len(labels), np.inf)
+    high = np.full(len(labels), -np.inf)
+    for index in np.flatnonzero(counts >= MIN_SURFACE_READINGS):  # one median per surface
+        surface = values[first[index]:first[index] + counts[index]]
+        median = np.median(surface)
+        reach = tolerance_k + 3.0 * 1.4826 * np.median(np.abs(surface - median))
+        low[index], high[index] = median - reach, median + reach
+    at = np.searchsorted(labels, surfaces[doubtful])
+    known = (at < len(labels)) & (labels[np.minimum(at, len(labels) - 1)] == surfaces[doubtful])
+    at = np.minimum(at, len(labels) - 1)
+    reading = plain[doubtful]
+    keep = known & (reading >= low[at] - tolerance_k) & (reading <= high[at] + tolerance_k)
+    result[doubtful[keep]] = reading[keep]
+    return result
 
 
 def occluder_samples(space: UnseenSpace, view: CameraModel, depth_tolerance_mm: float) -> np.ndarray:
     """Points (S, 3) along the skirts, dense enough for ``view`` (two per pixel of a skirt's image there), less
     those that a witness other than the skirt's own sees past by more than ``depth_tolerance_mm``."""
-    segments = space.segments
-    if len(segments) == 0:
-        return np.empty((0, 3))
-    K = np.asarray(view.K, dtype=np.float64)
-    terms, tilt = opencv_distortion_terms(view.dist)
-    ends = rigid_transform(segments.reshape(-1, 3), np.asarray(view.R), np.asarray(view.t))
-    with np.errstate(divide="ignore", invalid="ignore"):
-        z = np.where(ends[:, 2] > 0, ends[:, 2], np.nan)
-        u, v = distorted_pixels(ends[:, 0] / z, ends[:, 1] / z, K, terms, tilt)
-    length = np.hypot(u[0::2] - u[1::2], v[0::2] - v[1::2])
-    count = np.where(np.isfinite(length), np.ceil(2.0 * length) + 1, 2).astype(np.intp)
-    np.clip(count, 1, MAX_SAMPLES_PER_SEGMENT, out=count)
-    owner = np.repeat(np.arange(len(segments)), count)
-    first = np.cumsum(count) - count
-    step = np.arange(len(owner)) - np.repeat(first, count)
-    fraction = step / np.maximum(np.repeat(count, count) - 1, 1)
-    samples = segments[owner, 0] + fraction[:, None] * (segments[owner, 1] - segments[owner, 0])
+    samples, owner = segment_samples(space.segments, view)
     if len(space.witnesses) > 1:  # carved by the witnesses other than the skirt's own
         keep = np.ones(len(samples), dtype=bool)
         sample_owner = space.owners[owner]
@@ -238,6 +324,27 @@ def occluder_samples(space: UnseenSpace, view: CameraModel, depth_tolerance_mm: 
             keep[others] = ~_seen_past(samples[others], camera, depth, depth_tolerance_mm)
         samples = samples[keep]
     return samples
+
+
+def segment_samples(segments: np.ndarray, view: CameraModel) -> tuple[np.ndarray, np.ndarray]:
+    """Points along (M, 2, 3) segments, two per pixel of each segment's image in ``view`` (at least its two
+    ends, at most ``MAX_SAMPLES_PER_SEGMENT``): the points (S, 3) and the segment each lies on (S,)."""
+    if len(segments) == 0:
+        return np.empty((0, 3)), np.empty(0, dtype=np.intp)
+    K = np.asarray(view.K, dtype=np.float64)
+    terms, tilt = opencv_distortion_terms(view.dist)
+    ends = rigid_transform(segments.reshape(-1, 3), np.asarray(view.R), np.asarray(view.t))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        z = np.where(ends[:, 2] > 0, ends[:, 2], np.nan)
+        u, v = distorted_pixels(ends[:, 0] / z, ends[:, 1] / z, K, terms, tilt)
+    length = np.hypot(u[0::2] - u[1::2], v[0::2] - v[1::2])
+    count = np.where(np.isfinite(length), np.ceil(2.0 * length) + 1, 2).astype(np.intp)
+    np.clip(count, 2, MAX_SAMPLES_PER_SEGMENT, out=count)
+    owner = np.repeat(np.arange(len(segments)), count)
+    first = np.cumsum(count) - count
+    step = np.arange(len(owner)) - np.repeat(first, count)
+    fraction = step / np.repeat(count - 1, count)
+    return segments[owner, 0] + fraction[:, None] * (segments[owner, 1] - segments[owner, 0]), owner
 
 
 def _seen_past(samples: np.ndarray, camera: CameraModel, depth: np.ndarray, tolerance_mm: float) -> np.ndarray:

@@ -7,7 +7,7 @@ from collections.abc import Mapping, Sequence
 import numpy as np
 
 from services.geometry.cloud import PointCloud
-from services.fusion.carving import Witness, unseen_space
+from services.fusion.carving import Witness, restore_consistent, unseen_space
 from services.fusion.colormap import DEFAULT_COLORMAP, temperature_colors
 from services.fusion.fuse import DEFAULT_MAX_VIEW_ANGLE_DEG, Rows, ThermalView, fuse_rows, rows_of
 from services.fusion.normals import estimate_normals, normals_at
@@ -96,10 +96,11 @@ def temperature_field(
     colormap : str
         Colour map for the RGB properties (see :func:`services.fusion.colormap.colormap_lut`).
     witnesses : sequence of Witness
-        The cameras that measured the cloud, with their rows: a point whose
-        thermal ray passes through space none of them saw free gets no
-        temperature (:mod:`services.fusion.carving`). Empty: the cloud's own
-        points are the only occluders.
+        The cameras (and projectors) that measured the cloud, with their rows:
+        a point whose thermal ray passes through space none of them saw free
+        keeps its reading only where the readings on its smooth surface vouch
+        for it (:func:`services.fusion.carving.restore_consistent`). Empty: the
+        cloud's own points are the only occluders.
 
     Returns
     -------
@@ -114,10 +115,14 @@ def temperature_field(
     if absent:
         raise ValueError(f"The cloud lacks the coordinate properties {absent}.")
     points_of, normals_of = _cloud_rows(cloud, viewpoint)
-    unseen = None
+    fused = fuse_rows(len(cloud), points_of, normals_of, views, max_view_angle_deg)
+    temperature, view_angle = fused.temperature, fused.view_angle
     if witnesses:
         unseen = unseen_space(np.column_stack(_coordinates(cloud)), witnesses)
-    fused = fuse_rows(len(cloud), points_of, normals_of, views, max_view_angle_deg, unseen=unseen)
-    rgb = temperature_colors(fused.temperature, name=colormap)
+        carved = fuse_rows(len(cloud), points_of, normals_of, views, max_view_angle_deg, unseen=unseen)
+        temperature = restore_consistent(temperature, carved.temperature, unseen.surfaces).astype(np.float32)
+        view_angle = np.where(np.isfinite(temperature) | np.isnan(carved.view_angle), view_angle, carved.view_angle)
+    rgb = temperature_colors(temperature, name=colormap)
     return cloud.without(*FIELD_PROPERTIES).with_properties(
-        temperature=fused.temperature, view_angle=fused.view_angle, red=rgb[:, 0], green=rgb[:, 1], blue=rgb[:, 2])
+        temperature=temperature, view_angle=view_angle.astype(np.float32), red=rgb[:, 0], green=rgb[:, 1],
+        blue=rgb[:, 2])
