@@ -60,6 +60,7 @@ class UnseenSpace:
     owners: np.ndarray
     witnesses: tuple[tuple[CameraModel, np.ndarray], ...]
     surfaces: np.ndarray
+    pixels: np.ndarray
 
 
 def _pixel_index(points: np.ndarray, camera: CameraModel) -> np.ndarray:
@@ -224,6 +225,7 @@ def unseen_space(points: np.ndarray, witnesses: Sequence[Witness], jump_mm: floa
     points = np.asarray(points, dtype=np.float64)
     segments, owners, maps = [], [], []
     surfaces = np.full(len(points), -1, dtype=np.intp)
+    pixels = np.full((len(points), 3), -1, dtype=np.intp)
     numbered = 0
     for index, witness in enumerate(witnesses):
         rows = np.arange(len(points)) if witness.rows is None else np.asarray(witness.rows, dtype=np.intp)
@@ -243,34 +245,60 @@ def unseen_space(points: np.ndarray, witnesses: Sequence[Witness], jump_mm: floa
         at = pixel >= 0
         found = labels.ravel()[pixel[at]]
         surfaces[rows[at]] = np.where(found > 0, found + numbered, -1)
+        pixels[rows[at], 0] = index
+        pixels[rows[at], 1], pixels[rows[at], 2] = np.divmod(pixel[at], witness.camera.width)
         numbered += count
         segments.append(skirt_segments(depth, witness.camera, jump_mm, hole_reach_px))
         owners.append(np.full(len(segments[-1]), index, dtype=np.intp))
     if not segments:
-        return UnseenSpace(np.empty((0, 2, 3)), np.empty(0, dtype=np.intp), tuple(maps), surfaces)
-    return UnseenSpace(np.concatenate(segments), np.concatenate(owners), tuple(maps), surfaces)
+        return UnseenSpace(np.empty((0, 2, 3)), np.empty(0, dtype=np.intp), tuple(maps), surfaces, pixels)
+    return UnseenSpace(np.concatenate(segments), np.concatenate(owners), tuple(maps), surfaces, pixels)
 
 
 CONSISTENT_K = 20.0
-"""How far (K) beyond three robust standard deviations from the median of its surface's other readings a reading
+"""How far (K) beyond three robust standard deviations from the median of its neighbours' readings a reading
 that only the skirts would take away may lie and still be kept."""
+VOUCH_RADIUS_PX = 3
+"""The neighbours that vouch for a reading: within this many pixels of the witness's image, on its surface."""
+MIN_VOUCHING = 8
+"""Readings of neighbours needed before they vouch for (or against) a reading."""
+
+
 MIN_SURFACE_READINGS = 20
-"""Readings a smooth surface needs before its range vouches for another reading on it."""
+"""Carved readings a smooth surface needs before its median vouches for a reading on it."""
 
 
-def restore_consistent(plain: np.ndarray, carved: np.ndarray, surfaces: np.ndarray,
+def _surface_ranges(carved: np.ndarray, surfaces: np.ndarray, tolerance_k: float) -> tuple[np.ndarray, np.ndarray]:
+    """Per surface label, median -+ (tolerance + 3 robust sigma) of its carved readings; an empty range for a
+    surface with fewer than ``MIN_SURFACE_READINGS``."""
+    count = int(surfaces.max()) + 1 if len(surfaces) else 0
+    low, high = np.full(count, np.inf), np.full(count, -np.inf)
+    vouching = np.flatnonzero(np.isfinite(carved) & (surfaces >= 0))
+    order = vouching[np.argsort(surfaces[vouching], kind="stable")]
+    labels, first, counts = np.unique(surfaces[order], return_index=True, return_counts=True)
+    for label, start, size in zip(labels, first, counts):
+        if size < MIN_SURFACE_READINGS:
+            continue
+        values = carved[order[start:start + size]]
+        median = np.median(values)
+        reach = tolerance_k + 3.0 * 1.4826 * np.median(np.abs(values - median))
+        low[label], high[label] = median - reach, median + reach
+    return low, high
+
+
+def restore_consistent(plain: np.ndarray, carved: np.ndarray, space: UnseenSpace,
                        tolerance_k: float = CONSISTENT_K) -> np.ndarray:
-    """The carved temperatures, with the readings that only the skirts took away given back where they agree
-    with the readings the skirts left on the same smooth surface.
+    """The carved temperatures, with the readings that only the skirts took away given back where their
+    neighbours on the same smooth surface vouch for them.
 
     Parameters
     ----------
     plain, carved : (N,) arrays
         The points' temperatures (degrees C, NaN unseen) without and with the skirts as occluders.
-    surfaces : (N,) int array
-        The smooth surface of each point (:attr:`UnseenSpace.surfaces`), -1 where none.
+    space : UnseenSpace
+        Its ``surfaces`` and ``pixels``: where each point lies in its witness's image, and on which surface.
     tolerance_k : float
-        The margin beyond three robust standard deviations of the surface's readings.
+        The margin beyond three robust standard deviations of the neighbours' readings.
 
     Returns
     -------
@@ -280,35 +308,72 @@ def restore_consistent(plain: np.ndarray, carved: np.ndarray, surfaces: np.ndarr
     -----
     A skirt bounds the space a camera could not see into, not what fills it: behind a fixture's edge it also
     lies where the thermal camera in fact sees the part past the fixture. A thermal ray through unseen space
-    that met an unseen occluder reads the occluder's temperature, which on a smooth surface differs from the
-    readings around it (a cool wall read at the temperature of the hot flank in front of it, or a hot part read
-    at a cool fixture's). A reading only the skirts took away is therefore kept where it lies within the
-    5th..95th percentile of the carved readings on its surface, widened by ``tolerance_k``, and that surface has
-    at least ``MIN_SURFACE_READINGS`` of them; the temperature field of a forging varies smoothly over a surface
-    seen without a depth jump, so its own readings vouch for it.
+    that met an unseen occluder reads the occluder's temperature, which differs from the readings beside it on
+    the same smooth surface (a cool wall read at the temperature of the hot flank in front of it, or a hot part
+    read at a cool fixture's). A reading T only the skirts took away is therefore kept where
+
+        |T - median| <= tolerance_k + 3 * 1.4826 * MAD
+
+    over the readings of its neighbours within ``VOUCH_RADIUS_PX`` on its surface (MAD their median absolute
+    deviation; 1.4826 MAD is a robust standard deviation [2]_), given at least ``MIN_VOUCHING`` of them, and
+    also over all the carved readings of its surface. A reading kept vouches in turn, so a band of kept readings
+    grows inward from the seen ones, ring by ring; a reading whose neighbours disagree is dropped, and so is one
+    no neighbour reaches. The temperature of a forging varies smoothly over a surface seen without a depth
+    jump, while an occluder's edge changes the reading by hundreds of kelvin within a thermal pixel, so the
+    growth stops there. The whole surface's test holds where the skirts missed some occluded readings, which
+    then read hot beside the ones they took and would vouch for them: their median is the wall's, unmoved by
+    the few. Its neighbours' test holds where a surface's own temperatures span more than an occluder's
+    reading differs from them (a hot support with a gradient).
+
+    References
+    ----------
+    .. [2] P. J. Rousseeuw and C. Croux, "Alternatives to the Median Absolute Deviation", Journal of the American
+       Statistical Association 88(424), 1273-1283, 1993.
     """
     plain, carved = np.asarray(plain), np.asarray(carved)
     result = carved.copy()
-    doubtful = np.flatnonzero(np.isfinite(plain) & np.isnan(carved) & (surfaces >= 0))
-    if len(doubtful) == 0:
+    placed = space.pixels[:, 0] >= 0
+    pending = np.flatnonzero(np.isfinite(plain) & np.isnan(carved) & placed & (space.surfaces >= 0))
+    if len(pending) == 0:
         return result
-    vouching = np.flatnonzero(np.isfinite(carved) & (surfaces >= 0))
-    order = np.argsort(surfaces[vouching], kind="stable")
-    labels, first, counts = np.unique(surfaces[vouching][order], return_index=True, return_counts=True)
-    values = carved[vouching][order]
-    low = np.full(len(labels), np.inf)
-    high = np.full(len(labels), -np.inf)
-    for index in np.flatnonzero(counts >= MIN_SURFACE_READINGS):  # one median per surface
-        surface = values[first[index]:first[index] + counts[index]]
-        median = np.median(surface)
-        reach = tolerance_k + 3.0 * 1.4826 * np.median(np.abs(surface - median))
-        low[index], high[index] = median - reach, median + reach
-    at = np.searchsorted(labels, surfaces[doubtful])
-    known = (at < len(labels)) & (labels[np.minimum(at, len(labels) - 1)] == surfaces[doubtful])
-    at = np.minimum(at, len(labels) - 1)
-    reading = plain[doubtful]
-    keep = known & (reading >= low[at] - tolerance_k) & (reading <= high[at] + tolerance_k)
-    result[doubtful[keep]] = reading[keep]
+    shapes = [(camera.height, camera.width) for camera, _ in space.witnesses]
+    offsets = np.concatenate([[0], np.cumsum([h * w for h, w in shapes])])
+    widths = np.array([w for _, w in shapes])
+    heights = np.array([h for h, _ in shapes])
+    flat = np.where(placed, offsets[space.pixels[:, 0]] + space.pixels[:, 1] * widths[space.pixels[:, 0]]
+                    + space.pixels[:, 2], 0)
+    value = np.full(offsets[-1], np.nan)
+    label = np.full(offsets[-1], -1, dtype=np.intp)
+    vouching = np.flatnonzero(np.isfinite(carved) & placed)
+    value[flat[vouching]] = carved[vouching]
+    label[flat[placed]] = space.surfaces[placed]
+    low, high = _surface_ranges(carved, space.surfaces, tolerance_k)
+    reading = plain[pending]
+    pending = pending[(reading >= low[space.surfaces[pending]]) & (reading <= high[space.surfaces[pending]])]
+    dy, dx = np.mgrid[-VOUCH_RADIUS_PX:VOUCH_RADIUS_PX + 1, -VOUCH_RADIUS_PX:VOUCH_RADIUS_PX + 1]
+    dy, dx = dy.ravel(), dx.ravel()
+    while len(pending):
+        witness, row, column = space.pixels[pending].T
+        rows, columns = row[:, None] + dy, column[:, None] + dx
+        inside = (rows >= 0) & (rows < heights[witness][:, None]) & (columns >= 0) & (columns < widths[witness][:, None])
+        at = offsets[witness][:, None] + np.clip(rows, 0, None) * widths[witness][:, None] + np.clip(columns, 0, None)
+        at = np.where(inside, at, 0)
+        around = np.where(inside & (label[at] == space.surfaces[pending][:, None]), value[at], np.nan)
+        counted = np.isfinite(around).sum(axis=1)
+        judged = counted >= MIN_VOUCHING
+        if not judged.any():
+            break
+        with np.errstate(all="ignore"):
+            median = np.nanmedian(around[judged], axis=1)
+            spread = np.nanmedian(np.abs(around[judged] - median[:, None]), axis=1)
+        reading = plain[pending[judged]]
+        agrees = np.abs(reading - median) <= tolerance_k + 3.0 * 1.4826 * spread
+        kept = pending[judged][agrees]
+        result[kept] = plain[kept]
+        value[flat[kept]] = plain[kept]
+        if not agrees.any():
+            break
+        pending = pending[~judged]  # those judged are settled; the rest wait for kept neighbours
     return result
 
 

@@ -120,7 +120,7 @@ def temperature_field(
     if witnesses:
         unseen = unseen_space(np.column_stack(_coordinates(cloud)), witnesses)
         carved = fuse_rows(len(cloud), points_of, normals_of, views, max_view_angle_deg, unseen=unseen)
-        temperature = restore_consistent(temperature, carved.temperature, unseen.surfaces).astype(np.float32)
+        temperature = restore_consistent(temperature, carved.temperature, unseen).astype(np.float32)
         view_angle = np.where(np.isfinite(temperature) | np.isnan(carved.view_angle), view_angle, carved.view_angle)
     rgb = temperature_colors(temperature, name=colormap)
     return cloud.without(*FIELD_PROPERTIES).with_properties(
