@@ -74,10 +74,11 @@ def _pixel_index(points: np.ndarray, camera: CameraModel) -> np.ndarray:
     return nearest_pixel_index(u, v, camera.width, camera.height)
 
 
-def depth_map(points: np.ndarray, camera: CameraModel) -> np.ndarray:
-    """The camera's z-buffer of ``points`` (N, 3) world mm: (height, width) depths, +inf where no point falls."""
+def depth_map(points: np.ndarray, camera: CameraModel, pixel: np.ndarray | None = None) -> np.ndarray:
+    """The camera's z-buffer of ``points`` (N, 3) world mm: (height, width) depths, +inf where no point falls
+    (``pixel``: the points' flat pixel indices, when known)."""
     points = np.asarray(points, dtype=np.float64)
-    pixel = _pixel_index(points, camera)
+    pixel = _pixel_index(points, camera) if pixel is None else pixel
     z = rigid_transform(points, np.asarray(camera.R), np.asarray(camera.t))[:, 2]
     buffer = np.full(camera.height * camera.width, np.inf)
     splat_nearest(buffer, pixel, z)
@@ -218,37 +219,39 @@ def unseen_space(points: np.ndarray, witnesses: Sequence[Witness], jump_mm: floa
                  hole_reach_px: int = DEFAULT_HOLE_REACH_PX) -> UnseenSpace:
     """The skirts of the space that none of ``witnesses`` saw into, from the cloud ``points`` (N, 3) world mm.
 
-    Each witness's skirts come from its own rows of the cloud (:func:`skirt_segments`); with several witnesses
-    (a station's heads) a skirt's samples that another witness sees past are carved away when they are drawn
-    (:func:`occluder_samples`): space is free where any camera saw through it.
+    Each camera's skirts come from its own rows of the cloud (:func:`skirt_segments`); a skirt's samples that
+    another witness (a projector, another head) sees past are carved away when they are drawn
+    (:func:`occluder_samples`): space is free where any device saw through it.
     """
     points = np.asarray(points, dtype=np.float64)
-    segments, owners, maps = [], [], []
     surfaces = np.full(len(points), -1, dtype=np.intp)
     pixels = np.full((len(points), 3), -1, dtype=np.intp)
-    numbered = 0
-    for index, witness in enumerate(witnesses):
-        rows = np.arange(len(points)) if witness.rows is None else np.asarray(witness.rows, dtype=np.intp)
-        rows = rows[np.isfinite(points[rows]).all(axis=1)]
-        own = points[rows]
-        depth = depth_map(own, witness.camera)
+    rows_of = [np.flatnonzero(np.isfinite(points).all(axis=1)) if witness.rows is None
+               else np.asarray(witness.rows, dtype=np.intp) for witness in witnesses]
+    rows_of = [rows[np.isfinite(points[rows]).all(axis=1)] for rows in rows_of]
+    located = [_pixel_index(points[rows], witness.camera) for rows, witness in zip(rows_of, witnesses)]
+    maps = []
+    for rows, pixel, witness in zip(rows_of, located, witnesses):
+        depth = depth_map(points[rows], witness.camera, pixel)
         if not witness.skirts:
             # a projector finer than the camera gets the camera's points on every other pixel or so: the gaps
             # between them take the nearest depth around (less free space, never more)
             gaps = np.isinf(depth)
             depth[gaps] = _window(depth, PROJECTOR_GAP_PX, largest=False)[gaps]
-            maps.append((witness.camera, depth))
-            continue
         maps.append((witness.camera, depth))
-        labels, count = smooth_surfaces(depth, witness.camera, jump_mm)
-        pixel = _pixel_index(own, witness.camera)
+    segments, owners, numbered = [], [], 0
+    for index, (rows, pixel, witness) in enumerate(zip(rows_of, located, witnesses)):
+        if not witness.skirts:
+            continue
+        camera, depth = maps[index]
+        labels, count = smooth_surfaces(depth, camera, jump_mm)
         at = pixel >= 0
         found = labels.ravel()[pixel[at]]
         surfaces[rows[at]] = np.where(found > 0, found + numbered, -1)
         pixels[rows[at], 0] = index
-        pixels[rows[at], 1], pixels[rows[at], 2] = np.divmod(pixel[at], witness.camera.width)
+        pixels[rows[at], 1], pixels[rows[at], 2] = np.divmod(pixel[at], camera.width)
         numbered += count
-        segments.append(skirt_segments(depth, witness.camera, jump_mm, hole_reach_px))
+        segments.append(skirt_segments(depth, camera, jump_mm, hole_reach_px))
         owners.append(np.full(len(segments[-1]), index, dtype=np.intp))
     if not segments:
         return UnseenSpace(np.empty((0, 2, 3)), np.empty(0, dtype=np.intp), tuple(maps), surfaces, pixels)
@@ -284,6 +287,14 @@ def _surface_ranges(carved: np.ndarray, surfaces: np.ndarray, tolerance_k: float
         reach = tolerance_k + 3.0 * 1.4826 * np.median(np.abs(values - median))
         low[label], high[label] = median - reach, median + reach
     return low, high
+
+
+def _row_medians(values: np.ndarray, counts: np.ndarray) -> np.ndarray:
+    """The median of each row's finite values (``counts`` of them, at least one): NaN sorts last, so the
+    middle of the sorted row's first ``counts`` (numpy's nanmedian takes a masked-array path ten times slower)."""
+    ordered = np.sort(values, axis=1)
+    rows = np.arange(len(values))
+    return 0.5 * (ordered[rows, (counts - 1) // 2] + ordered[rows, counts // 2])
 
 
 def restore_consistent(plain: np.ndarray, carved: np.ndarray, space: UnseenSpace,
@@ -352,33 +363,45 @@ def restore_consistent(plain: np.ndarray, carved: np.ndarray, space: UnseenSpace
     pending = pending[(reading >= low[space.surfaces[pending]]) & (reading <= high[space.surfaces[pending]])]
     dy, dx = np.mgrid[-VOUCH_RADIUS_PX:VOUCH_RADIUS_PX + 1, -VOUCH_RADIUS_PX:VOUCH_RADIUS_PX + 1]
     dy, dx = dy.ravel(), dx.ravel()
-    while len(pending):
-        witness, row, column = space.pixels[pending].T
+
+    def windows(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The flat pixels of each point's window, and which lie in its image."""
+        witness, row, column = space.pixels[points].T
         rows, columns = row[:, None] + dy, column[:, None] + dx
-        inside = (rows >= 0) & (rows < heights[witness][:, None]) & (columns >= 0) & (columns < widths[witness][:, None])
+        inside = (rows >= 0) & (rows < heights[witness][:, None])
+        inside &= (columns >= 0) & (columns < widths[witness][:, None])
         at = offsets[witness][:, None] + np.clip(rows, 0, None) * widths[witness][:, None] + np.clip(columns, 0, None)
-        at = np.where(inside, at, 0)
-        around = np.where(inside & (label[at] == space.surfaces[pending][:, None]), value[at], np.nan)
+        return np.where(inside, at, 0), inside
+
+    waiting = np.full(offsets[-1], -1, dtype=np.intp)  # the pending point at each pixel
+    waiting[flat[pending]] = pending
+    # the first frontier: pending readings with a vouching reading within the window (on any surface)
+    reach = np.ones((2 * VOUCH_RADIUS_PX + 1,) * 2, np.uint8)
+    near = np.concatenate([cv2.dilate(np.isfinite(value[offsets[index]:offsets[index + 1]]).reshape(shape)
+                                      .astype(np.uint8), reach).ravel() for index, shape in enumerate(shapes)])
+    frontier = pending[near[flat[pending]] > 0]
+    while len(frontier):
+        at, inside = windows(frontier)
+        around = np.where(inside & (label[at] == space.surfaces[frontier][:, None]), value[at], np.nan)
         counted = np.isfinite(around).sum(axis=1)
         judged = counted >= MIN_VOUCHING
-        if not judged.any():
-            break
-        with np.errstate(all="ignore"):
-            median = np.nanmedian(around[judged], axis=1)
-            spread = np.nanmedian(np.abs(around[judged] - median[:, None]), axis=1)
-        reading = plain[pending[judged]]
-        agrees = np.abs(reading - median) <= tolerance_k + 3.0 * 1.4826 * spread
-        kept = pending[judged][agrees]
+        median = _row_medians(around[judged], counted[judged])
+        spread = _row_medians(np.abs(around[judged] - median[:, None]), counted[judged])
+        settled = frontier[judged]
+        agrees = np.abs(plain[settled] - median) <= tolerance_k + 3.0 * 1.4826 * spread
+        kept = settled[agrees]
         result[kept] = plain[kept]
         value[flat[kept]] = plain[kept]
-        if not agrees.any():
-            break
-        pending = pending[~judged]  # those judged are settled; the rest wait for kept neighbours
+        waiting[flat[settled]] = -1  # judged: kept or dropped for good
+        # the next frontier: the readings still waiting beside the ones just kept
+        at, inside = windows(kept)
+        beside = np.unique(waiting[at[inside]])
+        frontier = beside[beside >= 0]
     return result
 
 
 def occluder_samples(space: UnseenSpace, view: CameraModel, depth_tolerance_mm: float) -> np.ndarray:
-    """Points (S, 3) along the skirts, dense enough for ``view`` (two per pixel of a skirt's image there), less
+    """Points (S, 3) along the skirts, dense enough for ``view`` (one per pixel of a skirt's image there), less
     those that a witness other than the skirt's own sees past by more than ``depth_tolerance_mm``."""
     samples, owner = segment_samples(space.segments, view)
     if len(space.witnesses) > 1:  # carved by the witnesses other than the skirt's own
@@ -392,8 +415,9 @@ def occluder_samples(space: UnseenSpace, view: CameraModel, depth_tolerance_mm: 
 
 
 def segment_samples(segments: np.ndarray, view: CameraModel) -> tuple[np.ndarray, np.ndarray]:
-    """Points along (M, 2, 3) segments, two per pixel of each segment's image in ``view`` (at least its two
-    ends, at most ``MAX_SAMPLES_PER_SEGMENT``): the points (S, 3) and the segment each lies on (S,)."""
+    """Points along (M, 2, 3) segments, one per pixel of each segment's image in ``view`` (at least its two
+    ends, at most ``MAX_SAMPLES_PER_SEGMENT``; the z-buffer's 3x3 fill closes the diagonal gaps): the points
+    (S, 3) and the segment each lies on (S,)."""
     if len(segments) == 0:
         return np.empty((0, 3)), np.empty(0, dtype=np.intp)
     K = np.asarray(view.K, dtype=np.float64)
@@ -403,7 +427,7 @@ def segment_samples(segments: np.ndarray, view: CameraModel) -> tuple[np.ndarray
         z = np.where(ends[:, 2] > 0, ends[:, 2], np.nan)
         u, v = distorted_pixels(ends[:, 0] / z, ends[:, 1] / z, K, terms, tilt)
     length = np.hypot(u[0::2] - u[1::2], v[0::2] - v[1::2])
-    count = np.where(np.isfinite(length), np.ceil(2.0 * length) + 1, 2).astype(np.intp)
+    count = np.where(np.isfinite(length), np.ceil(length) + 1, 2).astype(np.intp)
     np.clip(count, 2, MAX_SAMPLES_PER_SEGMENT, out=count)
     owner = np.repeat(np.arange(len(segments)), count)
     first = np.cumsum(count) - count
