@@ -115,14 +115,11 @@ def temperature_field(
     if absent:
         raise ValueError(f"The cloud lacks the coordinate properties {absent}.")
     points_of, normals_of = _cloud_rows(cloud, viewpoint)
-    fused = fuse_rows(len(cloud), points_of, normals_of, views, max_view_angle_deg)
-    temperature, view_angle = fused.temperature, fused.view_angle
-    if witnesses:
-        unseen = unseen_space(np.column_stack(_coordinates(cloud)), witnesses)
-        carved = fuse_rows(len(cloud), points_of, normals_of, views, max_view_angle_deg, unseen=unseen)
-        temperature = restore_consistent(temperature, carved.temperature, unseen).astype(np.float32)
-        view_angle = np.where(np.isfinite(temperature) | np.isnan(carved.view_angle), view_angle, carved.view_angle)
+    unseen = unseen_space(np.column_stack(_coordinates(cloud)), witnesses) if witnesses else None
+    fused = fuse_rows(len(cloud), points_of, normals_of, views, max_view_angle_deg, unseen=unseen)
+    temperature = fused.temperature
+    if unseen is not None:
+        temperature = restore_consistent(fused.unguarded, temperature, unseen).astype(np.float32)
     rgb = temperature_colors(temperature, name=colormap)
     return cloud.without(*FIELD_PROPERTIES).with_properties(
-        temperature=temperature, view_angle=view_angle.astype(np.float32), red=rgb[:, 0], green=rgb[:, 1],
-        blue=rgb[:, 2])
+        temperature=temperature, view_angle=fused.view_angle, red=rgb[:, 0], green=rgb[:, 1], blue=rgb[:, 2])

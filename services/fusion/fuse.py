@@ -55,10 +55,14 @@ class ThermalView:
 
 @dataclass(frozen=True)
 class TemperatureField:
-    """Per-point fused temperature (degrees C, NaN unseen) and best view angle (degrees, NaN unseen)."""
+    """Per-point fused temperature (degrees C, NaN unseen) and best view angle (degrees, NaN unseen).
+
+    With an :class:`~services.fusion.carving.UnseenSpace`, ``temperature`` leaves out the readings whose thermal
+    ray crosses a skirt, and ``unguarded`` holds the temperatures without that test (``None`` without one)."""
 
     temperature: np.ndarray
     view_angle: np.ndarray
+    unguarded: np.ndarray | None = None
 
 
 def view_angles(points: np.ndarray, normals: np.ndarray, centre: np.ndarray) -> np.ndarray:
@@ -164,7 +168,7 @@ def _bilinear(frames: np.ndarray, u: np.ndarray, v: np.ndarray, depth: np.ndarra
 
 Rows = Callable[[slice], np.ndarray]
 """A chunk's rows of an (N, 3) array, as float64 (n, 3)."""
-_ChunkResult = Callable[[slice, np.ndarray, np.ndarray, np.ndarray], None]
+_ChunkResult = Callable[[slice, np.ndarray, np.ndarray, np.ndarray, np.ndarray | None], None]
 
 
 def rows_of(array: np.ndarray) -> Rows:
@@ -176,8 +180,9 @@ def _sample_view(count: int, points_of: Rows, normals_of: Rows, view: ThermalVie
                  depth_tolerance_mm: float, occlusion_margin_px: int, result: _ChunkResult,
                  thermal_blur_px: float = DEFAULT_THERMAL_BLUR_PX, unseen: UnseenSpace | None = None) -> None:
     """The temperature of ``count`` points in one thermal view, averaged over the view's frames, chunk by chunk:
-    ``result(rows, temperature, view_angle, weight)`` for each chunk of rows (called on the pool's threads; each
-    chunk's rows are its own). See :func:`fuse_temperature` for the parameters.
+    ``result(rows, temperature, view_angle, weight, crossed)`` for each chunk of rows (called on the pool's
+    threads; each chunk's rows are its own). See :func:`fuse_temperature` for the parameters; ``crossed`` (None
+    without ``unseen``) marks the points seen whose thermal ray crosses a skirt of the unseen space.
 
     ``temperature`` is NaN where the view does not see the point, sees it beyond the angle limit, its pixels
     mix its surface with another, or the frames have no finite value there; ``view_angle`` (radians) is NaN
@@ -217,13 +222,17 @@ def _sample_view(count: int, points_of: Rows, normals_of: Rows, view: ThermalVie
         reach = footprint_radius(thermal_blur_px, stencil_px)
         far = background_depth(buffer, reach, depth_tolerance_mm).ravel()
         stencils.append((far, SAMPLE_FOOTPRINTS + np.sqrt(2) * reach))
-    if unseen is not None:  # occluders for the visibility tests, not surfaces for the mixed-pixel test above
-        skirts = occluder_samples(unseen, device, depth_tolerance_mm)
-        skirt_device = rigid_transform(skirts, R, t)
+    guarded = None
+    if unseen is not None:  # occluders for a second visibility test, not surfaces for the mixed-pixel test above
+        skirts = rigid_transform(occluder_samples(unseen, device, depth_tolerance_mm), R, t)
         with np.errstate(divide="ignore", invalid="ignore"):
-            z = np.where(skirt_device[:, 2] > 0.0, skirt_device[:, 2], np.nan)
-            u, v = distorted_pixels(skirt_device[:, 0] / z, skirt_device[:, 1] / z, K, terms, tilt)
-        splat_nearest(buffer.ravel(), nearest_pixel_index(u, v, device.width, device.height), skirt_device[:, 2])
+            z = np.where(skirts[:, 2] > 0.0, skirts[:, 2], np.nan)
+            u, v = distorted_pixels(skirts[:, 0] / z, skirts[:, 1] / z, K, terms, tilt)
+        guarded = buffer.copy()
+        splat_nearest(guarded.ravel(), nearest_pixel_index(u, v, device.width, device.height), skirts[:, 2])
+        guarded = fill_empty_pixels(guarded)
+        guarded_nearest = nearest_depth_around(guarded, occlusion_margin_px).ravel() if occlusion_margin_px > 0 else None
+        guarded = guarded.ravel()
     buffer = fill_empty_pixels(buffer)
     # the square window reaches margin * sqrt(2) pixels away along its diagonals
     guard_footprints = SAMPLE_FOOTPRINTS + np.sqrt(2) * occlusion_margin_px
@@ -240,8 +249,13 @@ def _sample_view(count: int, points_of: Rows, normals_of: Rows, view: ThermalVie
         tolerance = depth_tolerance(gradient, depth_tolerance_mm)
         seen = within_tolerance(chunk_index, chunk_depth, surface, tolerance)
         if nearest is not None:
-            seen &= within_tolerance(chunk_index, chunk_depth, nearest,
-                                     depth_tolerance(gradient, depth_tolerance_mm, guard_footprints))
+            guard_tolerance = depth_tolerance(gradient, depth_tolerance_mm, guard_footprints)
+            seen &= within_tolerance(chunk_index, chunk_depth, nearest, guard_tolerance)
+        crossed = None
+        if guarded is not None:  # seen past the cloud's points, but the thermal ray crosses a skirt
+            crossed = seen & ~within_tolerance(chunk_index, chunk_depth, guarded, tolerance)
+            if guarded_nearest is not None:
+                crossed |= seen & ~within_tolerance(chunk_index, chunk_depth, guarded_nearest, guard_tolerance)
         # the footprint sees this surface alone: nothing farther (background, empty space) within its reach
         (bilinear_far, bilinear_footprints), (nearest_far, nearest_footprints) = stencils
         at = np.maximum(chunk_index, 0)
@@ -275,7 +289,7 @@ def _sample_view(count: int, points_of: Rows, normals_of: Rows, view: ThermalVie
             offset = chunk_points[usable] - centre
             weight[usable] = cosine[usable] * frames_seen * focal**2 / np.einsum("ij,ij->i", offset, offset)
         angle[~seen] = np.nan
-        result(rows, temperature, angle, weight)
+        result(rows, temperature, angle, weight, crossed)
 
     map_bands(sample, chunks)
 
@@ -319,14 +333,17 @@ def fuse_temperature(
     unseen : UnseenSpace, optional
         The space the measuring camera(s) could not see into
         (:func:`services.fusion.carving.unseen_space`): its skirts are drawn
-        into each view's z-buffer as occluders, so that a point whose thermal
-        ray passes through space no camera saw free gets no temperature.
+        into a second z-buffer of each view as occluders, so that a point whose
+        thermal ray passes through space no device saw free gets no
+        temperature from that view (``unguarded`` keeps the readings without
+        this test, for :func:`services.fusion.carving.restore_consistent`).
 
     Returns
     -------
     TemperatureField
         ``temperature`` (N,) float32 degrees C and ``view_angle`` (N,) float32
-        degrees (the smallest over the views that see the point), NaN unseen.
+        degrees (the smallest over the views that see the point past the
+        cloud's points), NaN unseen; ``unguarded`` with ``unseen``.
 
     Notes
     -----
@@ -389,26 +406,40 @@ def fuse_rows(count: int, points_of: Rows, normals_of: Rows, views: Sequence[The
     weighted_sum = np.zeros(count)
     weight_sum = np.zeros(count)
     best_angle = np.full(count, np.inf)
+    # the same sums over the views whose rays cross no skirt of the unseen space
+    guarded_sum = np.zeros(count) if unseen is not None else None
+    guarded_weight = np.zeros(count) if unseen is not None else None
 
-    def accumulate(rows: slice, temperature: np.ndarray, angle: np.ndarray, weight: np.ndarray) -> None:
+    def accumulate(rows: slice, temperature: np.ndarray, angle: np.ndarray, weight: np.ndarray,
+                   crossed: np.ndarray | None) -> None:
         temperature *= weight
-        weighted_sum[rows] += np.where(weight > 0, temperature, 0.0)
+        contribution = np.where(weight > 0, temperature, 0.0)
+        weighted_sum[rows] += contribution
         weight_sum[rows] += weight
         np.fmin(best_angle[rows], angle, out=best_angle[rows])
+        if crossed is not None:
+            guarded_sum[rows] += np.where(crossed, 0.0, contribution)
+            guarded_weight[rows] += np.where(crossed, 0.0, weight)
 
     for view in views:
         _sample_view(count, points_of, normals_of, view, max_view_angle_deg, depth_tolerance_mm, occlusion_margin_px,
                      accumulate, thermal_blur_px, unseen)
     fused = np.empty(count, dtype=np.float32)
     fused_angle = np.empty(count, dtype=np.float32)
+    guarded = np.empty(count, dtype=np.float32) if unseen is not None else None
 
     def finish(rows: slice) -> None:
         total = weight_sum[rows]
         with np.errstate(invalid="ignore", divide="ignore"):
             fused[rows] = np.where(total > 0, weighted_sum[rows] / total, np.nan)
+            if guarded is not None:
+                kept = guarded_weight[rows]
+                guarded[rows] = np.where(kept > 0, guarded_sum[rows] / kept, np.nan)
         angle = best_angle[rows]
         angle[np.isinf(angle)] = np.nan
         fused_angle[rows] = np.rad2deg(angle)
 
     map_bands(finish, _chunks(count))
-    return TemperatureField(fused, fused_angle)
+    if guarded is None:
+        return TemperatureField(fused, fused_angle)
+    return TemperatureField(guarded, fused_angle, unguarded=fused)

@@ -75,8 +75,11 @@ def test_fuse_command_fuses_several_frames_and_names_the_device(field_ply, forgi
                  "--out", str(out)])
     assert code == 0
     single, both = read_cloud(field_ply)["temperature"], read_cloud(out)["temperature"]
-    seen = np.isfinite(both)
+    seen = np.isfinite(both) & np.isfinite(single)
     np.testing.assert_allclose(both[seen], (single[seen] + 500.0) / 2, atol=1e-3)
+    # the same points are seen, but for readings only the unseen space's skirts take: whether their neighbours
+    # vouch for them allows an absolute 20 K, which halving the contrast changes for a few
+    assert np.mean(np.isfinite(both) == np.isfinite(single)) > 0.99
 
 
 def test_emissivity_raises_the_temperature_of_apparent_frames(field_ply, forging_capture, tmp_path):
