@@ -29,6 +29,8 @@ import numpy as np
 
 from services.fusion.field import temperature_field
 from services.fusion.fuse import ThermalView
+from services.geometry.cloud import PointCloud
+from services.pipeline.field import measuring_cameras
 
 from services.simulation.presets import forging_rig, forging_scene
 from services.simulation.render import CameraEffects, render_frames, render_view
@@ -61,6 +63,11 @@ def _time(function, repeats: int) -> tuple[np.ndarray, np.ndarray]:
     return np.array(wall) * 1000, np.array(cpu) * 1000
 
 
+def _field(cloud, views, viewpoint, rig):
+    """The fusion as `thermofield field` runs it on a fresh reconstruction: its witnesses, then the field."""
+    return temperature_field(cloud, views, viewpoint, witnesses=measuring_cameras(PointCloud(dict(cloud)), rig))
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--repeats", type=int, default=7)
@@ -75,15 +82,18 @@ def main() -> None:
     image = render_thermal(scene, forging_temperatures(), thermal, ThermalEffects(), rng)
     viewpoint = camera.centre
     views = [ThermalView(thermal, image)]
-
     cloud = reconstruct_points(frames, sequence, camera, projector)  # warm-up (the decoder's numba kernels)
-    temperature_field(cloud, views, viewpoint)
+    # as `thermofield field` fuses: the unseen space of the camera that measured the cloud guards the views
+    witnesses = measuring_cameras(PointCloud(dict(cloud)), rig)
+    temperature_field(cloud, views, viewpoint, witnesses=witnesses)
 
     results = {
         "reconstruct": _time(lambda: reconstruct_points(frames, sequence, camera, projector), args.repeats),
-        "fuse": _time(lambda: temperature_field(cloud, views, viewpoint), args.repeats),
+        "fuse": _time(lambda: temperature_field(cloud, views, viewpoint, witnesses=witnesses), args.repeats),
+        "fuse without the unseen space (the cloud's z-buffer alone)": _time(
+            lambda: temperature_field(cloud, views, viewpoint), args.repeats),
         "field (reconstruct + fuse)": _time(
-            lambda: temperature_field(reconstruct_points(frames, sequence, camera, projector), views, viewpoint),
+            lambda: _field(reconstruct_points(frames, sequence, camera, projector), views, viewpoint, rig),
             args.repeats),
         "baseline: naive fusion, no visibility": _time(lambda: _naive_fusion(cloud, thermal, image), args.repeats),
     }

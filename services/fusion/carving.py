@@ -44,11 +44,14 @@ class Witness:
     A camera's rays are free up to the points it measured, and so are a projector's up to the points it lit
     (a structured-light point is lit by the projector and seen by the camera). ``skirts``: whether the space
     behind its depth map bounds what the fusion trusts (the camera's); a projector only carves it (the points
-    it lit but the camera did not see are not in the cloud, so its depth map's holes tell nothing)."""
+    it lit but the camera did not see are not in the cloud, so its depth map's holes tell nothing). ``pixels``
+    (len(rows), 2): the (u, v) at which it measured each of its rows, when the cloud says (a reconstruction's
+    ``u, v``), so that they need not be projected again."""
 
     camera: CameraModel
     rows: np.ndarray | None = None
     skirts: bool = True
+    pixels: np.ndarray | None = None
 
 
 @dataclass(frozen=True)
@@ -178,31 +181,28 @@ def skirt_segments(depth: np.ndarray, camera: CameraModel, jump_mm: float = DEFA
         first[axis], second[axis] = slice(None, -1), slice(1, None)
         a, b = depth[tuple(first)], depth[tuple(second)]
         fa, fb = finite[tuple(first)], finite[tuple(second)]
-        rows, columns = np.mgrid[0:a.shape[0], 0:a.shape[1]]
-        middle_u = columns + (0.5 if axis == 1 else 0.0)
-        middle_v = rows + (0.5 if axis == 0 else 0.0)
-        # both measured: a jump
+        with np.errstate(invalid="ignore"):  # the few pairs that may hold a skirt: a hole beside, or a jump
+            row, column = np.nonzero((fa ^ fb) | (np.abs(a - b) > jump_mm))
+        row_b, column_b = (row + 1, column) if axis == 0 else (row, column + 1)
+        a, b = depth[row, column], depth[row_b, column_b]
+        fa, fb = finite[row, column], finite[row_b, column_b]
         both = fa & fb
-        near = np.where(both, np.minimum(a, b), np.inf)
-        far = np.where(both, np.maximum(a, b), -np.inf)
-        # one measured, one hole: back to the farthest depth around; forward from the nearest, across a jump
-        one = fa ^ fb
-        z = np.where(fa, a, b)
-        around_low = np.minimum(lowest[tuple(first)], lowest[tuple(second)])
-        around_high = np.maximum(highest[tuple(first)], highest[tuple(second)])
-        reach_jump = np.maximum(jump_mm, JUMP_SLOPE * np.where(np.isfinite(z), z, 0.0) / focal * (hole_reach_px + 1))
-        with np.errstate(invalid="ignore"):
-            forward = one & (z - around_low > reach_jump)
-        near = np.where(one, np.where(forward, around_low, z), near)
-        far = np.where(one, np.maximum(around_high, z), far)
-        with np.errstate(invalid="ignore"):
-            threshold = np.maximum(jump_mm, JUMP_SLOPE * near / focal)
-            emit = (both | one) & (far - near > threshold)
-        index = np.nonzero(emit)
-        half = 0.5 * threshold[index]
-        starts.append(near[index] + half)
-        ends.append(far[index] - half)
-        middles.append(np.column_stack([middle_u[index], middle_v[index]]))
+        near = np.minimum(a, b)  # the measured one beside a hole (+inf)
+        # both measured: a jump; one measured, one hole: back to the farthest depth around, and forward from
+        # the nearest one around where it lies before the measured pixel by more than a slope allows
+        around_low = np.minimum(lowest[row, column], lowest[row_b, column_b])
+        around_high = np.maximum(highest[row, column], highest[row_b, column_b])
+        reach_jump = np.maximum(jump_mm, JUMP_SLOPE * near / focal * (hole_reach_px + 1))
+        forward = ~both & (near - around_low > reach_jump)
+        far = np.where(both, np.maximum(a, b), np.maximum(around_high, near))
+        near = np.where(forward, around_low, near)
+        threshold = np.maximum(jump_mm, JUMP_SLOPE * near / focal)
+        emit = far - near > threshold
+        half = 0.5 * threshold[emit]
+        starts.append(near[emit] + half)
+        ends.append(far[emit] - half)
+        middles.append(np.column_stack([column[emit] + (0.5 if axis == 1 else 0.0),
+                                        row[emit] + (0.5 if axis == 0 else 0.0)]))
     start, end, middle = np.concatenate(starts), np.concatenate(ends), np.concatenate(middles)
     if len(start) == 0:
         return np.empty((0, 2, 3))
@@ -226,10 +226,18 @@ def unseen_space(points: np.ndarray, witnesses: Sequence[Witness], jump_mm: floa
     points = np.asarray(points, dtype=np.float64)
     surfaces = np.full(len(points), -1, dtype=np.intp)
     pixels = np.full((len(points), 3), -1, dtype=np.intp)
-    rows_of = [np.flatnonzero(np.isfinite(points).all(axis=1)) if witness.rows is None
-               else np.asarray(witness.rows, dtype=np.intp) for witness in witnesses]
-    rows_of = [rows[np.isfinite(points[rows]).all(axis=1)] for rows in rows_of]
-    located = [_pixel_index(points[rows], witness.camera) for rows, witness in zip(rows_of, witnesses)]
+    finite = np.isfinite(points).all(axis=1)
+    rows_of, located = [], []
+    for witness in witnesses:
+        rows = np.arange(len(points)) if witness.rows is None else np.asarray(witness.rows, dtype=np.intp)
+        keep = finite[rows]
+        if witness.pixels is None:
+            pixel = _pixel_index(points[rows[keep]], witness.camera)
+        else:
+            u, v = np.asarray(witness.pixels, dtype=np.float64)[keep].T
+            pixel = nearest_pixel_index(u, v, witness.camera.width, witness.camera.height)
+        rows_of.append(rows[keep])
+        located.append(pixel)
     maps = []
     for rows, pixel, witness in zip(rows_of, located, witnesses):
         depth = depth_map(points[rows], witness.camera, pixel)

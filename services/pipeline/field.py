@@ -44,22 +44,26 @@ def measuring_viewpoint(rig: Rig, views: Sequence[ThermalView]) -> np.ndarray:
 
 
 def measuring_cameras(cloud: PointCloud, rig: Rig) -> list[Witness]:
-    """The cameras that measured the cloud, each with its rows: a merged station cloud's heads by its ``head``
-    property, else the rig's only camera for every point (none when the rig has several cameras and the cloud
-    says not which measured what)."""
+    """The cameras that measured the cloud, each with its rows and the projector that lit them: a merged station
+    cloud's heads by its ``head`` property, else the rig's only camera for every point (none when the rig has
+    several cameras and the cloud says not which measured what); the cloud's ``u, v`` locate the points in the
+    camera's image where it has them."""
+    pixels = np.column_stack([cloud["u"], cloud["v"]]) if "u" in cloud and "v" in cloud else None
     if "head" in cloud and len(rig.heads) >= 2:
         head = np.asarray(cloud["head"])
         witnesses = []
         for index, station_head in enumerate(rig.heads):
             rows = np.flatnonzero(head == index)
-            witnesses += [Witness(rig.devices[station_head.camera], rows),
+            witnesses += [Witness(rig.devices[station_head.camera], rows,
+                                  pixels=None if pixels is None else pixels[rows]),
                           Witness(rig.devices[station_head.projector], rows, skirts=False)]
         return witnesses
     cameras = [device for device in rig.devices.values() if device.kind == "camera"]
     projectors = [device for device in rig.devices.values() if device.kind == "projector"]
     if len(cameras) != 1:
         return []
-    return [Witness(cameras[0])] + ([Witness(projectors[0], skirts=False)] if len(projectors) == 1 else [])
+    return [Witness(cameras[0], pixels=pixels)] + ([Witness(projectors[0], skirts=False)] if len(projectors) == 1
+                                                    else [])
 
 
 def station_normals(cloud: PointCloud, rig: Rig) -> PointCloud:
