@@ -32,13 +32,14 @@ def _quadratic_model(
     to their values (-inf where invalid).
     """
     count = centre.size
+    basis = np.eye(count)
     offsets = [(axis, sign) for axis in range(count) for sign in (1.0, -1.0)]
-    points = [centre + sign * step * np.eye(count)[axis] for axis, sign in offsets]
+    points = [centre + sign * step * basis[axis] for axis, sign in offsets]
     values = np.asarray(evaluate(points), dtype=float)
     plus, minus = values[0::2], values[1::2]
     if kept is None:
         pairs = [(first, second) for first in range(count) for second in range(first + 1, count)]
-        mixed_points = [centre + step * (np.eye(count)[first] + np.eye(count)[second]) for first, second in pairs]
+        mixed_points = [centre + step * (basis[first] + basis[second]) for first, second in pairs]
         mixed = np.asarray(evaluate(mixed_points), dtype=float)
         points, values = points + mixed_points, np.concatenate([values, mixed])
     best_point, best_value = centre, value

@@ -63,10 +63,11 @@ class FixedSampler:
         if not affine:
             return False
         corners = matrix[:2] @ self._corners
+        (low_x, low_y), (high_x, high_y) = corners.min(axis=1).tolist(), corners.max(axis=1).tolist()
         fixed_height, fixed_width = self.fixed.shape
         margin = 1.05
-        return bool(corners[0].min() >= margin and corners[0].max() <= fixed_width - 1 - margin
-                    and corners[1].min() >= margin and corners[1].max() <= fixed_height - 1 - margin)
+        return (low_x >= margin and high_x <= fixed_width - 1 - margin
+                and low_y >= margin and high_y <= fixed_height - 1 - margin)
 
     def __call__(self, matrix: np.ndarray) -> np.ndarray:
         affine = _is_affine(matrix)
