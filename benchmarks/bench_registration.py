@@ -25,10 +25,14 @@ chosen on the odd ones), the infrared image moved as experiments/registration_re
 the move brings in set to 0), the whole ``thermofield register`` process with default options (no mask)
 against SimpleITK's registration of the same moved pair in-process (given the mask of the pixels with data,
 its best case), alternating, ``--repeats`` times each; per pair the median wall-clock times and their ratio,
-then the median of the ratios and the ratio of the summed medians.
+then the median of the ratios and the ratio of the summed medians. With ``--baseline CHECKOUT`` as well, the
+reference is the same command run from another checkout of the project (its own code on PYTHONPATH, this
+environment's Python) instead of SimpleITK: a change's speed-up measured on the same pairs in the same run, with
+the processes' CPU times (``getrusage`` of the children), which the load disturbs less than the wall-clock times.
 
-Usage: .venv/bin/python benchmarks/bench_registration.py [--pairs-per-source 10] [--repeats 3] [--command | --tno]
-Needs the bench extra (SimpleITK).
+Usage: .venv/bin/python benchmarks/bench_registration.py [--pairs-per-source 10] [--repeats 3] [--command | --tno
+       [--baseline CHECKOUT]]
+Needs the bench extra (SimpleITK), except ``--tno --baseline``.
 """
 
 from __future__ import annotations
@@ -43,7 +47,6 @@ import time
 from pathlib import Path
 
 import numpy as np
-import SimpleITK as sitk
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
@@ -65,6 +68,8 @@ def simpleitk_register(visible: np.ndarray, infrared: np.ndarray, scale: float |
 
     ``infrared_mask`` marks the infrared pixels that have data (ITK's fixed-image mask: the infrared image is
     the one ITK samples)."""
+    import SimpleITK as sitk  # the bench extra; --tno --baseline runs without it
+
     nominal = _nominal_scale(visible, infrared, scale)
     if gradient:
         visible_image, infrared_image = gradient_magnitude(visible, 0.5 * nominal), gradient_magnitude(infrared, 0.5)
@@ -180,6 +185,54 @@ def tno_commands_against_simpleitk(repeats: int) -> None:
           f"{len(ratios)} pairs; ratio of the summed times {summed:.2f}")
 
 
+def tno_commands_against_baseline(repeats: int, baseline: Path) -> None:
+    """Whole `thermofield register` processes of this checkout against those of ``baseline`` on the moved TNO
+    pairs of the reporting half, alternating; wall-clock and CPU medians per pair and their ratios."""
+    import cv2
+
+    from benchmarks.bench_commands import ROOT, child_environment
+    from experiments.registration_real import REPORTING, load_pair
+    from services.registration.synthetic_pairs import moved_image
+
+    if not (baseline / "services" / "cli" / "main.py").is_file():
+        raise SystemExit(f"--baseline {baseline}: not a checkout of the project (no services/cli/main.py)")
+    rows = []
+    with tempfile.TemporaryDirectory() as scratch:
+        work = Path(scratch)
+        for number in REPORTING:
+            visible, infrared = load_pair(number)
+            moved, _, _ = moved_image(np.random.default_rng([0, number]), infrared)
+            for name, image in (("vi.png", visible), ("ir.png", moved)):
+                cv2.imwrite(str(work / name), image)
+            times: dict[Path, dict[str, list[float]]] = {root: {"wall": [], "cpu": []} for root in (ROOT, baseline)}
+            for _ in range(repeats):
+                for root in (ROOT, baseline):
+                    command = [sys.executable, "-m", "services.cli.main", "register", "--fixed", str(work / "vi.png"),
+                               "--moving", str(work / "ir.png"), "--out", str(work / "reg.json")]
+                    before = resource.getrusage(resource.RUSAGE_CHILDREN)
+                    wall = time.perf_counter()
+                    subprocess.run(command, cwd=root, env=child_environment(PYTHONPATH=str(root)), check=True,
+                                   capture_output=True)
+                    times[root]["wall"].append(time.perf_counter() - wall)
+                    after = resource.getrusage(resource.RUSAGE_CHILDREN)
+                    times[root]["cpu"].append(after.ru_utime + after.ru_stime - before.ru_utime - before.ru_stime)
+            rows.append((number, infrared.shape[::-1], *(float(np.median(times[root][kind]))
+                                                         for root in (ROOT, baseline) for kind in ("wall", "cpu"))))
+    load = os.getloadavg()
+    print(f"{repeats} runs each per pair, alternating; load average {load[0]:.1f} / {load[1]:.1f} / {load[2]:.1f} "
+          f"on {os.cpu_count()} cores; baseline {baseline}\n")
+    print("| pair | size | this checkout: wall, median (s) | CPU (s) | baseline: wall, median (s) | CPU (s) | "
+          "wall ratio | CPU ratio |")
+    print("|---|---|---|---|---|---|---|---|")
+    for number, (width, height), wall, cpu, base_wall, base_cpu in rows:
+        print(f"| {number:02d} | {width}x{height} | {wall:.3f} | {cpu:.3f} | {base_wall:.3f} | {base_cpu:.3f} | "
+              f"{wall / base_wall:.2f} | {cpu / base_cpu:.2f} |")
+    table = np.asarray([row[2:] for row in rows])
+    print(f"\nmedian of the per-pair ratios: wall {np.median(table[:, 0] / table[:, 2]):.3f}, CPU "
+          f"{np.median(table[:, 1] / table[:, 3]):.3f}; ratio of the summed medians: wall "
+          f"{table[:, 0].sum() / table[:, 2].sum():.3f}, CPU {table[:, 1].sum() / table[:, 3].sum():.3f}")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--pairs-per-source", type=int, default=10)
@@ -190,13 +243,21 @@ def main() -> None:
     parser.add_argument("--tno", action="store_true",
                         help="time the whole register command against SimpleITK on the moved TNO pairs of the "
                              "reporting half instead")
+    parser.add_argument("--baseline", type=Path, metavar="CHECKOUT",
+                        help="with --tno: time the register command of this other checkout of the project instead of "
+                             "SimpleITK (e.g. the code before a change; `git worktree add` or `git archive` makes one)")
     args = parser.parse_args()
     if args.command:
         command_against_simpleitk(args.repeats)
         return
+    if args.tno and args.baseline is not None:
+        tno_commands_against_baseline(args.repeats, args.baseline.resolve())
+        return
     if args.tno:
         tno_commands_against_simpleitk(args.repeats)
         return
+    if args.baseline is not None:
+        parser.error("--baseline times the --tno pairs: give --tno too")
     rng = np.random.default_rng(args.seed)
     pairs = list(scene_pairs(rng, args.pairs_per_source)) + list(photograph_pairs(rng, args.pairs_per_source))
     results = {name: {"error": [], "wall": [], "cpu": []} for name in METHODS}
@@ -213,7 +274,7 @@ def main() -> None:
             results[name]["cpu"].append(float(np.median(cpus)))
     ours = results["thermofield (gradient, NMI)"]
     print(f"{len(pairs)} pairs ({args.pairs_per_source} rendered scenes + {args.pairs_per_source} photographs), "
-          f"{args.repeats} repeats, {sitk.Version.VersionString()} SimpleITK\n")
+          f"{args.repeats} repeats, {__import__('SimpleITK').Version.VersionString()} SimpleITK\n")
     print("| method | median corner error (px) | under 1 px | max (px) | median wall time (s) | "
           "wall-time ratio to ours | median CPU time (s) | CPU-time ratio to ours |")
     print("|---|---|---|---|---|---|---|---|")

@@ -71,6 +71,9 @@ def normalized_gradient_field(image: np.ndarray, epsilon: float) -> tuple[np.nda
     return gx / norm, gy / norm
 
 
+_NEIGHBOURS = np.array([[0, 1, 0], [1, 0, 1], [0, 1, 0]], np.uint8)  # the four neighbours of a pixel, for cv2.erode
+
+
 def _window_sums(image: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
     """Sums of ``image`` over every ``shape``-sized window (the correlation with a box), from its integral image."""
     height, width = shape
@@ -104,11 +107,12 @@ class FieldTemplate:
         self.power_spectrum = self.spectrum((mxx + myy) ** 2)
         self.valid_spectrum = None if moving_valid is None else self.spectrum(valid)
 
-    def window_sums(self, image: np.ndarray) -> np.ndarray:
-        """Sums of ``image`` over the moving pixels that have data, at every offset inside the canvas."""
+    def window_sums(self, image: np.ndarray, spectrum: np.ndarray | None = None) -> np.ndarray:
+        """Sums of ``image`` over the moving pixels that have data, at every offset inside the canvas
+        (``spectrum``: the image's :meth:`spectrum`, if already taken)."""
         if self.valid_spectrum is None:
             return _window_sums(image, self.shape)
-        return self.correlate([self.spectrum(image)], [self.valid_spectrum])
+        return self.correlate([self.spectrum(image) if spectrum is None else spectrum], [self.valid_spectrum])
 
     def spectrum(self, image: np.ndarray) -> np.ndarray:
         """The packed real DFT of ``image`` zero-padded to the DFT size."""
@@ -162,9 +166,10 @@ def tensor_similarity_map(
     fxx, fxy, fyy = fixed_x * fixed_x, fixed_x * fixed_y, fixed_y * fixed_y
     numerator = template.correlate([template.spectrum(component) for component in _tensor_components(fxx, fxy, fyy)],
                                    template.tensor_spectra)
-    moving_power = template.correlate([template.spectrum(fixed_valid)], [template.power_spectrum])
+    valid_spectrum = template.spectrum(fixed_valid)  # taken once for the moving power and the overlap
+    moving_power = template.correlate([valid_spectrum], [template.power_spectrum])
     fixed_power = template.window_sums((fxx + fyy) ** 2)
-    overlap = template.window_sums(fixed_valid)
+    overlap = template.window_sums(fixed_valid, valid_spectrum)
     denominator = np.sqrt(np.maximum(fixed_power, 0.0) * np.maximum(moving_power, 0.0))
     values = np.where(denominator > 0.0, numerator / np.where(denominator > 0.0, denominator, 1.0), 0.0)
     return np.where(overlap >= min_weight, values, -np.inf)
@@ -208,23 +213,30 @@ class SampledFieldSimilarity:
         self._whole_moving_power = cv2.sumElems(self.moving_m2)[0]
         self._work = [_aligned_empty(shape) for _ in range(4)]
         self._valid = np.empty(shape, bool)
+        self._neighbour_minimum: np.ndarray | None = None  # the samples' erosion, of the samples' shape
 
-    def _defined(self, samples: np.ndarray, first: np.ndarray, second: np.ndarray) -> np.ndarray:
-        """Where all four neighbours of a field pixel were sampled inside (non-negative), in ``self._valid``."""
-        np.minimum(samples[1:-1, :-2], samples[1:-1, 2:], out=first)
-        np.minimum(samples[:-2, 1:-1], samples[2:, 1:-1], out=second)
-        return np.greater_equal(np.minimum(first, second, out=first), 0.0, out=self._valid)
+    def _defined(self, samples: np.ndarray) -> np.ndarray:
+        """Where all four neighbours of a field pixel were sampled inside (non-negative), in ``self._valid``.
+
+        The least of the four neighbours is one erosion by the cross without its centre (a third of the time
+        of numpy's minima of shifted views, whose rows are not contiguous).
+        """
+        if self._neighbour_minimum is None or self._neighbour_minimum.shape != samples.shape:
+            self._neighbour_minimum = np.empty(samples.shape, np.float32)
+        least = cv2.erode(samples, _NEIGHBOURS, dst=self._neighbour_minimum)
+        return np.greater_equal(least[1:-1, 1:-1], 0.0, out=self._valid)
 
     def __call__(self, samples: np.ndarray) -> tuple[float, float]:
         """S and the number of pixels where the sampled field is defined (all four neighbours inside) and the
         moving image has data."""
+        samples = np.asarray(samples, dtype=np.float32)
         dx, dy, magnitude2, weight = self._work
         inside = self._moving_valid is None and samples.min() >= 0.0  # then every field pixel counts: no mask needed
-        valid = None if inside else self._defined(samples, dx, dy)
+        valid = None if inside else self._defined(samples)
         if self._moving_valid is not None:
             np.logical_and(valid, self._moving_valid, out=valid)
-        np.subtract(samples[1:-1, 2:], samples[1:-1, :-2], out=dx)
-        np.subtract(samples[2:, 1:-1], samples[:-2, 1:-1], out=dy)
+        cv2.subtract(samples[1:-1, 2:], samples[1:-1, :-2], dst=dx)  # OpenCV's: a third of numpy's time on
+        cv2.subtract(samples[2:, 1:-1], samples[:-2, 1:-1], dst=dy)  # these views, the same IEEE differences
         np.multiply(dx, dx, out=magnitude2)
         magnitude2 += np.multiply(dy, dy, out=weight)
         inverse_norm2 = np.divide(np.float32(1.0), np.add(magnitude2, self.twice_epsilon2, out=weight), out=weight)

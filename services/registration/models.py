@@ -8,6 +8,8 @@ moving pixel, so one optimiser tolerance fits every model and parameter.
 
 from __future__ import annotations
 
+import functools
+
 import cv2
 import numpy as np
 
@@ -34,10 +36,17 @@ def apply_homography(matrix: np.ndarray, points: np.ndarray) -> np.ndarray:
 
 def _about_point(linear: np.ndarray, centre: np.ndarray, shift: np.ndarray) -> np.ndarray:
     """x -> centre + shift + linear (x - centre), as a 3x3 matrix."""
-    matrix = np.eye(3)
-    matrix[:2, :2] = linear
-    matrix[:2, 2] = centre + shift - linear @ centre
-    return matrix
+    translation = centre + shift - linear @ centre
+    return np.array([[linear[0, 0], linear[0, 1], translation[0]], [linear[1, 0], linear[1, 1], translation[1]],
+                     [0.0, 0.0, 1.0]])
+
+
+@functools.cache
+def _centre_and_radius(width: int, height: int) -> tuple[np.ndarray, float]:
+    """The centre of a ``width`` x ``height`` image (read-only) and its half-diagonal."""
+    centre = np.array([(width - 1) / 2.0, (height - 1) / 2.0])
+    centre.flags.writeable = False
+    return centre, 0.5 * float(np.hypot(width, height))
 
 
 def update_matrix(model: str, parameters: np.ndarray, width: int, height: int) -> np.ndarray:
@@ -63,8 +72,7 @@ def update_matrix(model: str, parameters: np.ndarray, width: int, height: int) -
     p = np.asarray(parameters, dtype=np.float64).ravel()
     if p.size != PARAMETER_COUNTS[model]:
         raise ValueError(f"The {model} model has {PARAMETER_COUNTS[model]} parameters; got {p.size}.")
-    centre = np.array([(width - 1) / 2.0, (height - 1) / 2.0])
-    radius = 0.5 * float(np.hypot(width, height))
+    centre, radius = _centre_and_radius(width, height)  # the refinement asks thousands of times for one size
     if model == "homography":
         corners = image_corners(width, height)
         moved = corners + p.reshape(4, 2)
@@ -76,7 +84,8 @@ def update_matrix(model: str, parameters: np.ndarray, width: int, height: int) -
     else:
         angle = p[2] / radius
         scale = np.exp(p[3] / radius) if model == "similarity" else 1.0
-        linear = scale * np.array([[np.cos(angle), -np.sin(angle)], [np.sin(angle), np.cos(angle)]])
+        cosine, sine = np.cos(angle), np.sin(angle)
+        linear = scale * np.array([[cosine, -sine], [sine, cosine]])
     return _about_point(linear, centre, p[:2])
 
 

@@ -19,6 +19,9 @@ from services.registration.mutual_information import MovingWindow, quantized_inf
 
 METRICS = ("mi", "nmi", "ngf")
 OUTSIDE = -1.0e4  # far below 0, so any bilinear sample touching the outside comes out negative (invalid)
+# (flags, border mode, border value) of the two warps: bicubic of the fixed image, bilinear with the outside marked
+_CUBIC = (cv2.INTER_CUBIC | cv2.WARP_INVERSE_MAP, cv2.BORDER_REPLICATE, 0.0)
+_LINEAR = (cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP, cv2.BORDER_CONSTANT, OUTSIDE)
 
 
 def _is_affine(matrix: np.ndarray) -> bool:
@@ -36,6 +39,8 @@ class FixedSampler:
     def __init__(self, fixed: np.ndarray, width: int, height: int, cubic: bool = False) -> None:
         self.fixed, self.size, self.cubic = np.asarray(fixed, dtype=np.float32), (width, height), cubic
         self.samples = np.empty((height, width), np.float32)
+        self._corners = np.array([[0.0, width - 1.0, 0.0, width - 1.0], [0.0, 0.0, height - 1.0, height - 1.0],
+                                  [1.0, 1.0, 1.0, 1.0]])  # the grid's corner pixels, homogeneous
         if cubic:
             self._ring = self.fixed.copy()
             self._ring[[0, -1], :] = OUTSIDE  # a bilinear sample touching this ring or the outside has a 4 x 4
@@ -43,36 +48,34 @@ class FixedSampler:
             self._support = np.empty((height, width), np.float32)
             self._outside = np.empty((height, width), bool)
 
-    def _warp(self, image: np.ndarray, matrix: np.ndarray, out: np.ndarray, cubic: bool) -> np.ndarray:
-        flags = (cv2.INTER_CUBIC if cubic else cv2.INTER_LINEAR) | cv2.WARP_INVERSE_MAP
-        border = {"borderMode": cv2.BORDER_REPLICATE} if cubic else {"borderMode": cv2.BORDER_CONSTANT,
-                                                                     "borderValue": OUTSIDE}
-        if _is_affine(matrix):
-            return cv2.warpAffine(image, matrix[:2], self.size, dst=out, flags=flags, **border)
-        return cv2.warpPerspective(image, matrix, self.size, dst=out, flags=flags, **border)
+    def _warp(self, image: np.ndarray, matrix: np.ndarray, out: np.ndarray, cubic: bool, affine: bool) -> np.ndarray:
+        flags, border, value = _CUBIC if cubic else _LINEAR  # positional: OpenCV parses keywords at some cost
+        if affine:
+            return cv2.warpAffine(image, matrix[:2], self.size, out, flags, border, value)
+        return cv2.warpPerspective(image, matrix, self.size, out, flags, border, value)
 
-    def _support_inside(self, matrix: np.ndarray) -> bool:
+    def _support_inside(self, matrix: np.ndarray, affine: bool) -> bool:
         """Whether every bicubic support lies wholly inside the fixed image, so the ring's warp would mark none.
 
         An affine map takes the grid's rectangle to a parallelogram: its four corners decide. They must map
         0.05 px inside the ring's inner edge, beyond OpenCV's 1/32 px quantisation of warp coordinates.
         """
-        if not _is_affine(matrix):
+        if not affine:
             return False
-        width, height = self.size
-        corners = matrix[:2] @ np.array([[0.0, width - 1.0, 0.0, width - 1.0], [0.0, 0.0, height - 1.0, height - 1.0],
-                                         [1.0, 1.0, 1.0, 1.0]])
+        corners = matrix[:2] @ self._corners
+        (low_x, low_y), (high_x, high_y) = corners.min(axis=1).tolist(), corners.max(axis=1).tolist()
         fixed_height, fixed_width = self.fixed.shape
         margin = 1.05
-        return bool(corners[0].min() >= margin and corners[0].max() <= fixed_width - 1 - margin
-                    and corners[1].min() >= margin and corners[1].max() <= fixed_height - 1 - margin)
+        return (low_x >= margin and high_x <= fixed_width - 1 - margin
+                and low_y >= margin and high_y <= fixed_height - 1 - margin)
 
     def __call__(self, matrix: np.ndarray) -> np.ndarray:
-        samples = self._warp(self.fixed, matrix, self.samples, self.cubic)
+        affine = _is_affine(matrix)
+        samples = self._warp(self.fixed, matrix, self.samples, self.cubic, affine)
         if self.cubic:
             np.maximum(samples, 0.0, out=samples)
-            if not self._support_inside(matrix):
-                support = self._warp(self._ring, matrix, self._support, cubic=False)
+            if not self._support_inside(matrix, affine):
+                support = self._warp(self._ring, matrix, self._support, False, affine)
                 np.copyto(samples, np.float32(OUTSIDE), where=np.less(support, 0.0, out=self._outside))
         return samples
 

@@ -25,7 +25,7 @@ from services.registration.gradient_fields import (
     normalized_gradient_field,
     tensor_similarity_map,
 )
-from services.registration.models import corner_error, similarity_about_centres
+from services.registration.models import apply_homography, image_corners, similarity_about_centres
 from services.registration.objective import sample_fixed
 
 
@@ -74,15 +74,25 @@ def _bin_indices(quantized: np.ndarray) -> np.ndarray:
     return np.where(quantized < 0.0, -1, np.rint(quantized)).astype(np.int16)
 
 
-def _distinct_best(candidates: list[Candidate], count: int, width: int, height: int, spacing: float) -> list[Candidate]:
-    """The ``count`` best candidates whose corner maps differ by more than ``spacing`` pixels."""
-    chosen: list[Candidate] = []
-    for candidate in sorted(candidates, key=lambda item: item.value, reverse=True):
-        if all(corner_error(candidate.matrix, other.matrix, width, height) > spacing for other in chosen):
-            chosen.append(candidate)
+_Shift = tuple[float, np.ndarray, int, int]  # a canvas's shift: its value, the canvas's matrix and the shift (dx, dy)
+
+
+def _distinct_best(shifts: list[_Shift], count: int, width: int, height: int, spacing: float) -> list[Candidate]:
+    """The ``count`` best shifts whose corner maps differ by more than ``spacing`` pixels, as candidates.
+
+    The matrix of a shift and the images of its corners are computed only for the shifts examined, best
+    first (the distance is :func:`services.registration.models.corner_error`'s, term for term).
+    """
+    corners = image_corners(width, height)
+    chosen: list[tuple[Candidate, np.ndarray]] = []
+    for value, base, dx, dy in sorted(shifts, key=lambda item: item[0], reverse=True):
+        matrix = base @ np.array([[1.0, 0.0, dx], [0.0, 1.0, dy], [0.0, 0.0, 1.0]])
+        mapped = apply_homography(matrix, corners)
+        if all(float(np.linalg.norm(mapped - other, axis=1).mean()) > spacing for _, other in chosen):
+            chosen.append((Candidate(matrix, value), mapped))
             if len(chosen) == count:
                 break
-    return chosen
+    return [candidate for candidate, _ in chosen]
 
 
 _PEAKS_PER_CANVAS = 20  # best shifts kept per (rotation, scale) before choosing distinct candidates
@@ -100,14 +110,11 @@ def _best_shifts(values: np.ndarray, count: int = _PEAKS_PER_CANVAS) -> np.ndarr
     return np.stack(np.unravel_index(best, values.shape), axis=1)
 
 
-def _shift_candidates(base: np.ndarray, shifts: np.ndarray, values: np.ndarray, margin: int) -> list[Candidate]:
-    """Candidates ``base`` followed by the shift d = (column - margin, row - margin) of each (row, column)."""
-    candidates = []
-    for (row, column), value in zip(shifts, values):
-        if np.isfinite(value):
-            shift = np.array([[1.0, 0.0, column - margin], [0.0, 1.0, row - margin], [0.0, 0.0, 1.0]])
-            candidates.append(Candidate(base @ shift, float(value)))
-    return candidates
+def _shift_candidates(base: np.ndarray, shifts: np.ndarray, values: np.ndarray, margin: int) -> list[_Shift]:
+    """``base`` followed by the shift d = (column - margin, row - margin) of each (row, column) of finite value,
+    for :func:`_distinct_best`, which makes candidates of the few it keeps."""
+    return [(float(value), base, int(column) - margin, int(row) - margin)
+            for (row, column), value in zip(shifts, values) if np.isfinite(value)]
 
 
 def coarse_search(
@@ -177,7 +184,7 @@ def coarse_search(
     fixed_epsilon = gradient_epsilon(fixed)
     template = _moving_template(moving, moving_valid, (height + 2 * margin, width + 2 * margin))
     min_weight = min_overlap * _moving_count(moving, moving_valid)
-    candidates = []
+    candidates: list[_Shift] = []
     for angle in angles:
         for factor in scale_factors:
             base = similarity_about_centres(moving_centre, fixed_centre, scale * factor, angle, np.zeros(2))
@@ -252,7 +259,7 @@ def gradient_field_search(
     fixed_epsilon = gradient_epsilon(fixed)
     template = _moving_template(moving, moving_valid, (height + 2 * margin, width + 2 * margin))
     min_weight = min_overlap * _moving_count(moving, moving_valid)
-    candidates = []
+    candidates: list[_Shift] = []
     for angle in angles:
         for factor in scale_factors:
             base = similarity_about_centres(moving_centre, fixed_centre, scale * factor, angle, np.zeros(2))

@@ -107,3 +107,14 @@ def test_the_similarity_does_not_depend_on_where_its_arrays_sit_in_memory():
         spacers.append(np.empty(partly_outside.size + 4 * size, np.float32))
         values.add(SampledFieldSimilarity(epsilon, nx, ny)(partly_outside))
     assert len(values) == 1
+
+
+def test_a_field_pixel_counts_where_its_four_neighbours_were_sampled_inside():
+    image = _texture((45, 55), 4)
+    holes = np.random.default_rng(7).random(image.shape) < 0.05  # scattered pixels sampled outside
+    samples = np.where(holes, np.float32(-1.0e4), image)
+    nx, ny = normalized_gradient_field(image, gradient_epsilon(image))
+    inside = ~holes
+    expected = inside[1:-1, :-2] & inside[1:-1, 2:] & inside[:-2, 1:-1] & inside[2:, 1:-1]  # not the pixel itself
+    _, count = sampled_tensor_similarity(samples, gradient_epsilon(image), nx, ny)
+    assert count == np.count_nonzero(expected) < 43 * 53

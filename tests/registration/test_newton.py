@@ -107,3 +107,23 @@ def test_a_start_that_already_satisfies_the_stop_is_not_climbed():
     calls = []
     parameters, value = maximize(lambda p: calls.append(p) or -float(p @ p), 2, stop=lambda p: True)
     assert np.array_equal(parameters, np.zeros(2)) and value == 0.0 and len(calls) == 1
+
+
+def test_no_point_is_evaluated_twice():
+    peak = np.array([2.3, -1.1, 0.6, 1.7])
+
+    def function(point):  # rough on a small scale, as the registration's objectives: some stencils return
+        return float(-np.abs(point - peak).sum() + 0.05 * np.cos(9.0 * point).sum())  # to points seen before
+
+    for evaluate_many in (None, lambda points: [function(point) for point in points]):
+        seen = []
+
+        def recorded(point):
+            seen.append(point.tobytes())
+            return function(point)
+
+        many = None if evaluate_many is None else (lambda points: [recorded(point) for point in points])
+        parameters, value = maximize(recorded, 4, step=1.0, min_step=0.25, tolerance=1e-3, max_iterations=40,
+                                     evaluate_many=many)
+        assert len(seen) == len(set(seen)) > 20
+        assert value == function(parameters) and np.abs(parameters - peak).sum() < 1.0
