@@ -215,8 +215,19 @@ def skirt_segments(depth: np.ndarray, camera: CameraModel, jump_mm: float = DEFA
     return segments
 
 
+def coarser(camera: CameraModel, factor: int) -> CameraModel:
+    """The same camera with ``factor`` times fewer pixels a side (pixel (u, v) becomes ((u + 0.5) / factor - 0.5,
+    ...); distortion is in normalised units, so it stays)."""
+    if factor == 1:
+        return camera
+    K = np.array(camera.K, dtype=np.float64)
+    K[:2, :2] /= factor
+    K[:2, 2] = (K[:2, 2] + 0.5) / factor - 0.5
+    return camera.replace(width=-(-camera.width // factor), height=-(-camera.height // factor), K=K)
+
+
 def unseen_space(points: np.ndarray, witnesses: Sequence[Witness], jump_mm: float = DEFAULT_JUMP_MM,
-                 hole_reach_px: int = DEFAULT_HOLE_REACH_PX) -> UnseenSpace:
+                 hole_reach_px: int = DEFAULT_HOLE_REACH_PX, factor: int = 1) -> UnseenSpace:
     """The skirts of the space that none of ``witnesses`` saw into, from the cloud ``points`` (N, 3) world mm.
 
     Each camera's skirts come from its own rows of the cloud (:func:`skirt_segments`); a skirt's samples that
@@ -228,13 +239,16 @@ def unseen_space(points: np.ndarray, witnesses: Sequence[Witness], jump_mm: floa
     pixels = np.full((len(points), 3), -1, dtype=np.intp)
     finite = np.isfinite(points).all(axis=1)
     rows_of, located = [], []
+    witnesses = [Witness(coarser(witness.camera, factor), witness.rows, witness.skirts,
+                         None if witness.pixels is None else (np.asarray(witness.pixels, dtype=np.float64) + 0.5) / factor - 0.5)
+                 for witness in witnesses]
     for witness in witnesses:
         rows = np.arange(len(points)) if witness.rows is None else np.asarray(witness.rows, dtype=np.intp)
         keep = finite[rows]
         if witness.pixels is None:
             pixel = _pixel_index(points[rows[keep]], witness.camera)
         else:
-            u, v = np.asarray(witness.pixels, dtype=np.float64)[keep].T
+            u, v = witness.pixels[keep].T
             pixel = nearest_pixel_index(u, v, witness.camera.width, witness.camera.height)
         rows_of.append(rows[keep])
         located.append(pixel)

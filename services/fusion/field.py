@@ -115,7 +115,11 @@ def temperature_field(
     if absent:
         raise ValueError(f"The cloud lacks the coordinate properties {absent}.")
     points_of, normals_of = _cloud_rows(cloud, viewpoint)
-    unseen = unseen_space(np.column_stack(_coordinates(cloud)), witnesses) if witnesses else None
+    unseen = None
+    if witnesses:
+        # the witnesses' images at (at least) two pixels per thermal pixel: cameras finer than that add work alone
+        ratio = min(witness.camera.K[0, 0] / view.device.K[0, 0] for witness in witnesses for view in views)
+        unseen = unseen_space(np.column_stack(_coordinates(cloud)), witnesses, factor=max(1, int(ratio // 2)))
     fused = fuse_rows(len(cloud), points_of, normals_of, views, max_view_angle_deg, unseen=unseen)
     temperature = fused.temperature
     if unseen is not None:
