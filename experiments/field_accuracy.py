@@ -23,6 +23,8 @@ import numpy as np  # noqa: E402
 from services.geometry.camera_model import CameraModel  # noqa: E402
 from services.fusion.field import temperature_field  # noqa: E402
 from services.fusion.fuse import ThermalView  # noqa: E402
+from services.geometry.cloud import PointCloud  # noqa: E402
+from services.pipeline.field import measuring_cameras  # noqa: E402
 from services.fusion.visibility import (fill_empty_pixels, nearest_pixel_index, splat_nearest,  # noqa: E402
                                        within_tolerance)
 from services.simulation.presets import forging_rig, forging_scene, look_at_rotation  # noqa: E402
@@ -50,8 +52,9 @@ def simulate(seed: int = 0):
 def evaluate(cloud, rig, scene, temperatures, truth, image) -> tuple[dict, dict]:
     """Fuse ``cloud`` (which has camera pixels u, v) and score it against the truth at those pixels."""
     camera, thermal = rig.devices["camera"], rig.devices["thermal"]
-    field = temperature_field(cloud, [ThermalView(thermal, image)],
-                              camera.centre)
+    # as `thermofield field` fuses: the unseen space of the camera (and projector) that measured the cloud
+    field = temperature_field(cloud, [ThermalView(thermal, image)], camera.centre,
+                              witnesses=measuring_cameras(PointCloud(dict(cloud)), rig))
     row, column = cloud["v"].astype(int), cloud["u"].astype(int)
     true_points = truth.points[row, column]
     on_surface = truth.surface[row, column] >= 0

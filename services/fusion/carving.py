@@ -66,14 +66,21 @@ class UnseenSpace:
     pixels: np.ndarray
 
 
-def _pixel_index(points: np.ndarray, camera: CameraModel) -> np.ndarray:
-    """Flat index of the pixel nearest each point's image (-1 outside the image or behind the camera)."""
+def image_coordinates(points: np.ndarray, camera: CameraModel) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The distorted pixel coordinates (u, v) of world ``points`` (N, 3) in ``camera`` (NaN behind it) and their
+    depth z along its axis."""
     device = rigid_transform(np.asarray(points, dtype=np.float64), np.asarray(camera.R), np.asarray(camera.t))
     z = device[:, 2]
     with np.errstate(divide="ignore", invalid="ignore"):
         zz = np.where(z > 0.0, z, np.nan)
         terms, tilt = opencv_distortion_terms(camera.dist)
         u, v = distorted_pixels(device[:, 0] / zz, device[:, 1] / zz, np.asarray(camera.K), terms, tilt)
+    return u, v, z
+
+
+def _pixel_index(points: np.ndarray, camera: CameraModel) -> np.ndarray:
+    """Flat index of the pixel nearest each point's image (-1 outside the image or behind the camera)."""
+    u, v, _ = image_coordinates(points, camera)
     return nearest_pixel_index(u, v, camera.width, camera.height)
 
 
@@ -81,8 +88,11 @@ def depth_map(points: np.ndarray, camera: CameraModel, pixel: np.ndarray | None 
     """The camera's z-buffer of ``points`` (N, 3) world mm: (height, width) depths, +inf where no point falls
     (``pixel``: the points' flat pixel indices, when known)."""
     points = np.asarray(points, dtype=np.float64)
-    pixel = _pixel_index(points, camera) if pixel is None else pixel
-    z = rigid_transform(points, np.asarray(camera.R), np.asarray(camera.t))[:, 2]
+    if pixel is None:
+        u, v, z = image_coordinates(points, camera)
+        pixel = nearest_pixel_index(u, v, camera.width, camera.height)
+    else:
+        z = rigid_transform(points, np.asarray(camera.R), np.asarray(camera.t))[:, 2]
     buffer = np.full(camera.height * camera.width, np.inf)
     splat_nearest(buffer, pixel, z)
     return buffer.reshape(camera.height, camera.width)
@@ -442,12 +452,7 @@ def segment_samples(segments: np.ndarray, view: CameraModel) -> tuple[np.ndarray
     (S, 3) and the segment each lies on (S,)."""
     if len(segments) == 0:
         return np.empty((0, 3)), np.empty(0, dtype=np.intp)
-    K = np.asarray(view.K, dtype=np.float64)
-    terms, tilt = opencv_distortion_terms(view.dist)
-    ends = rigid_transform(segments.reshape(-1, 3), np.asarray(view.R), np.asarray(view.t))
-    with np.errstate(divide="ignore", invalid="ignore"):
-        z = np.where(ends[:, 2] > 0, ends[:, 2], np.nan)
-        u, v = distorted_pixels(ends[:, 0] / z, ends[:, 1] / z, K, terms, tilt)
+    u, v, _ = image_coordinates(segments.reshape(-1, 3), view)
     length = np.hypot(u[0::2] - u[1::2], v[0::2] - v[1::2])
     count = np.where(np.isfinite(length), np.ceil(length) + 1, 2).astype(np.intp)
     np.clip(count, 2, MAX_SAMPLES_PER_SEGMENT, out=count)
@@ -460,17 +465,11 @@ def segment_samples(segments: np.ndarray, view: CameraModel) -> tuple[np.ndarray
 
 def _seen_past(samples: np.ndarray, camera: CameraModel, depth: np.ndarray, tolerance_mm: float) -> np.ndarray:
     """Samples in front of the camera's measured depth by more than the tolerance: free space for that camera."""
-    device = rigid_transform(samples, np.asarray(camera.R), np.asarray(camera.t))
-    z = device[:, 2]
-    with np.errstate(divide="ignore", invalid="ignore"):
-        zz = np.where(z > 0, z, np.nan)
-        terms, tilt = opencv_distortion_terms(camera.dist)
-        u, v = distorted_pixels(device[:, 0] / zz, device[:, 1] / zz, np.asarray(camera.K), terms, tilt)
-    column, row = np.rint(u), np.rint(v)
-    inside = (column >= 0) & (column < camera.width) & (row >= 0) & (row < camera.height) & (z > 0)
+    u, v, z = image_coordinates(samples, camera)
+    pixel = nearest_pixel_index(u, v, camera.width, camera.height)
     seen = np.zeros(len(samples), dtype=bool)
-    at = np.flatnonzero(inside)
-    measured = depth[row[at].astype(np.intp), column[at].astype(np.intp)]
+    at = np.flatnonzero(pixel >= 0)
+    measured = depth.ravel()[pixel[at]]
     # +inf (nothing measured there) is unknown, not seen past
     seen[at] = np.isfinite(measured) & (z[at] < measured - tolerance_mm)
     return seen

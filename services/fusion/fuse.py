@@ -17,7 +17,7 @@ import numpy as np
 from services.geometry.camera_model import CameraModel
 from services.geometry.distortion import distorted_pixels, opencv_distortion_terms
 from services.geometry.rigid import rigid_transform
-from services.fusion.carving import UnseenSpace, occluder_samples
+from services.fusion.carving import UnseenSpace, image_coordinates, occluder_samples
 from services.fusion.visibility import (
     SAMPLE_FOOTPRINTS, background_depth, depth_gradient, depth_tolerance, fill_empty_pixels, footprint_radius,
     nearest_depth_around, nearest_pixel_index, splat_nearest, within_tolerance,
@@ -224,12 +224,9 @@ def _sample_view(count: int, points_of: Rows, normals_of: Rows, view: ThermalVie
         stencils.append((far, SAMPLE_FOOTPRINTS + np.sqrt(2) * reach))
     guarded = None
     if unseen is not None:  # occluders for a second visibility test, not surfaces for the mixed-pixel test above
-        skirts = rigid_transform(occluder_samples(unseen, device, depth_tolerance_mm), R, t)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            z = np.where(skirts[:, 2] > 0.0, skirts[:, 2], np.nan)
-            u, v = distorted_pixels(skirts[:, 0] / z, skirts[:, 1] / z, K, terms, tilt)
+        u, v, z = image_coordinates(occluder_samples(unseen, device, depth_tolerance_mm), device)
         guarded = buffer.copy()
-        splat_nearest(guarded.ravel(), nearest_pixel_index(u, v, device.width, device.height), skirts[:, 2])
+        splat_nearest(guarded.ravel(), nearest_pixel_index(u, v, device.width, device.height), z)
         guarded = fill_empty_pixels(guarded)
         guarded_nearest = nearest_depth_around(guarded, occlusion_margin_px).ravel() if occlusion_margin_px > 0 else None
         guarded = guarded.ravel()
