@@ -112,8 +112,10 @@ def corner_errors(objects: list[np.ndarray], corners: list[np.ndarray], truth: l
 
     ``rms_px``: over every corner; ``board_fixed_squares``: the RMS over the board's corners of each corner's
     error in the board frame (the error mapped through the local inverse of the true board-to-image Jacobian,
-    in squares) averaged over the views, i.e. the part shared by every view, which no view resampling sees;
-    ``board_fixed_noise_squares``: what that average would be from the views' scatter alone.
+    in squares) averaged over the views, less the similarity of the board that fits these means best (a
+    scale, rotation or shift of the whole board is taken up by the poses), i.e. the part shared by every view
+    that no view resampling sees; ``board_fixed_noise_squares``: what that would be from the views' scatter
+    alone.
     """
     errors, keys = [], []
     for obj, found, true in zip(objects, corners, truth):
@@ -129,7 +131,15 @@ def corner_errors(objects: list[np.ndarray], corners: list[np.ndarray], truth: l
         for key, error in zip(view_keys, view_errors):
             per_corner.setdefault(key, []).append(error)
     means = np.array([np.mean(v, axis=0) for v in per_corner.values()])
-    noise = np.array([np.std(v, axis=0) / np.sqrt(len(v)) for v in per_corner.values() if len(v) > 1])
+    # a similarity of the board (scale, rotation, shift) is taken up by the poses: only the rest is an error
+    where = np.array(list(per_corner), np.float64)
+    design = np.block([[where[:, :1], -where[:, 1:], np.ones((len(where), 1)), np.zeros((len(where), 1))],
+                       [where[:, 1:], where[:, :1], np.zeros((len(where), 1)), np.ones((len(where), 1))]])
+    stacked = np.concatenate([means[:, 0], means[:, 1]])
+    rest = stacked - design @ np.linalg.lstsq(design, stacked, rcond=None)[0]
+    means = np.column_stack([rest[:len(where)], rest[len(where):]])
+    kept_share = np.sqrt(max(2 * len(where) - 4, 1) / (2 * len(where)))
+    noise = kept_share * np.array([np.std(v, axis=0) / np.sqrt(len(v)) for v in per_corner.values() if len(v) > 1])
     residual = np.concatenate([np.asarray(f, np.float64) - np.asarray(t) for f, t in zip(corners, truth)])
     return {"rms_px": float(np.sqrt(np.mean(np.sum(residual**2, axis=1)))),
             "board_fixed_squares": float(np.sqrt(np.mean(np.sum(means**2, axis=1)))),

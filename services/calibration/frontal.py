@@ -10,8 +10,8 @@ import numpy as np
 
 from services.calibration.camera import CameraCalibration, DistortionModel, calibrate_camera
 
-FRONTAL_UPSAMPLING = 3.0  # frontal square = 3x the imaged corner spacing ...
-FRONTAL_SQUARE_PX = (24.0, 64.0)  # ... within these bounds (fine enough for sub-pixel work, small enough to be cheap)
+FRONTAL_UPSAMPLING = 3.0  # frontal square = 3x the median imaged corner spacing ...
+FRONTAL_SQUARE_PX = (24.0, 256.0)  # ... within these bounds (the cap bounds the cost; at 64 px it was coarser than large sharp views)
 _CRITERIA = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 100, 1e-4)
 
 
