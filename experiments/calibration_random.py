@@ -7,10 +7,14 @@ only calibrates; a run split over processes is summarised with ``--summarise ROW
     nice -n 10 .venv/bin/python experiments/calibration_random.py --seeds 100-149 --cache /tmp/calib-random
     nice -n 10 .venv/bin/python experiments/calibration_random.py --thermal16 --seeds 1100-1149 --cache /tmp/calib-random
 
-Seeds. TUNING (used to choose the sigma rule and the "poorly determined" limits; never reported):
-random population 0-99, thermal 320x256 population 1000-1099 (issue 35's rule was chosen on all of these).
-REPORTING: random population 100-149 and 150-199, thermal 320x256 population 1100-1149 and 1150-1249 (the
-previous sigma rule); random 200-249 and thermal 1250-1349 (issue 35's rule, never used before).
+Seeds. TUNING (used to choose the sigma rule, the board-frame corners and the "poorly determined" limits; never
+reported): random population 0-99, thermal 320x256 population 1000-1099 (issue 35's rule was chosen on all of
+these). REPORTING: random population 100-149 and 150-199, thermal 320x256 population 1100-1149 and 1150-1249
+(the previous sigma rule); random 200-249 and thermal 1250-1349 (issue 35's rule, never used before); random
+250-299 and thermal 1350-1449 (the flattened board-frame corners, never used before).
+
+The cache keeps the true corners (``truth``), from which each row's ``corner_error`` says how far the corners the
+calibration used lie from them and how much of that every view shares (``corner_errors``).
 
 The rows (``--rows-out``) keep, per camera, the chosen and the standard lens model's estimates, Jacobian sigmas
 and delete-one-view replicates, so the sigma rules of ``RULES`` are compared from them (``--summarise``)

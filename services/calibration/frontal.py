@@ -166,22 +166,24 @@ def refine_corners_frontal(image: np.ndarray, object_points: np.ndarray, image_p
 def calibrate_with_frontal_refinement(images: Sequence[np.ndarray], object_points: Sequence[np.ndarray],
                                       image_points: Sequence[np.ndarray], image_size: tuple[int, int],
                                       distortion: DistortionModel, square_mm: float,
-                                      window_fraction: float) -> tuple[CameraCalibration, list[np.ndarray]]:
+                                      window_fraction: float,
+                                      flatten: bool = True) -> tuple[CameraCalibration, list[np.ndarray]]:
     """Calibrate, refine the kept views' corners in the board frame with that calibration, calibrate again, and
     keep the board-frame corners only if they fit the camera better.
 
     Returns the calibration and every view's corners (rejected views keep theirs). The board-frame corners are
     kept when their reprojection RMS is not above the image corners' (same views, same lens model): on
-    simulated hollow-board views they lower it and remove a focal length bias, on the real SLStudio and OpenCV
-    sample images they raise it (0.282 -> 0.301 px, 0.176 -> 0.187 px) and are not used. One pass suffices: a
-    second changed the focal length by under 0.002 % on the tuning cameras.
+    simulated hollow-board views they lower it and remove a focal length bias, on OpenCV's real sample images
+    they raise it (0.176 -> 0.188 px) and are not used. One pass suffices: a second changed the focal length by
+    under 0.002 % on the tuning cameras. ``flatten`` (``flatten_squares``) is for plain chessboards: a ChArUco
+    board's light squares carry markers, whose level is no light square's.
     """
     first = calibrate_camera(list(object_points), list(image_points), image_size, distortion, jackknife=False)
     refined = [np.asarray(p, np.float64) for p in image_points]
     for position, view in enumerate(first.views):
         refined[view] = refine_corners_frontal(images[view], object_points[view], image_points[view], first.K,
                                                first.dist, first.rotations[position], first.translations[position],
-                                               square_mm, window_fraction)
+                                               square_mm, window_fraction, flatten)
     second = calibrate_camera(list(object_points), refined, image_size, distortion)
     if second.rms <= first.rms:
         return second, refined
