@@ -7,10 +7,14 @@ only calibrates; a run split over processes is summarised with ``--summarise ROW
     nice -n 10 .venv/bin/python experiments/calibration_random.py --seeds 100-149 --cache /tmp/calib-random
     nice -n 10 .venv/bin/python experiments/calibration_random.py --thermal16 --seeds 1100-1149 --cache /tmp/calib-random
 
-Seeds. TUNING (used to choose the sigma rule and the "poorly determined" limits; never reported):
-random population 0-99, thermal 320x256 population 1000-1099 (issue 35's rule was chosen on all of these).
-REPORTING: random population 100-149 and 150-199, thermal 320x256 population 1100-1149 and 1150-1249 (the
-previous sigma rule); random 200-249 and thermal 1250-1349 (issue 35's rule, never used before).
+Seeds. TUNING (used to choose the sigma rule, the board-frame corners and the "poorly determined" limits; never
+reported): random population 0-99, thermal 320x256 population 1000-1099 (issue 35's rule was chosen on all of
+these). REPORTING: random population 100-149 and 150-199, thermal 320x256 population 1100-1149 and 1150-1249
+(the previous sigma rule); random 200-249 and thermal 1250-1349 (issue 35's rule, never used before); random
+250-299 and thermal 1350-1449 (the flattened board-frame corners, never used before).
+
+The cache keeps the true corners (``truth``), from which each row's ``corner_error`` says how far the corners the
+calibration used lie from them and how much of that every view shares (``corner_errors``).
 
 The rows (``--rows-out``) keep, per camera, the chosen and the standard lens model's estimates, Jacobian sigmas
 and delete-one-view replicates, so the sigma rules of ``RULES`` are compared from them (``--summarise``)
@@ -75,12 +79,14 @@ def corners(seed: int, thermal16: bool, cache: Path) -> dict:
     found = [i for i, d in enumerate(detections) if d is not None]
     objects = [session.board.object_points()[detections[i].ids] for i in found]
     raw = [detections[i].image_points for i in found]
+    truth = [cv2.projectPoints(o, cv2.Rodrigues(session.poses[i][0])[0], session.poses[i][1], session.K,
+                               session.dist)[0].reshape(-1, 2) for o, i in zip(objects, found)]
     record = dict(modality=session.modality, size=np.array(session.image_size), K=session.K, dist=session.dist,
                   pattern=np.array(session.board.pattern_size), square=session.board.square_mm,
                   views=len(session.images), blur=session.blur_sigma, noise=session.noise_sigma, found=len(found))
     if len(found) >= 4:
         record.update(objects=np.array(objects, dtype=object), raw=np.array(raw, dtype=object),
-                      images=np.array([session.images[i] for i in found]))
+                      truth=np.array(truth, dtype=object), images=np.array([session.images[i] for i in found]))
     cache.mkdir(parents=True, exist_ok=True)
     np.savez(path, **record)
     return {key: np.asarray(value) for key, value in record.items()}
@@ -102,6 +108,46 @@ def distortion_error_px(K_true, dist_true, K, dist, size) -> float:
     true = cv2.projectPoints(rays, np.zeros(3), np.zeros(3), np.eye(3), dist_true)[0].reshape(-1, 2)
     estimated = cv2.projectPoints(rays, np.zeros(3), np.zeros(3), np.eye(3), np.asarray(dist, float))[0].reshape(-1, 2)
     return float(np.max(np.linalg.norm(estimated - true, axis=1)) * K_true[0, 0])
+
+
+def corner_errors(objects: list[np.ndarray], corners: list[np.ndarray], truth: list[np.ndarray],
+                  square_mm: float) -> dict[str, float]:
+    """How far the corners a calibration used lie from the simulator's true corners.
+
+    ``rms_px``: over every corner; ``board_fixed_squares``: the RMS over the board's corners of each corner's
+    error in the board frame (the error mapped through the local inverse of the true board-to-image Jacobian,
+    in squares) averaged over the views, less the similarity of the board that fits these means best (a
+    scale, rotation or shift of the whole board is taken up by the poses), i.e. the part shared by every view
+    that no view resampling sees; ``board_fixed_noise_squares``: what that would be from the views' scatter
+    alone.
+    """
+    errors, keys = [], []
+    for obj, found, true in zip(objects, corners, truth):
+        obj, found, true = (np.asarray(a, np.float64) for a in (obj, found, true))
+        homography = cv2.findHomography(obj[:, :2], true)[0]  # local Jacobian of the board-to-image map
+        h = homography @ np.column_stack([obj[:, :2], np.ones(len(obj))]).T
+        jacobians = (homography[:2, :2][None] * h[2][:, None, None] - np.einsum("in,j->nij", h[:2], homography[2, :2]))
+        jacobians /= (h[2] ** 2)[:, None, None]
+        errors.append(np.einsum("nij,nj->ni", np.linalg.inv(jacobians), found - true) / square_mm)
+        keys.append([tuple(k) for k in np.round(obj[:, :2] / square_mm).astype(int)])
+    per_corner: dict[tuple, list] = {}
+    for view_keys, view_errors in zip(keys, errors):
+        for key, error in zip(view_keys, view_errors):
+            per_corner.setdefault(key, []).append(error)
+    means = np.array([np.mean(v, axis=0) for v in per_corner.values()])
+    # a similarity of the board (scale, rotation, shift) is taken up by the poses: only the rest is an error
+    where = np.array(list(per_corner), np.float64)
+    design = np.block([[where[:, :1], -where[:, 1:], np.ones((len(where), 1)), np.zeros((len(where), 1))],
+                       [where[:, 1:], where[:, :1], np.zeros((len(where), 1)), np.ones((len(where), 1))]])
+    stacked = np.concatenate([means[:, 0], means[:, 1]])
+    rest = stacked - design @ np.linalg.lstsq(design, stacked, rcond=None)[0]
+    means = np.column_stack([rest[:len(where)], rest[len(where):]])
+    kept_share = np.sqrt(max(2 * len(where) - 4, 1) / (2 * len(where)))
+    noise = kept_share * np.array([np.std(v, axis=0) / np.sqrt(len(v)) for v in per_corner.values() if len(v) > 1])
+    residual = np.concatenate([np.asarray(f, np.float64) - np.asarray(t) for f, t in zip(corners, truth)])
+    return {"rms_px": float(np.sqrt(np.mean(np.sum(residual**2, axis=1)))),
+            "board_fixed_squares": float(np.sqrt(np.mean(np.sum(means**2, axis=1)))),
+            "board_fixed_noise_squares": float(np.sqrt(np.mean(np.sum(noise**2, axis=1))))}
 
 
 def evaluate(seed: int, thermal16: bool, cache: Path) -> dict | None:
@@ -150,6 +196,8 @@ def evaluate(seed: int, thermal16: bool, cache: Path) -> dict | None:
         "truth": {name: float(truth.get(name, 0.0)) for name in INTRINSIC_NAMES},
         "models": models,
     }
+    if "truth" in data:  # caches written before the true corners were kept have none
+        row["corner_error"] = corner_errors(objects, refined, list(data["truth"]), float(data["square"]))
     if thermal16:
         objects32 = [o.astype(np.float32) for o in objects]
         raw = [np.asarray(p, np.float32) for p in data["raw"]]
@@ -253,6 +301,18 @@ def summary(rows: list[dict], title: str) -> None:
                            ("stock_c_error_px", "stock OpenCV principal point (px)")):
             values = np.array([r[key] for r in good])
             print(f"| {label} | {np.median(values):.3f} | {np.percentile(values, 95):.3f} | {values.max():.3f} |")
+    with_truth = [r for r in good if "corner_error" in r]
+    if with_truth:
+        print("\n| corners used against the true corners | median | 95th percentile |\n|---|---|---|")
+        for key, label in (("rms_px", "RMS error (px)"),
+                           ("board_fixed_squares", "shared by every view: board-frame mean per corner (squares)"),
+                           ("board_fixed_noise_squares", "its noise level from the views' scatter (squares)")):
+            values = np.array([r["corner_error"][key] for r in with_truth])
+            print(f"| {label} | {np.median(values):.5f} | {np.percentile(values, 95):.5f} |")
+    bias = {name: [r["errors"][name] / r["std"][name] for r in good if name in r["errors"]] for name in ("fx", "fy", "cx", "cy")}
+    print("\n| error / reported sigma | " + " | ".join(bias) + " |\n|---" + "|---" * len(bias) + "|")
+    print("| mean (its standard error) | " + " | ".join(f"{np.mean(v):+.2f} ({np.std(v) / np.sqrt(len(v)):.2f})"
+                                                    for v in bias.values()) + " |")
     groups = {"f (fx, fy)": ("fx", "fy"), "principal point (cx, cy)": ("cx", "cy"),
               "distortion terms": ("k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6")}
     print("\n| parameter | sigma covers 1.645 sigma: reported | without the lens-model term | Jacobian only "

@@ -128,7 +128,7 @@ def calibrate_camera_views(*, images: Sequence[LabelledImage], board: BoardSpec,
         window = select_corner_window([image for _, image in images], image_points, object_points, size, distortion)
         result, image_points = calibrate_with_frontal_refinement(
             [image for _, image in images], object_points, window.image_points, size, distortion, board.square_mm,
-            window.fraction)
+            window.fraction, flatten=board.type == "chessboard")
     else:
         result = calibrate_camera(object_points, image_points, size, distortion)
     names = [label for label, _ in images]
