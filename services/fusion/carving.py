@@ -249,22 +249,35 @@ def unseen_space(points: np.ndarray, witnesses: Sequence[Witness], jump_mm: floa
     pixels = np.full((len(points), 3), -1, dtype=np.intp)
     finite = np.isfinite(points).all(axis=1)
     rows_of, located = [], []
+    # with coarser images, one measured point per block of the witness's own pixels draws its depth maps
+    sampled = np.ones(len(points), dtype=bool)
+    if factor > 1:
+        for witness in witnesses:
+            if witness.pixels is not None:
+                column, row = np.rint(np.asarray(witness.pixels, dtype=np.float64)).T
+                with np.errstate(invalid="ignore"):
+                    on_grid = (np.mod(column, factor) == 0) & (np.mod(row, factor) == 0)
+                sampled[slice(None) if witness.rows is None else witness.rows] &= on_grid
     witnesses = [Witness(coarser(witness.camera, factor), witness.rows, witness.skirts,
                          None if witness.pixels is None else (np.asarray(witness.pixels, dtype=np.float64) + 0.5) / factor - 0.5)
                  for witness in witnesses]
     for witness in witnesses:
         rows = np.arange(len(points)) if witness.rows is None else np.asarray(witness.rows, dtype=np.intp)
         keep = finite[rows]
-        if witness.pixels is None:
-            pixel = _pixel_index(points[rows[keep]], witness.camera)
+        if witness.pixels is None:  # located for its depth map alone
+            rows = rows[keep]
+            rows = rows[sampled[rows]]
+            pixel = _pixel_index(points[rows], witness.camera)
         else:
             u, v = witness.pixels[keep].T
             pixel = nearest_pixel_index(u, v, witness.camera.width, witness.camera.height)
-        rows_of.append(rows[keep])
+            rows = rows[keep]
+        rows_of.append(rows)
         located.append(pixel)
     maps = []
     for rows, pixel, witness in zip(rows_of, located, witnesses):
-        depth = depth_map(points[rows], witness.camera, pixel)
+        drawn = sampled[rows]
+        depth = depth_map(points[rows[drawn]], witness.camera, pixel[drawn])
         if not witness.skirts:
             # a projector finer than the camera gets the camera's points on every other pixel or so: the gaps
             # between them take the nearest depth around (less free space, never more)

@@ -117,9 +117,9 @@ def temperature_field(
     points_of, normals_of = _cloud_rows(cloud, viewpoint)
     unseen = None
     if witnesses:
-        # the witnesses' images at (at least) two pixels per thermal pixel: cameras finer than that add work alone
+        # the witnesses' images at about two pixels per thermal pixel: cameras finer than that add work alone
         ratio = min(witness.camera.K[0, 0] / view.device.K[0, 0] for witness in witnesses for view in views)
-        unseen = unseen_space(np.column_stack(_coordinates(cloud)), witnesses, factor=max(1, int(ratio // 2)))
+        unseen = unseen_space(np.column_stack(_coordinates(cloud)), witnesses, factor=max(1, round(ratio / 2)))
     fused = fuse_rows(len(cloud), points_of, normals_of, views, max_view_angle_deg, unseen=unseen)
     temperature = fused.temperature
     if unseen is not None:
