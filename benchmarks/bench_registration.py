@@ -143,24 +143,32 @@ def command_against_simpleitk(repeats: int) -> None:
         print(f"| {label} | {wall:.3f} | {cpu:.3f} | {wall / reference['wall']:.2f} | {cpu / reference['cpu']:.2f} |")
 
 
+def _written_moved_pairs(work: Path):
+    """The reporting half's TNO pairs, each infrared image moved on its own canvas (the seeded similarity of
+    ``moved_image``), written to ``work/vi.png`` and ``work/ir.png``: (number, visible, infrared, moved, mask)."""
+    import cv2
+
+    from experiments.registration_real import REPORTING, load_pair
+    from services.registration.synthetic_pairs import moved_image
+
+    for number in REPORTING:
+        visible, infrared = load_pair(number)
+        moved, mask, _ = moved_image(np.random.default_rng([0, number]), infrared)
+        for name, image in (("vi.png", visible), ("ir.png", moved)):
+            cv2.imwrite(str(work / name), image)
+        yield number, visible, infrared, moved, mask
+
+
 def tno_commands_against_simpleitk(repeats: int) -> None:
     """Whole `thermofield register` processes against SimpleITK in-process on the moved TNO pairs of the
     reporting half."""
-    import cv2
-
     from benchmarks.bench_commands import ROOT, _thermofield, child_environment
-    from experiments.registration_real import REPORTING, load_pair
-    from services.registration.synthetic_pairs import moved_image
 
     env = child_environment(PYTHONPATH=str(ROOT))
     rows = []
     with tempfile.TemporaryDirectory() as scratch:
         work = Path(scratch)
-        for number in REPORTING:
-            visible, infrared = load_pair(number)
-            moved, mask, _ = moved_image(np.random.default_rng([0, number]), infrared)
-            for name, image in (("vi.png", visible), ("ir.png", moved)):
-                cv2.imwrite(str(work / name), image)
+        for number, visible, infrared, moved, mask in _written_moved_pairs(work):
             command = _thermofield("register", "--fixed", work / "vi.png", "--moving", work / "ir.png",
                                    "--out", work / "reg.json")
             commands, references = [], []
@@ -188,22 +196,14 @@ def tno_commands_against_simpleitk(repeats: int) -> None:
 def tno_commands_against_baseline(repeats: int, baseline: Path) -> None:
     """Whole `thermofield register` processes of this checkout against those of ``baseline`` on the moved TNO
     pairs of the reporting half, alternating; wall-clock and CPU medians per pair and their ratios."""
-    import cv2
-
     from benchmarks.bench_commands import ROOT, child_environment
-    from experiments.registration_real import REPORTING, load_pair
-    from services.registration.synthetic_pairs import moved_image
 
     if not (baseline / "services" / "cli" / "main.py").is_file():
         raise SystemExit(f"--baseline {baseline}: not a checkout of the project (no services/cli/main.py)")
     rows = []
     with tempfile.TemporaryDirectory() as scratch:
         work = Path(scratch)
-        for number in REPORTING:
-            visible, infrared = load_pair(number)
-            moved, _, _ = moved_image(np.random.default_rng([0, number]), infrared)
-            for name, image in (("vi.png", visible), ("ir.png", moved)):
-                cv2.imwrite(str(work / name), image)
+        for number, visible, infrared, moved, _ in _written_moved_pairs(work):
             times: dict[Path, dict[str, list[float]]] = {root: {"wall": [], "cpu": []} for root in (ROOT, baseline)}
             for _ in range(repeats):
                 for root in (ROOT, baseline):
