@@ -34,7 +34,9 @@ depth by at most this many pixel footprints."""
 DEFAULT_HOLE_REACH_PX = 16
 """How far (pixels) from a pixel without a point the depths around it are taken to bound what the hole hides."""
 MAX_SAMPLES_PER_SEGMENT = 2048
+"""A bound on one skirt's samples in a thermal view (a skirt seen end-on from behind the camera)."""
 PROJECTOR_GAP_PX = 2
+"""The gaps between the camera's points in a finer projector's depth map that its nearest depth fills."""
 
 
 @dataclass(frozen=True)
@@ -56,8 +58,11 @@ class Witness:
 
 @dataclass(frozen=True)
 class UnseenSpace:
-    """Skirts of the space the witnesses could not see: (M, 2, 3) world segments, and each witness's depth map
-    (its z-buffer of the cloud, +inf where no point fell), to carve the skirts by the other witnesses."""
+    """The space the witnesses could not see into: its skirts, (M, 2, 3) world segments, and the index of the
+    witness each comes from (M,); each witness's model and depth map (its z-buffer of the cloud, +inf where no
+    point fell), to carve a skirt by the other witnesses; the smooth surface each cloud point lies on (N,),
+    numbered across the witnesses (-1 where none), and its witness, row and column in that witness's image
+    (N, 3; -1 where none), over which :func:`restore_consistent` compares readings."""
 
     segments: np.ndarray
     owners: np.ndarray
