@@ -7,6 +7,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
+from services.fusion.radiometry import KELVIN_OFFSET
 from services.inspection.materials import Material
 from services.inspection.point_rows import column_mean, finite_rows
 
@@ -159,6 +160,11 @@ def cold_equivalent(points: np.ndarray, temperature: np.ndarray, material: Mater
     fallback = ~np.isfinite(temperature)
     used = temperature.copy()
     used[fallback] = neighbourhood_temperature(points, temperature, trend, np.flatnonzero(fallback))
+    if fallback.any() and not np.all(used[fallback] > -KELVIN_OFFSET):
+        raise ValueError(f"The part's temperature trend, fitted to its {int((~fallback).sum())} points with a "
+                         f"temperature, falls below absolute zero where it is carried to the "
+                         f"{int(fallback.sum())} without one: too few of the part's points have a temperature "
+                         f"to make it cold-equivalent.")
     strain = material.mean_strain(float(trend[0] + centre @ trend[1:]), used)
     cold = points - centre
     cold /= (1 + strain)[:, None]

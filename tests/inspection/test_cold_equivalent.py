@@ -79,3 +79,15 @@ def test_points_without_a_temperature_take_their_neighbourhood_s_not_the_trend_s
     alone = neighbourhood_temperature(np.vstack([points, far]), np.append(temperature, np.nan), trend,
                                       np.array([len(points)]))
     assert alone[0] == pytest.approx(far[0] @ trend[1:] + trend[0])  # nobody within 25 mm: the trend
+
+
+def test_a_trend_carried_below_absolute_zero_is_refused_in_a_sentence():
+    """A few readings clustered at one end of a long part, falling 20 K a millimetre: carried to the far end the
+    trend gives temperatures below absolute zero, which is no reason to make the part cold-equivalent."""
+    points = np.column_stack([np.linspace(0.0, 300.0, 301), np.zeros(301), np.zeros(301)])
+    points[:, 1] = np.sin(points[:, 0])  # not all on a line: the trend's fit is well posed
+    points[:, 2] = np.cos(points[:, 0] / 7.0)
+    temperature = np.full(301, np.nan)
+    temperature[:20] = 1000.0 - 20.0 * points[:20, 0]
+    with pytest.raises(ValueError, match="falls below absolute zero .* too few of the part's points have a temperature"):
+        cold_equivalent(points, temperature, STEEL)
