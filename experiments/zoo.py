@@ -70,6 +70,17 @@ RESULT_VERSION = 1
 _BEGIN, _END = "<!-- zoo-table:begin -->", "<!-- zoo-table:end -->"
 
 
+def cached_scene_parser(description: str, modes: tuple[str, ...]) -> argparse.ArgumentParser:
+    """The arguments of the scripts that study this script's cached scenes (zoo_alignment, zoo_segmentation):
+    a mode, --seeds, --json and --cache."""
+    parser = argparse.ArgumentParser(description=description)
+    parser.add_argument("mode", choices=modes)
+    parser.add_argument("--seeds", required=True, help="seeds and ranges, e.g. 0-99 or 1006,1020")
+    parser.add_argument("--json", required=True, type=Path)
+    parser.add_argument("--cache", type=Path, default=None, help="experiments/zoo.py's cache (default its own)")
+    return parser
+
+
 def parse_seeds(text: str) -> list[int]:
     """``1000-1199,1300`` -> [1000, ..., 1199, 1300]."""
     seeds: list[int] = []

@@ -19,7 +19,6 @@ by the truth; symmetric poses count as right) and the process CPU seconds spent 
 
 from __future__ import annotations
 
-import argparse
 import glob
 import json
 import pickle
@@ -144,11 +143,7 @@ def views(seeds: list[int], with_normals: bool) -> list[dict]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("mode", choices=("fields", "views"))
-    parser.add_argument("--seeds", required=True, help="seeds and ranges, e.g. 0-99 or 1006,1020")
-    parser.add_argument("--json", required=True, type=Path)
-    parser.add_argument("--cache", type=Path, default=None, help="experiments/zoo.py's cache (default its own)")
+    parser = zoo_script.cached_scene_parser(__doc__.splitlines()[0], ("fields", "views"))
     parser.add_argument("--without-normals", action="store_true", help="views: align without the normals")
     args = parser.parse_args(argv)
     seeds = zoo_script.parse_seeds(args.seeds)

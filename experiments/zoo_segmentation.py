@@ -15,7 +15,6 @@ per angle the verdict, the extreme surface cells and the report's ``segmentation
 
 from __future__ import annotations
 
-import argparse
 import functools
 import glob
 import json
@@ -116,11 +115,7 @@ def angles(seeds: list[int], cache: Path, bounds: tuple[float, ...] = (45.0, 60.
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("mode", choices=("cpu", "angles"))
-    parser.add_argument("--seeds", required=True, help="seeds and ranges, e.g. 0-99")
-    parser.add_argument("--json", required=True, type=Path)
-    parser.add_argument("--cache", type=Path, default=None, help="experiments/zoo.py's cache (default its own)")
+    parser = zoo_script.cached_scene_parser(__doc__.splitlines()[0], ("cpu", "angles"))
     args = parser.parse_args(argv)
     seeds = zoo_script.parse_seeds(args.seeds)
     cache = args.cache or zoo_script.default_cache()
